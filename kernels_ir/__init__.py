@@ -1,0 +1,121 @@
+"""The CUDA traversal kernels and the instruction cost of their blocks (KernelIR).
+
+The JSON files under ``kernels_ir/ir`` are generated from the kernels' SASS by
+``python -m kernels_ir build`` (needs the ``cuda-toolchain`` extra) and committed, so
+:func:`load` needs no CUDA toolchain.
+"""
+
+from __future__ import annotations
+
+import json
+from importlib import resources
+
+import pandas as pd
+
+from kernels_ir.build import ARCHS, KERNELS
+from kernels_ir.kernel_ir import BLOCKS, CLASSES, REQUIRED_BLOCKS, KernelIR
+from simt_sim.errors import SimtSimError
+
+__all__ = [
+    "ARCHS",
+    "BLOCKS",
+    "CLASSES",
+    "KERNELS",
+    "REQUIRED_BLOCKS",
+    "KernelIR",
+    "available",
+    "format_ir_table",
+    "load",
+    "summary_table",
+]
+
+
+def _ir_files() -> dict[tuple[str, str], resources.abc.Traversable]:
+    found = {}
+    for entry in resources.files("kernels_ir").joinpath("ir").iterdir():
+        name = entry.name
+        if name.endswith(".json") and name.count(".") == 2:
+            kernel, arch, _ = name.split(".")
+            found[(kernel, arch)] = entry
+    return found
+
+
+def _order(pair: tuple[str, str]) -> tuple[int, int, str, str]:
+    kernel, arch = pair
+    k = KERNELS.index(kernel) if kernel in KERNELS else len(KERNELS)
+    a = ARCHS.index(arch) if arch in ARCHS else len(ARCHS)
+    return (k, a, kernel, arch)
+
+
+def available() -> list[tuple[str, str]]:
+    """Every committed (kernel, arch) pair, kernels and archs in their canonical order."""
+    return sorted(_ir_files(), key=_order)
+
+
+def load(kernel: str, arch: str = "sm_90") -> KernelIR:
+    """The committed KernelIR of ``kernel`` compiled for ``arch``.
+
+    Raises
+    ------
+    SimtSimError
+        If no IR exists for that pair (the message lists the kernels and archs that do).
+    """
+    files = _ir_files()
+    entry = files.get((kernel, arch))
+    if entry is None:
+        kernels = sorted({k for k, _ in files}, key=lambda k: _order((k, "")))
+        archs = sorted({a for _, a in files}, key=lambda a: _order(("", a)))
+        raise SimtSimError(
+            f"no KernelIR for kernel {kernel!r} arch {arch!r}; kernels: {', '.join(kernels)}; "
+            f"archs: {', '.join(archs)}"
+        )
+    doc = json.loads(entry.read_text())
+    notes = dict(doc.get("notes", {}))
+    spare = {c: n for c, n in doc.get("unattributed", {}).items() if n}
+    notes["unattributed_classes"] = ", ".join(f"{c}={n}" for c, n in spare.items())
+    return KernelIR(
+        kernel=doc["kernel"],
+        arch=doc["arch"],
+        blocks={b: {c: int(n) for c, n in row.items()} for b, row in doc["blocks"].items()},
+        compiler=doc["compiler"],
+        flags=tuple(doc["flags"]),
+        registers=int(doc["registers"]),
+        source_sha256=doc["source_sha256"],
+        notes=notes,
+    )
+
+
+def format_ir_table(ir: KernelIR) -> pd.DataFrame:
+    """Blocks x instruction classes (plus totals) of one KernelIR, blocks in model order.
+
+    This is what ``simt-sim ir show`` and ``python -m kernels_ir show`` print.
+    """
+    rows = [b for b in BLOCKS if b in ir.blocks]
+    table = pd.DataFrame(
+        [[ir.blocks[b].get(c, 0) for c in CLASSES] for b in rows],
+        index=pd.Index(rows, name="block"),
+        columns=list(CLASSES),
+        dtype="int64",
+    )
+    table["total"] = table.sum(axis=1)
+    table.loc["total"] = table.sum(axis=0)
+    return table
+
+
+def summary_table(arch: str = "sm_90") -> pd.DataFrame:
+    """Kernels x blocks: instructions per block execution for every kernel on ``arch``
+    (0 where a kernel lacks the block), plus registers and unattributed instructions."""
+    kernels = [k for k, a in available() if a == arch]
+    if not kernels:
+        raise SimtSimError(f"no KernelIR for arch {arch!r}; archs: {', '.join(ARCHS)}")
+    irs = [load(k, arch) for k in kernels]
+    used = [b for b in BLOCKS if any(b in ir.blocks for ir in irs)]
+    table = pd.DataFrame(
+        [[ir.cost(b) for b in used] for ir in irs],
+        index=pd.Index(kernels, name="kernel"),
+        columns=used,
+        dtype="int64",
+    )
+    table["unattributed"] = [int(ir.notes["unattributed_instructions"]) for ir in irs]
+    table["registers"] = [ir.registers for ir in irs]
+    return table

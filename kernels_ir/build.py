@@ -1,0 +1,205 @@
+"""Compile the CUDA kernels with the PyPI toolchain and write their KernelIR JSON.
+
+``nvcc -cubin -lineinfo`` per (kernel, arch), ``nvdisasm -c -g -gi`` on the cubin, then
+:mod:`kernels_ir.sass` and :mod:`kernels_ir.blocks` turn the listing into per-block
+counts. Everything that goes into a JSON file is a function of the sources, the flags and
+the pinned compiler, so a rebuild is byte for byte identical (``--check`` verifies it).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import re
+import subprocess
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+from kernels_ir.blocks import UNATTRIBUTED, map_blocks, parse_markers
+from kernels_ir.kernel_ir import REQUIRED_BLOCKS
+from kernels_ir.sass import parse_listing
+from simt_sim.errors import SimtSimError
+
+PACKAGE_DIR = Path(__file__).resolve().parent
+CUDA_DIR = PACKAGE_DIR / "cuda"
+IR_DIR = PACKAGE_DIR / "ir"
+HEADER = "common.cuh"
+KERNELS = tuple(REQUIRED_BLOCKS)
+#: targets compiled; sm_75..sm_90 are required, sm_100/sm_120 are the Blackwell parts the
+#: pinned CUDA 13 compiler offers (CUDA 13 dropped everything below sm_75)
+ARCHS = ("sm_75", "sm_80", "sm_86", "sm_89", "sm_90", "sm_100", "sm_120")
+#: nvcc flags besides ``-arch``; ptxas -v reports registers and spills, and any warning
+#: (spills included) fails the build
+FLAGS = (
+    "-cubin",
+    "-O3",
+    "-lineinfo",
+    "-std=c++17",
+    "-Xptxas=-v,-warn-spills,-warn-double-usage",
+    "-Werror=all-warnings",
+)
+_INSTALL_HINT = "install the toolchain with `pip install -e '.[cuda-toolchain]'`"
+
+
+@dataclass(frozen=True)
+class Toolchain:
+    """Paths of the CUDA tools inside the ``nvidia-cuda-*`` wheels, and nvcc's version."""
+
+    nvcc: Path
+    nvdisasm: Path
+    version: str
+
+
+def find_toolchain() -> Toolchain:
+    """Locate nvcc and nvdisasm in the installed wheels (never on PATH, so the version is
+    the pinned one).
+
+    Raises
+    ------
+    SimtSimError
+        If the wheels are not installed.
+    """
+    spec = importlib.util.find_spec("nvidia")
+    roots = list(spec.submodule_search_locations or []) if spec else []
+    for root in roots:
+        bin_dir = Path(root) / "cu13" / "bin"
+        nvcc, nvdisasm = bin_dir / "nvcc", bin_dir / "nvdisasm"
+        if nvcc.is_file() and nvdisasm.is_file():
+            out = _run([str(nvcc), "--version"], CUDA_DIR).stdout
+            release = re.search(r"release [\d.]+, (V[\d.]+)", out)
+            build = re.search(r"^Build (\S+)", out, re.MULTILINE)
+            if not (release and build):
+                raise SimtSimError(f"cannot read the version of {nvcc}; reinstall the wheels")
+            return Toolchain(nvcc, nvdisasm, f"nvcc {release.group(1)} ({build.group(1)})")
+    raise SimtSimError(f"CUDA toolchain not found (nvidia-cuda-nvcc wheel); {_INSTALL_HINT}")
+
+
+def toolchain_available() -> bool:
+    """True when :func:`find_toolchain` would succeed."""
+    try:
+        find_toolchain()
+    except SimtSimError:
+        return False
+    return True
+
+
+def _run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
+    proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        msg = (proc.stderr or proc.stdout).strip().splitlines()
+        raise SimtSimError(f"{Path(cmd[0]).name} failed: {' | '.join(msg[:6])}")
+    return proc
+
+
+def source_sha256(kernel: str) -> str:
+    """sha256 over the kernel's ``.cu`` file followed by the shared header."""
+    h = hashlib.sha256()
+    for name in (f"{kernel}.cu", HEADER):
+        h.update((CUDA_DIR / name).read_bytes())
+    return h.hexdigest()
+
+
+def _ptxas_info(log: str, kernel: str) -> tuple[int, dict[str, str]]:
+    regs = re.search(r"Used (\d+) registers", log)
+    frame = re.search(r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill loads",
+                      log)
+    if not (regs and frame):
+        raise SimtSimError(f"{kernel}: ptxas -v printed no register/spill line; check the flags")
+    notes = {
+        "stack_frame_bytes": frame.group(1),
+        "spill_store_bytes": frame.group(2),
+        "spill_load_bytes": frame.group(3),
+    }
+    return int(regs.group(1)), notes
+
+
+def build_one(kernel: str, arch: str, tools: Toolchain, workdir: Path) -> dict:
+    """Compile, disassemble and map one kernel for one arch; return its JSON document.
+
+    Raises
+    ------
+    SimtSimError
+        On a compiler warning or error, or when a required block gets no instruction.
+    """
+    cubin = workdir / f"{kernel}.{arch}.cubin"
+    cmd = [str(tools.nvcc), f"-arch={arch}", *FLAGS, "-o", str(cubin), f"{kernel}.cu"]
+    proc = _run(cmd, CUDA_DIR)
+    log = proc.stdout + proc.stderr
+    warnings = [ln for ln in log.splitlines() if "warning" in ln.lower()]
+    if warnings:
+        raise SimtSimError(f"{kernel} {arch}: compiler warning: {warnings[0].strip()}")
+    registers, notes = _ptxas_info(log, kernel)
+    listing = _run([str(tools.nvdisasm), "-c", "-g", "-gi", str(cubin)], CUDA_DIR).stdout
+    instructions = [i for i in parse_listing(listing) if i.function == kernel]
+    owner = parse_markers((CUDA_DIR / f"{kernel}.cu").read_text(), f"{kernel}.cu")
+    counts = map_blocks(instructions, owner, f"{kernel}.cu")
+    unattributed = counts.pop(UNATTRIBUTED, {})
+    missing = [b for b in REQUIRED_BLOCKS[kernel] if sum(counts.get(b, {}).values()) <= 0]
+    if missing:
+        raise SimtSimError(f"{kernel} {arch}: no instruction mapped to {', '.join(missing)}")
+    notes["unattributed_instructions"] = str(sum(unattributed.values()))
+    notes["total_instructions"] = str(
+        sum(sum(r.values()) for r in counts.values()) + sum(unattributed.values())
+    )
+    return {
+        "kernel": kernel,
+        "arch": arch,
+        "blocks": counts,
+        "unattributed": unattributed,
+        "compiler": tools.version,
+        "flags": [f"-arch={arch}", *FLAGS],
+        "registers": registers,
+        "source_sha256": source_sha256(kernel),
+        "notes": notes,
+    }
+
+
+def dumps(doc: dict) -> str:
+    """The canonical text of a JSON document (sorted keys, fixed indent, final newline)."""
+    return json.dumps(doc, sort_keys=True, indent=1) + "\n"
+
+
+def build_all(
+    out_dir: Path,
+    kernels: tuple[str, ...] = KERNELS,
+    archs: tuple[str, ...] = ARCHS,
+    jobs: int = 2,
+) -> list[Path]:
+    """Build every (kernel, arch) into ``out_dir/<kernel>.<arch>.json``; return the paths."""
+    tools = find_toolchain()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    pairs = [(k, a) for k in kernels for a in archs]
+    with tempfile.TemporaryDirectory(prefix="kernels_ir_") as tmp:
+
+        def work(pair: tuple[str, str]) -> Path:
+            kernel, arch = pair
+            path = out_dir / f"{kernel}.{arch}.json"
+            path.write_text(dumps(build_one(kernel, arch, tools, Path(tmp))))
+            return path
+
+        with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
+            return list(pool.map(work, pairs))
+
+
+def check(jobs: int = 2) -> list[str]:
+    """Rebuild into a temporary directory and compare with the committed files.
+
+    Returns one line per difference (empty when the committed IR is up to date).
+    """
+    with tempfile.TemporaryDirectory(prefix="kernels_ir_check_") as tmp:
+        fresh = {p.name: p.read_text() for p in build_all(Path(tmp), jobs=jobs)}
+    committed = {p.name: p.read_text() for p in IR_DIR.glob("*.json")}
+    problems = []
+    for name in sorted(set(fresh) | set(committed)):
+        if name not in committed:
+            problems.append(f"{name}: missing from kernels_ir/ir (run `python -m kernels_ir build`)")
+        elif name not in fresh:
+            problems.append(f"{name}: committed but no longer built")
+        elif fresh[name] != committed[name]:
+            new, old = json.loads(fresh[name]), json.loads(committed[name])
+            keys = sorted(k for k in set(new) | set(old) if new.get(k) != old.get(k))
+            problems.append(f"{name}: differs in {', '.join(keys)}")
+    return problems

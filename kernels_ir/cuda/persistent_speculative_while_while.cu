@@ -1,0 +1,98 @@
+// Persistent speculative while-while (Aila & Laine 2009): persistent warps as in
+// persistent_while_while; a lane that reaches a leaf postpones it (at most one) and keeps
+// traversing; the traversal loop ends when every lane still in it holds a postponed
+// leaf, then the postponed leaves (and a leaf the lane stands on) are intersected.
+// Launch: blockDim.x a multiple of 32, any grid; *pool_next = 0 before the launch.
+// any_hit != 0: stop at the first hit.
+#include "common.cuh"
+
+extern "C" __global__ void persistent_speculative_while_while(
+    const float4* __restrict__ nodes, const float4* __restrict__ woop,
+    const int* __restrict__ tri_index, int root, const float4* __restrict__ ray_o,
+    const float4* __restrict__ ray_d, int num_rays, int any_hit, int* __restrict__ hit_tri,
+    float* __restrict__ hit_t, int* __restrict__ pool_next)
+{
+#pragma unroll 1
+    while (true) {
+        // @block pool_fetch
+        int base = 0;
+        if (simt_lane_id() == 0) base = atomicAdd(pool_next, SIMT_WARP_SIZE);
+        base = __shfl_sync(SIMT_FULL_MASK, base, 0);
+        if (base >= num_rays) break;
+        const int ray = base + (int)simt_lane_id();
+        if (ray < num_rays) {
+            // @block ray_setup
+            const Ray r = simt_load_ray(ray_o, ray_d, ray);
+            int stack[SIMT_STACK_SIZE];
+            int sp = 0;
+            stack[0] = SIMT_SENTINEL;
+            // leaf < 0: the postponed leaf; a root leaf starts out postponed
+            int leaf = root < 0 ? root : 0;
+            int node = root < 0 ? SIMT_SENTINEL : root;
+            int hit_addr = -1;
+            float t_best = r.tmax;
+            // @block loop_control
+#pragma unroll 1
+            do {
+                // @block trav_step
+#pragma unroll 1
+                while (simt_is_interior(node)) {
+                    const NodeHit h = simt_intersect_node(nodes, node, r, t_best);
+                    if (h.hit0 && h.hit1) {
+                        // @block trav_both
+                        const bool swap = h.c1min < h.c0min;
+                        node = swap ? h.child1 : h.child0;
+                        stack[++sp] = swap ? h.child0 : h.child1;
+                        // @block trav_step
+                    } else if (h.hit0 || h.hit1) {
+                        // @block trav_one
+                        node = h.hit0 ? h.child0 : h.child1;
+                        // @block trav_step
+                    } else {
+                        // @block trav_none
+                        node = stack[sp--];
+                        // @block trav_step
+                    }
+                    // @block postpone
+                    if (node < 0 && leaf >= 0) {
+                        leaf = node;
+                        node = stack[sp--];
+                    }
+                    // @block trav_step
+                    if (!__any_sync(__activemask(), leaf >= 0)) break;
+                }
+                // @block leaf_entry
+#pragma unroll 1
+                while (leaf < 0) {
+                    int tri = ~leaf;
+                    // @block tri_test
+#pragma unroll 1
+                    for (;; tri += 3) {
+                        const float4 w0 = __ldg(woop + tri);
+                        if (simt_is_tri_end(w0)) break;
+                        float t;
+                        const bool hit = simt_intersect_woop(woop, tri, w0, r, t_best, &t);
+                        // @block tri_hit
+                        if (hit) {
+                            t_best = t;
+                            hit_addr = tri;
+                            if (simt_opaque(any_hit)) {
+                                node = SIMT_SENTINEL;
+                                break;
+                            }
+                        }
+                        // @block tri_test
+                    }
+                    // @block leaf_entry
+                    leaf = node;
+                    if (node < 0) node = stack[sp--];
+                }
+                // @block loop_control
+            } while (node != SIMT_SENTINEL);
+            // @block finish
+            simt_store_hit(tri_index, hit_tri, hit_t, ray, hit_addr, t_best);
+            // @block pool_fetch
+        }
+    }
+    // @end
+}

@@ -1,0 +1,76 @@
+// Wavefront path tracing, stage 2 of 4: trace the extension queue (closest hit) with
+// while-while traversal, one thread per queue entry.
+// Outputs per entry: q_hit_addr = woop float4 index of the hit triangle (-1: miss; the
+// shade stage reads the triangle's plane from it), q_hit_t = t of the hit.
+// Launch: any grid covering the queue's capacity; *q_count entries are traced.
+#include "common.cuh"
+
+extern "C" __global__ void wavefront_extend(const float4* __restrict__ nodes,
+                                            const float4* __restrict__ woop, int root,
+                                            const float4* __restrict__ q_o,
+                                            const float4* __restrict__ q_d,
+                                            const int* __restrict__ q_count,
+                                            int* __restrict__ q_hit_addr,
+                                            float* __restrict__ q_hit_t)
+{
+    // @block ray_setup
+    const int entry = blockIdx.x * blockDim.x + threadIdx.x;
+    if (entry >= *q_count) return;
+    const Ray r = simt_load_ray(q_o, q_d, entry);
+    int stack[SIMT_STACK_SIZE];
+    int sp = 0;
+    stack[0] = SIMT_SENTINEL;
+    int node = root;
+    int hit_addr = -1;
+    float t_best = r.tmax;
+    // @block loop_control
+#pragma unroll 1
+    while (node != SIMT_SENTINEL) {
+        // @block trav_step
+#pragma unroll 1
+        while (simt_is_interior(node)) {
+            const NodeHit h = simt_intersect_node(nodes, node, r, t_best);
+            if (h.hit0 && h.hit1) {
+                // @block trav_both
+                const bool swap = h.c1min < h.c0min;
+                node = swap ? h.child1 : h.child0;
+                stack[++sp] = swap ? h.child0 : h.child1;
+                // @block trav_step
+            } else if (h.hit0 || h.hit1) {
+                // @block trav_one
+                node = h.hit0 ? h.child0 : h.child1;
+                // @block trav_step
+            } else {
+                // @block trav_none
+                node = stack[sp--];
+                // @block trav_step
+            }
+        }
+        // @block leaf_entry
+#pragma unroll 1
+        while (node < 0) {
+            int tri = ~node;
+            node = stack[sp--];
+            // @block tri_test
+#pragma unroll 1
+            for (;; tri += 3) {
+                const float4 w0 = __ldg(woop + tri);
+                if (simt_is_tri_end(w0)) break;
+                float t;
+                const bool hit = simt_intersect_woop(woop, tri, w0, r, t_best, &t);
+                // @block tri_hit
+                if (hit) {
+                    t_best = t;
+                    hit_addr = tri;
+                }
+                // @block tri_test
+            }
+            // @block leaf_entry
+        }
+        // @block loop_control
+    }
+    // @block finish
+    q_hit_addr[entry] = hit_addr;
+    q_hit_t[entry] = t_best;
+    // @end
+}

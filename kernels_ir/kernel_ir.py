@@ -1,0 +1,108 @@
+"""KernelIR: instruction cost of each block of one compiled traversal kernel.
+
+Block names are shared between the CUDA sources' markers, the extracted JSON and the
+SIMT model, which charges a block every time a warp executes it:
+
+=================  ====================================================================
+block              charged when
+=================  ====================================================================
+ray_setup          a lane starts a new ray (load ray, inverse direction, init stack)
+pool_fetch         a warp (persistent) or lane group (dynamic fetch) takes rays from the pool
+loop_control       one iteration of the outer trace loop (termination checks)
+trav_step          a traversal step: node fetch and both child box tests (TRAV_* ops)
+trav_none          ... neither child hit: pop the stack          (TRAV_NONE)
+trav_one           ... one child hit: go there                    (TRAV_ONE)
+trav_both          ... both hit: order them, push the farther     (TRAV_BOTH)
+postpone           speculative: a lane parks the leaf it found and keeps traversing
+leaf_entry         a leaf is entered (LEAF)
+tri_test           one triangle test (TRI_*)
+tri_hit            an accepted hit: shrink tmax / record (TRI_HIT)
+finish             a ray terminates: store its result
+shade              path tracing: shade a hit, sample the next direction
+queue_push         wavefront: append a ray to an output queue
+=================  ====================================================================
+
+Instruction classes: fp32, int, ld_global, st_global, local, shared, control, vote_atomic,
+sfu, other.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+BLOCKS = (
+    "ray_setup",
+    "pool_fetch",
+    "loop_control",
+    "trav_step",
+    "trav_none",
+    "trav_one",
+    "trav_both",
+    "postpone",
+    "leaf_entry",
+    "tri_test",
+    "tri_hit",
+    "finish",
+    "shade",
+    "queue_push",
+)
+CLASSES = (
+    "fp32",
+    "int",
+    "ld_global",
+    "st_global",
+    "local",
+    "shared",
+    "control",
+    "vote_atomic",
+    "sfu",
+    "other",
+)
+TRACE_BLOCKS = (
+    "ray_setup",
+    "loop_control",
+    "trav_step",
+    "trav_none",
+    "trav_one",
+    "trav_both",
+    "leaf_entry",
+    "tri_test",
+    "tri_hit",
+    "finish",
+)
+#: blocks each kernel must have, by kernel (= scheme) name
+REQUIRED_BLOCKS: dict[str, tuple[str, ...]] = {
+    "while_while": TRACE_BLOCKS,
+    "if_if": TRACE_BLOCKS,
+    "persistent_while_while": TRACE_BLOCKS + ("pool_fetch",),
+    "persistent_speculative_while_while": TRACE_BLOCKS + ("pool_fetch", "postpone"),
+    "dynamic_fetch": TRACE_BLOCKS + ("pool_fetch",),
+    "packet": TRACE_BLOCKS,
+    "megakernel": TRACE_BLOCKS + ("shade",),
+    "wavefront_generate": ("ray_setup", "queue_push"),
+    "wavefront_extend": TRACE_BLOCKS,
+    "wavefront_shade": ("shade", "queue_push", "finish"),
+    "wavefront_connect": TRACE_BLOCKS,
+}
+
+
+@dataclass(frozen=True)
+class KernelIR:
+    """Instruction counts per block, split by instruction class, for one kernel and arch.
+
+    ``blocks[block][cls]`` is the number of SASS instructions of class ``cls`` that one
+    execution of ``block`` issues (for a warp: warp instructions).
+    """
+
+    kernel: str
+    arch: str
+    blocks: dict[str, dict[str, int]]
+    compiler: str = ""
+    flags: tuple[str, ...] = ()
+    registers: int = 0
+    source_sha256: str = ""
+    notes: dict[str, str] = field(default_factory=dict)
+
+    def cost(self, block: str) -> int:
+        """Total instructions of one execution of ``block`` (0 if the kernel lacks it)."""
+        return int(sum(self.blocks.get(block, {}).values()))

@@ -1,0 +1,119 @@
+"""Parse nvdisasm listings (``-c -g -gi``) and classify SASS opcodes.
+
+The listing is read as a state machine: a ``//## File "f", line n [inlined at "g", line m
+...]`` annotation applies to every instruction after it until the next annotation. With
+``-gi`` an inlined instruction carries its whole inline chain; the *outermost* location
+(the last one in the chain) is the line of the kernel function that the instruction
+belongs to, which is what the block mapper needs.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from simt_sim.errors import SimtSimError
+
+_FUNC = re.compile(r"^\s*\.text\.(?P<name>[A-Za-z_][\w$.]*):\s*$")
+_LINE = re.compile(r'^\s*//## File "(?P<file>[^"]*)", line (?P<line>\d+)(?P<rest>.*)$')
+_INLINED = re.compile(r'inlined at "(?P<file>[^"]*)", line (?P<line>\d+)')
+_INSN = re.compile(r"^\s*/\*(?P<off>[0-9a-f]{4,})\*/\s+(?P<text>[^;]*);")
+_PRED = re.compile(r"^@!?U?P(?:T|\d+)\s+")
+
+#: exact base opcodes (mnemonic before the first dot) of each class; anything else is "other"
+OPCODE_CLASSES: dict[str, tuple[str, ...]] = {
+    "fp32": (
+        "FADD", "FADD32I", "FMUL", "FMUL32I", "FFMA", "FFMA32I", "FMNMX", "FSETP", "FSET",
+        "FSEL", "FCHK", "FSWZADD", "HFMA2", "HADD2", "HMUL2", "HSETP2", "HMNMX2", "FRND",
+        "F2F", "F2I", "I2F", "I2FP", "F2IP",
+    ),
+    "int": (
+        "IADD", "IADD3", "IADD32I", "IMAD", "IMAD32I", "IMUL", "IMNMX", "VIMNMX", "VIMNMX3",
+        "VIADD", "VIADDMNMX", "ISETP", "ISCADD", "LEA", "LOP", "LOP3", "LOP32I", "SHF",
+        "SHL", "SHR", "MOV", "MOV32I", "SEL", "PRMT", "POPC", "FLO", "BREV", "BMSK", "IABS",
+        "P2R", "R2P", "PLOP3", "PSETP", "S2R", "S2UR", "CS2R", "LDC", "ULDC", "UMOV", "UIADD3",
+        "UIMAD", "ULOP3", "USHF", "USEL", "UISETP", "ULEA", "UPLOP3", "UPRMT", "UFLO", "UPOPC",
+        "UBMSK", "UBREV", "R2UR", "UP2UR", "UR2P", "UVIADD", "UIMNMX", "UVIMNMX",
+    ),
+    "ld_global": ("LDG", "LD", "LDGSTS", "UBLKCP", "LDGDEPBAR"),
+    "st_global": ("STG", "ST"),
+    "local": ("LDL", "STL"),
+    "shared": ("LDS", "STS", "LDSM", "ATOMS"),
+    "control": (
+        "BRA", "BRX", "BRXU", "JMP", "JMX", "JMXU", "BSSY", "BSYNC", "BREAK", "BPT", "EXIT",
+        "RET", "CALL", "WARPSYNC", "BAR", "BMOV", "YIELD", "KILL", "NANOSLEEP", "DEPBAR",
+        "MEMBAR", "ERRBAR", "CCTL", "ACQBULK", "ELECT", "ENDCOLLECTIVE",
+    ),
+    "vote_atomic": ("VOTE", "VOTEU", "ATOM", "ATOMG", "RED", "REDUX", "SHFL", "MATCH"),
+    "sfu": ("MUFU",),
+}
+_CLASS_OF = {op: cls for cls, ops in OPCODE_CLASSES.items() for op in ops}
+#: opcodes that issue no work and are not counted at all
+EXCLUDED = ("NOP",)
+
+
+@dataclass(frozen=True)
+class SassInstruction:
+    """One SASS instruction of a listing, with the source line it is charged to.
+
+    ``file``/``line`` are the outermost location of the instruction's inline chain
+    (``""``/0 when the listing has no line information for it).
+    """
+
+    function: str
+    offset: int
+    opcode: str
+    text: str
+    file: str
+    line: int
+
+
+def base_opcode(opcode: str) -> str:
+    """Mnemonic without modifiers: ``"LDG.E.128.CONSTANT"`` -> ``"LDG"``."""
+    return opcode.split(".", 1)[0]
+
+
+def classify(opcode: str) -> str | None:
+    """Instruction class of a SASS opcode (``None`` for opcodes that are not counted).
+
+    Uniform-datapath twins (``UIADD3``, ``ULDC``...) count as ``int``; an opcode this
+    table does not know is ``"other"`` so that nothing is dropped silently.
+    """
+    base = base_opcode(opcode)
+    if base in EXCLUDED:
+        return None
+    return _CLASS_OF.get(base, "other")
+
+
+def parse_listing(text: str) -> list[SassInstruction]:
+    """Parse an ``nvdisasm -c -g -gi`` listing into instructions in listing order.
+
+    Raises
+    ------
+    SimtSimError
+        If the text contains no SASS instruction (not an nvdisasm listing).
+    """
+    out: list[SassInstruction] = []
+    func = ""
+    loc = ("", 0)
+    for raw in text.splitlines():
+        m = _FUNC.match(raw)
+        if m:
+            func, loc = m.group("name"), ("", 0)
+            continue
+        m = _LINE.match(raw)
+        if m:
+            chain = [(m.group("file"), int(m.group("line")))]
+            chain += [(g.group("file"), int(g.group("line"))) for g in _INLINED.finditer(raw)]
+            loc = chain[-1]
+            continue
+        m = _INSN.match(raw)
+        if m:
+            body = _PRED.sub("", m.group("text").strip())
+            opcode = body.split(None, 1)[0]
+            out.append(SassInstruction(func, int(m.group("off"), 16), opcode, body, *loc))
+    if not out:
+        raise SimtSimError(
+            "no SASS instruction found: pass the output of `nvdisasm -c -g -gi` on a cubin"
+        )
+    return out

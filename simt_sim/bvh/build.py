@@ -1,0 +1,486 @@
+"""SAH BVH builder (binned or full sweep) writing the Aila-Laine layout.
+
+The paper's hierarchies are binary SAH trees with node and triangle cost 1 and leaves of
+1 to 8 triangles; the SIMT model's op streams depend on that tree, so the builder follows
+the same cost model. The build is a non-recursive work-stack loop over an index array
+that is partitioned in place: a node's triangles are always one contiguous range, the
+left child is processed before the right one, so nodes come out in depth-first order
+(left child right after its parent) and leaves in increasing range order, which makes
+their Woop offsets a simple function of the range start. Everything is single-threaded
+and deterministic (same input, same bytes).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from numba import njit
+
+from simt_sim.bvh.layout import (
+    BVH,
+    COL_CHILD0,
+    NODE_FLOATS,
+    SENTINEL_BITS,
+    WOOP_FLOAT4_PER_TRI,
+    BuildStats,
+)
+from simt_sim.bvh.woop import woop_transform
+from simt_sim.errors import SimtSimError
+
+METHODS = ("binned", "sweep")
+
+# Stack / task columns (int64): start, end, parent node, child slot in parent, depth.
+_T_START, _T_END, _T_PARENT, _T_SLOT, _T_DEPTH = 0, 1, 2, 3, 4
+_F32_HALF = np.float32(0.5)
+_F32_INF = np.float32(np.inf)
+
+
+@njit(cache=True, nogil=True)
+def _area(lo0, lo1, lo2, hi0, hi1, hi2):
+    """Surface area of a box in float64 (float32 corners widened first)."""
+    dx = np.float64(hi0) - np.float64(lo0)
+    dy = np.float64(hi1) - np.float64(lo1)
+    dz = np.float64(hi2) - np.float64(lo2)
+    return 2.0 * (dx * dy + dy * dz + dz * dx)
+
+
+@njit(cache=True, nogil=True)
+def _box_area(box):
+    return _area(box[0], box[1], box[2], box[3], box[4], box[5])
+
+
+@njit(cache=True, nogil=True)
+def _empty_box(box):
+    for a in range(3):
+        box[a] = _F32_INF
+        box[a + 3] = -_F32_INF
+
+
+@njit(cache=True, nogil=True)
+def _grow(box, tlo, thi, t):
+    """Grow ``box`` (lo xyz, hi xyz) by triangle ``t``'s bounds."""
+    for a in range(3):
+        if tlo[t, a] < box[a]:
+            box[a] = tlo[t, a]
+        if thi[t, a] > box[a + 3]:
+            box[a + 3] = thi[t, a]
+
+
+@njit(cache=True, nogil=True)
+def _range_box(box, idx, start, end, tlo, thi):
+    _empty_box(box)
+    for i in range(start, end):
+        _grow(box, tlo, thi, idx[i])
+
+
+@njit(cache=True, nogil=True)
+def _bin_of(c, cmin, scale, bins):
+    """Bin of a centroid coordinate; the same expression bins and partitions."""
+    k = np.int64((np.float64(c) - cmin) * scale)
+    if k >= bins:
+        k = bins - 1
+    if k < 0:
+        k = 0
+    return k
+
+
+@njit(cache=True, nogil=True)
+def _grow_bin(box, blo, bhi, bcnt, a, k):
+    """Grow ``box`` by bin ``k`` of axis ``a``; return the bin's triangle count."""
+    if bcnt[a, k] > 0:
+        for j in range(3):
+            box[j] = min(box[j], blo[a, k, j])
+            box[j + 3] = max(box[j + 3], bhi[a, k, j])
+    return bcnt[a, k]
+
+
+@njit(cache=True, nogil=True)
+def _binned_best(idx, start, end, tlo, thi, cen, bins, blo, bhi, bcnt, rarea, cbox):
+    """Best binned SAH split of ``idx[start:end]`` over all three axes.
+
+    Returns ``(cost, axis, bin, cmin, scale)`` where cost is the unnormalised split cost
+    ``A_L N_L + A_R N_R`` (``inf`` when every axis has zero centroid extent) and triangles
+    with ``_bin_of(...) <= bin`` go left. ``cbox[0]``/``cbox[1]`` receive the child boxes.
+    """
+    cmn = np.empty(3, np.float32)
+    cmx = np.empty(3, np.float32)
+    for a in range(3):
+        cmn[a] = _F32_INF
+        cmx[a] = -_F32_INF
+    for i in range(start, end):
+        t = idx[i]
+        for a in range(3):
+            c = cen[t, a]
+            if c < cmn[a]:
+                cmn[a] = c
+            if c > cmx[a]:
+                cmx[a] = c
+    cmin = np.empty(3, np.float64)
+    scale = np.zeros(3, np.float64)
+    for a in range(3):
+        cmin[a] = cmn[a]
+        extent = np.float64(cmx[a]) - cmin[a]
+        if extent > 0.0:
+            scale[a] = bins / extent
+        for k in range(bins):
+            bcnt[a, k] = 0
+            for j in range(3):
+                blo[a, k, j] = _F32_INF
+                bhi[a, k, j] = -_F32_INF
+    # One pass bins all three axes (an axis of zero centroid extent has scale 0).
+    for i in range(start, end):
+        t = idx[i]
+        for a in range(3):
+            if scale[a] == 0.0:
+                continue
+            k = _bin_of(cen[t, a], cmin[a], scale[a], bins)
+            bcnt[a, k] += 1
+            for j in range(3):
+                if tlo[t, j] < blo[a, k, j]:
+                    blo[a, k, j] = tlo[t, j]
+                if thi[t, j] > bhi[a, k, j]:
+                    bhi[a, k, j] = thi[t, j]
+    best = np.inf
+    best_axis = -1
+    best_bin = -1
+    box = np.empty(6, np.float32)
+    for a in range(3):
+        if scale[a] == 0.0:
+            continue
+        # Right-to-left sweep: rarea[k] = area(bins k..) * count(bins k..), -1 if empty.
+        # Areas are evaluated at non-empty bins only: a split after an empty bin moves
+        # the same triangles as one after the last non-empty bin before it.
+        _empty_box(box)
+        n = 0
+        ra = -1.0
+        for k in range(bins - 1, 0, -1):
+            if bcnt[a, k] > 0:
+                n += _grow_bin(box, blo, bhi, bcnt, a, k)
+                ra = _box_area(box) * n
+            rarea[k] = ra
+        _empty_box(box)
+        n = 0
+        for k in range(bins - 1):
+            if bcnt[a, k] == 0:
+                continue
+            n += _grow_bin(box, blo, bhi, bcnt, a, k)
+            if rarea[k + 1] < 0.0:
+                break
+            cost = _box_area(box) * n + rarea[k + 1]
+            if cost < best:
+                best = cost
+                best_axis = a
+                best_bin = k
+    if best_axis >= 0:
+        # Child boxes of the winner: unions of its bins' exact float32 triangle bounds.
+        _empty_box(cbox[0])
+        _empty_box(cbox[1])
+        for k in range(bins):
+            _grow_bin(cbox[0 if k <= best_bin else 1], blo, bhi, bcnt, best_axis, k)
+        return best, best_axis, best_bin, cmin[best_axis], scale[best_axis]
+    return best, best_axis, best_bin, 0.0, 0.0
+
+
+@njit(cache=True, nogil=True)
+def _binned_partition(idx, start, end, cen, axis, split_bin, cmin, scale, bins):
+    """Move triangles whose bin is ``<= split_bin`` to the front; return the middle."""
+    i = start
+    j = end - 1
+    while True:
+        while i <= j and _bin_of(cen[idx[i], axis], cmin, scale, bins) <= split_bin:
+            i += 1
+        while i <= j and _bin_of(cen[idx[j], axis], cmin, scale, bins) > split_bin:
+            j -= 1
+        if i >= j:
+            break
+        tmp = idx[i]
+        idx[i] = idx[j]
+        idx[j] = tmp
+        i += 1
+        j -= 1
+    return i
+
+
+@njit(cache=True, nogil=True)
+def _sorted_along(idx, start, end, cen, axis, keys, order):
+    """Stable order of ``idx[start:end]`` by centroid along ``axis`` (into ``order``)."""
+    n = end - start
+    for i in range(n):
+        keys[i] = cen[idx[start + i], axis]
+    perm = np.argsort(keys[:n], kind="mergesort")
+    for i in range(n):
+        order[i] = idx[start + perm[i]]
+
+
+@njit(cache=True, nogil=True)
+def _sweep_best(idx, start, end, tlo, thi, cen, keys, order, rarea, cbox):
+    """Best full-sweep SAH split: every plane between distinct centroids, all axes.
+
+    Returns ``(cost, axis, pos)``: the first ``pos`` triangles of the stable centroid
+    order along ``axis`` go left (``inf``, -1 when all centroids coincide);
+    ``cbox[0]``/``cbox[1]`` receive the child boxes. Every binned split is one of these
+    planes, so per node the sweep is never costlier than binning.
+    """
+    n = end - start
+    best = np.inf
+    best_axis = -1
+    best_pos = -1
+    box = np.empty(6, np.float32)
+    for a in range(3):
+        _sorted_along(idx, start, end, cen, a, keys, order)
+        _empty_box(box)
+        for i in range(n - 1, 0, -1):
+            _grow(box, tlo, thi, order[i])
+            rarea[i] = _box_area(box) * (n - i)
+        _empty_box(box)
+        for i in range(n - 1):
+            _grow(box, tlo, thi, order[i])
+            if cen[order[i], a] == cen[order[i + 1], a]:
+                continue  # not a plane between centroids: equal ones stay together
+            cost = _box_area(box) * (i + 1) + rarea[i + 1]
+            if cost < best:
+                best = cost
+                best_axis = a
+                best_pos = i + 1
+    if best_axis >= 0:
+        _sorted_along(idx, start, end, cen, best_axis, keys, order)
+        _empty_box(cbox[0])
+        _empty_box(cbox[1])
+        for i in range(n):
+            _grow(cbox[0 if i < best_pos else 1], tlo, thi, order[i])
+    return best, best_axis, best_pos
+
+
+@njit(cache=True, nogil=True)
+def _build(tlo, thi, cen, sweep, max_leaf, bins):
+    """The work-stack build loop.
+
+    Returns the triangle order ``idx``, the interior nodes' children (int32, leaf =
+    ``~woop_start``) and child boxes (float32 rows, layout columns 0-11), each leaf's
+    first position in ``idx`` (increasing), the root, and the statistics (depth, SAH
+    cost, leaf-size histogram).
+    """
+    m = tlo.shape[0]
+    idx = np.arange(m).astype(np.int32)
+    cap = max(m - 1, 1)
+    child = np.zeros((cap, 2), np.int32)
+    nbox = np.zeros((cap, 12), np.float32)
+    hist = np.zeros(max_leaf + 1, np.int64)
+    leaf_start = np.empty(m, np.int64)
+    stack = np.empty((m + 1, 5), np.int64)
+    sbox = np.empty((m + 1, 6), np.float32)
+    # Scratch for the split searches.
+    blo = np.empty((3, bins, 3), np.float32)
+    bhi = np.empty((3, bins, 3), np.float32)
+    bcnt = np.empty((3, bins), np.int64)
+    rarea = np.empty(max(bins, m), np.float64)
+    keys = np.empty(m, np.float32)
+    order = np.empty(m, np.int32)
+    cbox = np.empty((2, 6), np.float32)
+
+    _range_box(sbox[0], idx, 0, m, tlo, thi)
+    root_area = _box_area(sbox[0])
+    stack[0, _T_START] = 0
+    stack[0, _T_END] = m
+    stack[0, _T_PARENT] = -1
+    stack[0, _T_SLOT] = 0
+    stack[0, _T_DEPTH] = 0
+    top = 1
+    n_int = 0
+    n_leaf = 0
+    depth = 0
+    sah_int = 0.0
+    sah_leaf = 0.0
+    root = 0
+    while top > 0:
+        top -= 1
+        start = stack[top, _T_START]
+        end = stack[top, _T_END]
+        parent = stack[top, _T_PARENT]
+        slot = stack[top, _T_SLOT]
+        d = stack[top, _T_DEPTH]
+        area = _box_area(sbox[top])
+        n = end - start
+        make_leaf = n == 1
+        mid = -1
+        if not make_leaf:
+            if sweep:
+                cost, axis, pos = _sweep_best(
+                    idx, start, end, tlo, thi, cen, keys, order, rarea, cbox
+                )
+            else:
+                cost, axis, sbin, cmin, scale = _binned_best(
+                    idx, start, end, tlo, thi, cen, bins, blo, bhi, bcnt, rarea, cbox
+                )
+            # Leaf cost n * A versus split cost A * 1 + A_L N_L + A_R N_R (unnormalised).
+            if n <= max_leaf and (axis < 0 or area * n <= area + cost):
+                make_leaf = True
+            elif axis >= 0:
+                if sweep:
+                    for i in range(n):
+                        idx[start + i] = order[i]
+                    mid = start + pos
+                else:
+                    mid = _binned_partition(idx, start, end, cen, axis, sbin, cmin, scale, bins)
+            else:
+                # All centroids coincide on every axis: split the index range in the middle.
+                mid = start + n // 2
+                _range_box(cbox[0], idx, start, mid, tlo, thi)
+                _range_box(cbox[1], idx, mid, end, tlo, thi)
+        if make_leaf:
+            woop_start = WOOP_FLOAT4_PER_TRI * start + n_leaf  # one sentinel per earlier leaf
+            if parent >= 0:
+                child[parent, slot] = ~woop_start
+            else:
+                root = ~woop_start
+            leaf_start[n_leaf] = start
+            n_leaf += 1
+            hist[n] += 1
+            depth = max(depth, d)
+            sah_leaf += area * n
+            continue
+        node = n_int
+        n_int += 1
+        if parent >= 0:
+            child[parent, slot] = node
+        sah_int += area
+        b0 = cbox[0]
+        b1 = cbox[1]
+        row = nbox[node]
+        row[0] = b0[0]
+        row[1] = b0[3]
+        row[2] = b0[1]
+        row[3] = b0[4]
+        row[4] = b1[0]
+        row[5] = b1[3]
+        row[6] = b1[1]
+        row[7] = b1[4]
+        row[8] = b0[2]
+        row[9] = b0[5]
+        row[10] = b1[2]
+        row[11] = b1[5]
+        # Push right first so the left child is popped (and numbered) next.
+        for side, s0, s1 in ((1, mid, end), (0, start, mid)):
+            stack[top, _T_START] = s0
+            stack[top, _T_END] = s1
+            stack[top, _T_PARENT] = node
+            stack[top, _T_SLOT] = side
+            stack[top, _T_DEPTH] = d + 1
+            for j in range(6):
+                sbox[top, j] = cbox[side, j]
+            top += 1
+    if root_area > 0.0:
+        sah = (sah_int + sah_leaf) / root_area
+    else:
+        # Every box is the same zero-area box: count each node once, each triangle once.
+        sah = np.float64(n_int + m)
+    return idx, child[:n_int], nbox[:n_int], leaf_start[:n_leaf], root, depth, sah, hist
+
+
+def _check_inputs(vertices, triangles, method: str, max_leaf: int, bins: int):
+    """Validate and convert; raise SimtSimError with a one-line fix otherwise."""
+    if method not in METHODS:
+        raise SimtSimError(f"unknown BVH build method {method!r}; use one of {', '.join(METHODS)}")
+    if not isinstance(max_leaf, int | np.integer) or max_leaf < 1:
+        raise SimtSimError(f"max_leaf must be an integer >= 1, got {max_leaf!r}")
+    if not isinstance(bins, int | np.integer) or bins < 2:
+        raise SimtSimError(f"bins must be an integer >= 2, got {bins!r}")
+    v = np.asarray(vertices)
+    t = np.asarray(triangles)
+    if v.ndim != 2 or v.shape[1] != 3 or not np.issubdtype(v.dtype, np.number):
+        raise SimtSimError(f"vertices must be a numeric (v, 3) array, got shape {v.shape}")
+    if t.ndim != 2 or t.shape[1] != 3 or not np.issubdtype(t.dtype, np.integer):
+        raise SimtSimError(f"triangles must be an integer (m, 3) array, got shape {t.shape}")
+    if t.shape[0] == 0:
+        raise SimtSimError("the scene has no triangles; load a mesh with at least one face")
+    v = np.ascontiguousarray(v, dtype=np.float32)
+    if not np.isfinite(v).all():
+        raise SimtSimError("vertices contain NaN or infinite coordinates; fix the mesh file")
+    if t.min() < 0 or t.max() >= v.shape[0]:
+        raise SimtSimError(
+            f"triangle vertex indices must lie in [0, {v.shape[0]}); the mesh is corrupt"
+        )
+    return v, np.ascontiguousarray(t, dtype=np.int32)
+
+
+def build_bvh(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    *,
+    method: str = "binned",
+    max_leaf: int = 8,
+    bins: int = 32,
+) -> BVH:
+    """Build a binary SAH BVH (node and triangle cost 1) in the Aila-Laine layout.
+
+    Parameters
+    ----------
+    vertices : float32 (v, 3)
+        Other float dtypes are rounded to float32 first: boxes and Woop rows come from
+        the same float32 coordinates the GPU sees, so boxes contain triangles exactly.
+    triangles : int (m, 3)
+        Vertex indices; ``m >= 1``.
+    method : {"binned", "sweep"}
+        ``"binned"``: SAH over ``bins`` centroid bins per axis (fast, the default).
+        ``"sweep"``: SAH at every plane between distinct centroids on each axis (slower;
+        per node never worse than binning, a reference for the binned tree's quality).
+        All centroids equal on every axis: the index range is split in the middle.
+    max_leaf : int
+        Largest leaf. A node with more triangles is always split; a smaller one becomes a
+        leaf when its cost (its triangle count) is not above the best split's cost.
+    bins : int
+        Bins per axis for ``"binned"``; ignored by ``"sweep"``.
+
+    Returns
+    -------
+    BVH
+        Nodes in depth-first order (left child right after its parent), child 0 the lower
+        side of the split; leaves' triangles as Woop float4 triples plus a sentinel.
+    """
+    v, tri = _check_inputs(vertices, triangles, method, max_leaf, bins)
+    t0 = time.perf_counter()
+    p0 = v[tri[:, 0]]
+    p1 = v[tri[:, 1]]
+    p2 = v[tri[:, 2]]
+    tlo = np.minimum(np.minimum(p0, p1), p2)
+    thi = np.maximum(np.maximum(p0, p1), p2)
+    cen = (tlo + thi) * _F32_HALF
+    idx, child, nbox, leaf_start, root, depth, sah, hist = _build(
+        tlo, thi, cen, method == "sweep", int(max_leaf), int(bins)
+    )
+    m = tri.shape[0]
+    n_int = child.shape[0]
+    n_leaf = leaf_start.shape[0]
+    nodes = np.zeros((n_int, NODE_FLOATS), dtype=np.float32)
+    nodes[:, :COL_CHILD0] = nbox
+    nodes[:, COL_CHILD0 : COL_CHILD0 + 2] = child.view(np.float32)
+
+    # Leaves cover idx in increasing ranges, so the triangle at idx position p sits at
+    # float4 3p + (ordinal of its leaf: one sentinel per earlier leaf), and each leaf's
+    # sentinel follows its last triangle.
+    leaf_of_pos = np.repeat(np.arange(n_leaf, dtype=np.int64), np.diff(leaf_start, append=m))
+    base = WOOP_FLOAT4_PER_TRI * np.arange(m, dtype=np.int64) + leaf_of_pos
+    w0, w1, w2 = woop_transform(p0[idx], p1[idx], p2[idx])
+    n_f4 = WOOP_FLOAT4_PER_TRI * m + n_leaf
+    woop = np.zeros((n_f4, 4), dtype=np.float32)
+    woop[base] = w0
+    woop[base + 1] = w1
+    woop[base + 2] = w2
+    tri_index = np.full(n_f4, -1, dtype=np.int32)
+    tri_index[base] = idx
+    is_last = np.ones(m, dtype=bool)
+    is_last[:-1] = leaf_of_pos[1:] != leaf_of_pos[:-1]
+    sentinel = base[is_last] + WOOP_FLOAT4_PER_TRI
+    woop.view(np.uint32)[sentinel, 0] = SENTINEL_BITS
+    seconds = time.perf_counter() - t0
+    stats = BuildStats(
+        nodes=n_int,
+        leaves=int(n_leaf),
+        depth=int(depth),
+        sah_cost=float(sah),
+        leaf_size_hist=tuple(int(h) for h in hist),
+        build_seconds=seconds,
+        method=method,
+    )
+    return BVH(nodes=nodes, woop=woop, tri_index=tri_index, root=int(root), stats=stats)

@@ -1,0 +1,338 @@
+"""The ``simt-sim`` command line.
+
+Every command prints a table (markdown for a terminal, ``--format csv|json`` for pandas)
+or writes it atomically with ``--out``. Bad input ends with one line on stderr and exit
+status 2, never a traceback and never a half-written file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import pandas as pd
+
+from simt_sim.errors import SimtSimError
+from simt_sim.tables import FORMATS, emit
+
+DEFAULT_SCENE = "room"
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports a usage error in one line with exit status 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+def _add_workload_args(p: argparse.ArgumentParser, *, rays_help: str) -> None:
+    p.add_argument(
+        "--scene",
+        default=DEFAULT_SCENE,
+        help="room (built-in), conference, sibenik, bunny, cornell-box, or a mesh "
+        "path (default: %(default)s)",
+    )
+    p.add_argument("--rays", default="primary", help=rays_help)
+    p.add_argument(
+        "--camera", default="all", help="'all' or camera indices, e.g. 0,2 (default: %(default)s)"
+    )
+    p.add_argument("--resolution", default="1024x768", help="WxH (default: %(default)s)")
+    p.add_argument(
+        "--spp", type=int, default=32, help="secondary rays per primary hit (default: %(default)s)"
+    )
+    p.add_argument("--seed", type=int, default=0, help="sample seed (default: %(default)s)")
+
+
+def _add_output_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--format", choices=FORMATS, default="md", help="table format (default: %(default)s)"
+    )
+    p.add_argument("--out", default=None, help="write the table to this file instead of stdout")
+
+
+def _workload(args: argparse.Namespace, ray_type: str):
+    from simt_sim.workload import make_workload, parse_resolution
+
+    return make_workload(
+        args.scene,
+        ray_type,
+        cameras=args.camera,
+        resolution=parse_resolution(args.resolution),
+        spp=args.spp,
+        seed=args.seed,
+    )
+
+
+def _time(fn: Callable[[], object], repeats: int) -> tuple[object, float]:
+    """Run once to warm up, then ``repeats`` times; the last result and the median seconds."""
+    result = fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        result = fn()
+        times.append(time.perf_counter() - t0)
+    return result, statistics.median(times)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    """Measure real tracers on the same rays; agreement is against Embree's hits."""
+    import numba
+
+    from simt_sim.hits import agreement
+    from simt_sim.tracers import numba_tracer
+    from simt_sim.tracers.embree_tracer import THREADS as EMBREE_THREADS
+    from simt_sim.tracers.embree_tracer import EmbreeTracer
+
+    tracers = [t.strip() for t in args.tracers.split(",") if t.strip()]
+    known = ("numba", "embree")
+    bad = [t for t in tracers if t not in known]
+    if bad or not tracers:
+        raise SimtSimError(
+            f"unknown tracer {bad[0] if bad else ''!r}; use any of {', '.join(known)}"
+        )
+    if args.repeats < 1:
+        raise SimtSimError(f"--repeats must be at least 1, got {args.repeats}")
+    wl = _workload(args, args.rays)
+    rays = wl.rays
+    results: list[tuple[str, int, object, float]] = []
+    if "embree" in tracers:
+        emb = EmbreeTracer(wl.scene.vertices, wl.scene.triangles)
+        hits, sec = _time(lambda: emb.trace(rays), args.repeats)
+        results.append(("embree", EMBREE_THREADS, hits, sec))
+    if "numba" in tracers:
+        all_threads = numba.config.NUMBA_NUM_THREADS
+        for threads in sorted({1, all_threads}):
+            numba.set_num_threads(threads)
+            hits, sec = _time(lambda: numba_tracer.trace(wl.bvh, rays), args.repeats)
+            results.append(("numba", threads, hits, sec))
+        numba.set_num_threads(all_threads)
+    ref = next((h for name, _, h, _ in results if name == "embree"), None)
+    rows = []
+    for name, threads, hits, sec in results:
+        rows.append(
+            {
+                "tracer": name,
+                "threads": threads,
+                "ray_type": args.rays,
+                "rays": len(rays),
+                "seconds": sec,
+                "mrays_per_s": len(rays) / sec / 1e6 if sec > 0 else float("nan"),
+                "hit_agreement": agreement(hits, ref) if ref is not None else float("nan"),
+            }
+        )
+    emit(pd.DataFrame(rows), args.format, args.out)
+    return 0
+
+
+def cmd_trace(args: argparse.Namespace) -> int:
+    """Record every ray's op sequence and save it; print the summary."""
+    from simt_sim.optrace import OpTrace
+    from simt_sim.record import record
+    from simt_sim.tracefile import save_trace
+
+    wl = _workload(args, args.rays)
+    meta = {
+        "scene": wl.scene.name,
+        "ray_type": args.rays,
+        "cameras": list(wl.cameras),
+        "resolution": list(wl.resolution),
+        "spp": wl.spp,
+        "seed": wl.seed,
+    }
+    totals = np.zeros(3, dtype=np.int64)
+    hits = 0
+    n = 0
+
+    def batches():
+        nonlocal hits, n
+        for tr in record(wl.bvh, wl.rays):
+            assert isinstance(tr, OpTrace)
+            totals[:] += tr.counts().sum(axis=0)
+            hits += int(np.count_nonzero(tr.hits.hit_mask))
+            n += tr.n_rays
+            yield tr
+
+    save_trace(args.out, batches(), meta)
+    per_ray = totals / max(n, 1)
+    df = pd.DataFrame(
+        [
+            {
+                "scene": wl.scene.name,
+                "ray_type": args.rays,
+                "rays": n,
+                "trav_per_ray": per_ray[0],
+                "leaf_per_ray": per_ray[1],
+                "tri_per_ray": per_ray[2],
+                "hits": hits,
+                "file": args.out,
+            }
+        ]
+    )
+    emit(df, args.format, None)
+    return 0
+
+
+def cmd_table(args: argparse.Namespace) -> int:
+    """Simulate every scheme on the same recorded rays and print the efficiency table."""
+    from simt_sim.simt.gpus import load_gpus
+    from simt_sim.study import ALL_SCHEMES, RAY_TYPES, StudySpec, parse_list, run_study
+    from simt_sim.workload import parse_resolution
+
+    if args.spp < 1:
+        raise SimtSimError(f"--spp must be at least 1, got {args.spp}")
+    spec = StudySpec(
+        scene=args.scene,
+        ray_types=parse_list(args.rays, RAY_TYPES, "ray type"),
+        schemes=parse_list(args.schemes, ALL_SCHEMES, "scheme"),
+        gpus=parse_list(args.gpu, tuple(load_gpus()), "GPU"),
+        cameras=args.camera,
+        resolution=parse_resolution(args.resolution),
+        spp=args.spp,
+        seed=args.seed,
+    )
+    progress = not args.quiet and sys.stderr.isatty()
+    _, df = run_study(spec, progress=progress)
+    if args.format == "md":
+        df = df.drop(columns=[c for c in ("makespan", "ir_arch") if c in df])
+    emit(df, args.format, args.out)
+    return 0
+
+
+def cmd_scenes(args: argparse.Namespace) -> int:
+    """List the named scenes, their sizes and where they come from."""
+    from simt_sim.scene import list_scenes
+
+    emit(list_scenes(), args.format, args.out)
+    return 0
+
+
+def cmd_gpus(args: argparse.Namespace) -> int:
+    """List the GPU configurations the upper bound can be computed for."""
+    from simt_sim.simt.gpus import load_gpus
+
+    rows = [g.figures() for g in load_gpus().values()]
+    emit(pd.DataFrame(rows), args.format, args.out)
+    return 0
+
+
+def cmd_ir_show(args: argparse.Namespace) -> int:
+    """Print one kernel's instruction count per block and class."""
+    import kernels_ir
+
+    emit(
+        kernels_ir.format_ir_table(kernels_ir.load(args.kernel, args.arch)).reset_index(),
+        args.format,
+        args.out,
+    )
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog="simt-sim",
+        description="How efficiently does a BVH traversal kernel use a SIMT machine?",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    p = sub.add_parser(
+        "bench",
+        help="measure real tracers (numba, Embree) on the paper's rays",
+        epilog="example: simt-sim bench --scene conference --rays ao --camera 0 "
+        "--resolution 256x192",
+    )
+    _add_workload_args(p, rays_help="primary, ao or diffuse (default: %(default)s)")
+    p.add_argument(
+        "--tracers",
+        default="numba,embree",
+        help="comma list of numba, embree (default: %(default)s)",
+    )
+    p.add_argument(
+        "--repeats",
+        type=int,
+        default=5,
+        help="timed runs after one warm-up; the median is reported (default: %(default)s)",
+    )
+    _add_output_args(p)
+    p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser(
+        "trace",
+        help="record each ray's TRAV/LEAF/TRI sequence to a file",
+        epilog="example: simt-sim trace --scene cornell-box --rays diffuse --out cb.trace",
+    )
+    _add_workload_args(p, rays_help="primary, ao or diffuse (default: %(default)s)")
+    p.add_argument("--out", required=True, help="trace file to write")
+    p.add_argument(
+        "--format",
+        choices=FORMATS,
+        default="md",
+        help="summary table format (default: %(default)s)",
+    )
+    p.set_defaults(func=cmd_trace)
+
+    p = sub.add_parser(
+        "table",
+        help="SIMD efficiency and upper-bound MRays/s per ray type x scheme x GPU",
+        epilog="example: simt-sim table --scene conference --rays primary,ao "
+        "--schemes while_while,if_if --gpu gtx285,h100 --camera 0 --format csv",
+    )
+    _add_workload_args(
+        p, rays_help="comma list of primary, ao, diffuse, path or 'all' (default: %(default)s)"
+    )
+    p.set_defaults(rays="primary,ao,diffuse", resolution="256x192", spp=8)
+    p.add_argument(
+        "--schemes", default="all", help="comma list of schemes or 'all' (default: %(default)s)"
+    )
+    p.add_argument(
+        "--gpu",
+        default="gtx285",
+        help="comma list of GPU ids or 'all' (see 'simt-sim gpus'; default: %(default)s)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_output_args(p)
+    p.set_defaults(func=cmd_table)
+
+    p = sub.add_parser(
+        "scenes", help="list the named scenes", epilog="example: simt-sim scenes --format csv"
+    )
+    _add_output_args(p)
+    p.set_defaults(func=cmd_scenes)
+
+    p = sub.add_parser("gpus", help="list the GPU configurations", epilog="example: simt-sim gpus")
+    _add_output_args(p)
+    p.set_defaults(func=cmd_gpus)
+
+    p = sub.add_parser(
+        "ir",
+        help="instruction-cost IR of the CUDA kernels",
+        epilog="example: simt-sim ir show while_while --arch sm_90",
+    )
+    ir_sub = p.add_subparsers(dest="ir_command", required=True, parser_class=_Parser)
+    q = ir_sub.add_parser(
+        "show",
+        help="per-block instruction counts of one kernel",
+        epilog="example: simt-sim ir show packet --arch sm_80",
+    )
+    q.add_argument("kernel", help="kernel name, e.g. while_while")
+    q.add_argument("--arch", default="sm_90", help="architecture (default: %(default)s)")
+    _add_output_args(q)
+    q.set_defaults(func=cmd_ir_show)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``simt-sim`` and ``python -m simt_sim``."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except SimtSimError as exc:
+        print(f"simt-sim: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("simt-sim: interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,55 @@
+"""RayBatch: rays in warp order (ray i lives in warp i // 32)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+RAY_TYPES = ("primary", "ao", "diffuse", "path")
+
+
+@dataclass(frozen=True)
+class RayBatch:
+    """A set of rays in the order that forms warps.
+
+    Attributes
+    ----------
+    origin, direction : float32 (n, 3)
+        Directions need not be unit length; ``t`` is in units of ``|direction|``.
+    tmin, tmax : float32 (n,)
+    query : str
+        ``"closest"`` (primary, diffuse) or ``"any"`` (AO, shadow).
+    ray_type : str
+        One of ``RAY_TYPES``.
+    camera : int32 (n,)
+        Index of the camera the ray descends from (for stratified sampling).
+    pixel : int32 (n,)
+        Pixel (row-major ``y * width + x``) the ray descends from (for per-pixel plots).
+    """
+
+    origin: np.ndarray
+    direction: np.ndarray
+    tmin: np.ndarray
+    tmax: np.ndarray
+    query: str
+    ray_type: str
+    camera: np.ndarray
+    pixel: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.origin.shape[0])
+
+    def slice(self, start: int, stop: int) -> RayBatch:
+        """Rays ``start:stop`` as a new batch (views, no copy)."""
+        s = slice(start, stop)
+        return RayBatch(
+            self.origin[s],
+            self.direction[s],
+            self.tmin[s],
+            self.tmax[s],
+            self.query,
+            self.ray_type,
+            self.camera[s],
+            self.pixel[s],
+        )

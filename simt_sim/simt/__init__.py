@@ -1,0 +1,1 @@
+"""The warp-level SIMT model: replay op traces under ideal scheduling, one scheme a module."""

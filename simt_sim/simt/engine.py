@@ -1,0 +1,244 @@
+"""Shared numba machinery of the warp replay: block ids, counters, charging, scheduling.
+
+Every scheme charges blocks the same way: a warp issues a block when at least one lane
+executes it, and per block we count executions, the sum of active lanes and a histogram
+of active-lane counts. The counters are integers, so sums over warps are exact in any
+order: results never depend on the thread count or on how warps were split into chunks.
+
+Counter arrays (one set per parallel chunk, summed afterwards):
+
+- ``cnt`` int64 (2, N_BLOCKS): row 0 executions, row 1 active-lane sums;
+- ``hist`` int64 (N_BLOCKS, warp_size + 1): executions per active-lane count.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+from kernels_ir.kernel_ir import BLOCKS, KernelIR
+from simt_sim.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS
+
+N_BLOCKS = len(BLOCKS)
+RAY_SETUP = BLOCKS.index("ray_setup")
+POOL_FETCH = BLOCKS.index("pool_fetch")
+LOOP_CONTROL = BLOCKS.index("loop_control")
+TRAV_STEP = BLOCKS.index("trav_step")
+TRAV_NONE_B = BLOCKS.index("trav_none")
+POSTPONE = BLOCKS.index("postpone")
+LEAF_ENTRY = BLOCKS.index("leaf_entry")
+TRI_TEST = BLOCKS.index("tri_test")
+TRI_HIT_B = BLOCKS.index("tri_hit")
+FINISH = BLOCKS.index("finish")
+# trav_none, trav_one, trav_both follow each other in BLOCKS, in op-code order
+assert BLOCKS[TRAV_NONE_B : TRAV_NONE_B + 3] == ("trav_none", "trav_one", "trav_both")
+
+#: parallel chunks of warps/groups; a constant so the work split never depends on threads
+N_CHUNKS = 256
+
+#: op code a lane sees once its stream has ended (op codes are 0..5, validated)
+NO_OP = 7
+# lookup tables by op code (0..7): branch-free lane filters, since outcomes are random
+IS_TRAV = np.array([1, 1, 1, 0, 0, 0, 0, 0], np.int64)
+IS_LEAF = np.array([0, 0, 0, 1, 0, 0, 0, 0], np.int64)
+IS_TRI = np.array([0, 0, 0, 0, 1, 1, 0, 0], np.int64)
+IS_HIT = np.array([0, 0, 0, 0, 0, 1, 0, 0], np.int64)
+
+
+@dataclass(frozen=True)
+class Counts:
+    """Integer counters of one replay (or the sum of several).
+
+    Attributes
+    ----------
+    executions, active : int64 (N_BLOCKS,)
+        Per block (``BLOCKS`` order): times issued, and active lanes summed over those.
+    hist : int64 (N_BLOCKS, warp_size + 1)
+        Per block: executions with each active-lane count.
+    warp_totals : int64 (R,) or None
+        Persistent schemes: instructions each resident warp issued.
+    makespan : int
+        Persistent schemes: sum over launches of the busiest warp's instructions.
+    """
+
+    executions: np.ndarray
+    active: np.ndarray
+    hist: np.ndarray
+    warp_totals: np.ndarray | None = None
+    makespan: int = 0
+
+    def __add__(self, other: Counts) -> Counts:
+        if self.warp_totals is None or other.warp_totals is None:
+            totals = None
+        else:
+            totals = self.warp_totals + other.warp_totals
+        return Counts(
+            self.executions + other.executions,
+            self.active + other.active,
+            self.hist + other.hist,
+            totals,
+            self.makespan + other.makespan,
+        )
+
+
+def empty_counts(warp_size: int, resident_warps: int | None) -> Counts:
+    """All-zero counters (the start of an accumulation)."""
+    return Counts(
+        np.zeros(N_BLOCKS, np.int64),
+        np.zeros(N_BLOCKS, np.int64),
+        np.zeros((N_BLOCKS, warp_size + 1), np.int64),
+        None if resident_warps is None else np.zeros(resident_warps, np.int64),
+        0,
+    )
+
+
+def cost_vector(ir: KernelIR) -> np.ndarray:
+    """Instructions per block in ``BLOCKS`` order (int64), as the numba kernels take them."""
+    return np.array([ir.cost(b) for b in BLOCKS], dtype=np.int64)
+
+
+def chunk_counts(cnt: np.ndarray, hist: np.ndarray) -> Counts:
+    """Sum per-chunk counters (chunk axis first) into one Counts."""
+    return Counts(cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def charge(cnt, hist, costs, block, n):
+    """Charge one execution of ``block`` with ``n`` active lanes; return its cost (0 if n=0)."""
+    issued = np.int64(n > 0)
+    cnt[0, block] += issued
+    cnt[1, block] += n
+    hist[block, n] += issued
+    return costs[block] * issued
+
+
+@njit(cache=True, nogil=True, inline="always")
+def next_op(op, cur, end, lane):
+    """The op at the lane's cursor, or NO_OP once its stream has ended (branch-free)."""
+    c = cur[lane]
+    ok = c < end[lane]
+    o = op[c if ok else 0]
+    return o if ok else np.uint8(NO_OP)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def charge_many(cnt, hist, costs, block, n, times):
+    """Charge ``times`` executions of ``block``, each with ``n`` active lanes."""
+    if n <= 0 or times <= 0:
+        return np.int64(0)
+    cnt[0, block] += times
+    cnt[1, block] += n * times
+    hist[block, n] += times
+    return costs[block] * times
+
+
+@njit(cache=True, nogil=True)
+def chunk_bounds(n_units, n_chunks):
+    """Start of each of ``n_chunks`` near-equal chunks of ``n_units`` (length n_chunks+1)."""
+    b = np.empty(n_chunks + 1, np.int64)
+    for c in range(n_chunks + 1):
+        b[c] = (n_units * c) // n_chunks
+    return b
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def scan_trace(offsets, op):
+    """Validate op streams and count ops by kind.
+
+    Returns ``(n_trav, n_leaf, n_tri, bad)`` where ``bad`` is the first op index that is
+    not a known op code or a triangle test without a leaf before it (-1 if none): such a
+    stream would never leave a while-while loop, so the replay refuses it.
+    """
+    n = offsets.shape[0] - 1
+    nc = min(N_CHUNKS, max(n, 1))
+    bounds = chunk_bounds(n, nc)
+    tot = np.zeros((nc, 3), np.int64)
+    bad = np.full(nc, -1, np.int64)
+    for c in prange(nc):
+        for r in range(bounds[c], bounds[c + 1]):
+            prev = np.uint8(0)
+            for k in range(offsets[r], offsets[r + 1]):
+                o = op[k]
+                if o <= TRAV_BOTH:
+                    tot[c, 0] += 1
+                elif o == LEAF:
+                    tot[c, 1] += 1
+                elif o == TRI_MISS or o == TRI_HIT:
+                    tot[c, 2] += 1
+                    if k == offsets[r] or prev < LEAF:
+                        if bad[c] < 0:
+                            bad[c] = k
+                elif bad[c] < 0:
+                    bad[c] = k
+                prev = o
+    first = np.int64(-1)
+    for c in range(nc):
+        if bad[c] >= 0:
+            first = bad[c]
+            break
+    return tot[:, 0].sum(), tot[:, 1].sum(), tot[:, 2].sum(), first
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _less(key, wid, i, j):
+    """Heap order: fewer instructions first, ties to the lower warp id."""
+    return key[i] < key[j] or (key[i] == key[j] and wid[i] < wid[j])
+
+
+@njit(cache=True, nogil=True)
+def heap_sift_down(key, wid, size, i):
+    """Restore the heap below slot ``i`` (binary min-heap over (key, wid))."""
+    while True:
+        left = 2 * i + 1
+        if left >= size:
+            return
+        m = left
+        right = left + 1
+        if right < size and _less(key, wid, right, left):
+            m = right
+        if _less(key, wid, m, i):
+            key[i], key[m] = key[m], key[i]
+            wid[i], wid[m] = wid[m], wid[i]
+            i = m
+        else:
+            return
+
+
+@njit(cache=True, nogil=True)
+def schedule_groups(group_cost, resident_warps, warp_totals):
+    """Ideal scheduling of independent groups onto persistent warps, in pool order.
+
+    Each group goes to the warp with the fewest instructions so far (ties: lowest id).
+    Adds to ``warp_totals`` (int64 (R,)) and returns this launch's makespan (max warp).
+    """
+    key = np.zeros(resident_warps, np.int64)
+    wid = np.arange(resident_warps)
+    for g in range(group_cost.shape[0]):
+        key[0] += group_cost[g]
+        heap_sift_down(key, wid, resident_warps, 0)
+    span = np.int64(0)
+    for i in range(resident_warps):
+        warp_totals[wid[i]] += key[i]
+        span = max(span, key[i])
+    return span
+
+
+@dataclass(frozen=True)
+class ReplayParams:
+    """What a scheme's replay needs beyond the trace and the block costs.
+
+    Attributes
+    ----------
+    warp_size : int
+        Lanes per warp.
+    resident_warps : int
+        Persistent schemes: warps kept resident (SMs x resident warps per SM).
+    threshold : int
+        Dynamic fetch: refill dead lanes when fewer than this many lanes are alive.
+    """
+
+    warp_size: int
+    resident_warps: int
+    threshold: int

@@ -1,0 +1,261 @@
+"""SimResult: what the warp replay counted, and the metrics derived from the counts.
+
+Only integer counters per block are stored (executions, active-lane sums, active-lane
+histograms); every metric is computed from them and the block costs. That keeps results
+exact, lets results of several cameras or launches be merged by summing, and lets a
+result be re-costed with another KernelIR without replaying (all schemes but dynamic
+fetch, whose pool order depends on the costs).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from kernels_ir.kernel_ir import BLOCKS, REQUIRED_BLOCKS, KernelIR
+from simt_sim.errors import SimtSimError
+from simt_sim.simt.engine import Counts, cost_vector
+from simt_sim.simt.gpus import GpuConfig
+
+TRAVERSAL_BLOCKS = ("trav_step", "trav_none", "trav_one", "trav_both")
+INTERSECTION_BLOCKS = ("leaf_entry", "tri_test", "tri_hit")
+
+
+def check_ir(ir: KernelIR, scheme: str) -> None:
+    """Refuse an IR of another kernel or one lacking a block the scheme charges."""
+    if ir.kernel != scheme:
+        raise SimtSimError(
+            f"KernelIR is for kernel {ir.kernel!r} but the scheme is {scheme!r}; "
+            f"load the IR of {scheme!r}"
+        )
+    missing = [b for b in REQUIRED_BLOCKS[scheme] if b not in ir.blocks]
+    if missing:
+        raise SimtSimError(
+            f"KernelIR {ir.kernel}/{ir.arch} lacks block(s) {', '.join(missing)}; "
+            "regenerate the IR"
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class SimResult:
+    """Counters and metrics of one replay (scene x ray type x scheme x GPU).
+
+    Attributes
+    ----------
+    scene, ray_type, scheme : str
+    gpu : GpuConfig
+    rays : int
+        Real rays replayed (padding lanes of a partial warp are not rays).
+    warp_size : int
+    counts : Counts
+        Integer counters per block in ``BLOCKS`` order (see ``engine.Counts``).
+    costs : int64 (N_BLOCKS,)
+        Instructions per block execution the counts are costed with.
+    n_trav, n_leaf, n_tri : int
+        Ops in the replayed traces, by kind (all rays).
+    model_card : dict
+        Scheme, approximations in force, GPU figures, IR, launch parameters.
+    """
+
+    scene: str
+    ray_type: str
+    scheme: str
+    gpu: GpuConfig
+    rays: int
+    warp_size: int
+    counts: Counts
+    costs: np.ndarray
+    n_trav: int
+    n_leaf: int
+    n_tri: int
+    model_card: dict[str, Any] = field(default_factory=dict)
+
+    # ---- per block ---------------------------------------------------------------------
+    @property
+    def executions(self) -> dict[str, int]:
+        """Times each block was issued by a warp."""
+        return {b: int(v) for b, v in zip(BLOCKS, self.counts.executions, strict=True)}
+
+    @property
+    def active_sum(self) -> dict[str, int]:
+        """Active lanes summed over each block's executions."""
+        return {b: int(v) for b, v in zip(BLOCKS, self.counts.active, strict=True)}
+
+    @property
+    def block_instructions(self) -> dict[str, int]:
+        """Warp instructions issued per block (executions x cost)."""
+        return {b: int(v) for b, v in zip(BLOCKS, self.counts.executions * self.costs, strict=True)}
+
+    def blocks_table(self) -> pd.DataFrame:
+        """One row per block: cost, executions, active_sum, warp and lane instructions."""
+        return pd.DataFrame(
+            {
+                "cost": self.costs,
+                "executions": self.counts.executions,
+                "active_sum": self.counts.active,
+                "warp_instructions": self.counts.executions * self.costs,
+                "lane_instructions": self.counts.active * self.costs,
+            },
+            index=pd.Index(BLOCKS, name="block"),
+        )
+
+    # ---- totals and efficiencies ---------------------------------------------------------
+    @property
+    def warp_instructions(self) -> int:
+        """Total warp instructions issued (int, exact)."""
+        return int(np.dot(self.counts.executions, self.costs))
+
+    @property
+    def active_lanes_hist(self) -> np.ndarray:
+        """Issued warp instructions per active-lane count 0..warp_size (int64)."""
+        return self.costs @ self.counts.hist
+
+    def _efficiency(self, blocks: Sequence[str]) -> float:
+        idx = [BLOCKS.index(b) for b in blocks]
+        lanes = int(np.dot(self.counts.active[idx], self.costs[idx]))
+        issued = int(np.dot(self.counts.executions[idx], self.costs[idx]))
+        return lanes / (self.warp_size * issued) if issued else float("nan")
+
+    @property
+    def simd_efficiency(self) -> float:
+        """Active lanes per issued instruction over all blocks, as a fraction of warp size."""
+        return self._efficiency(BLOCKS)
+
+    @property
+    def simd_efficiency_traversal(self) -> float:
+        """SIMD efficiency over trav_step and its outcome branches."""
+        return self._efficiency(TRAVERSAL_BLOCKS)
+
+    @property
+    def simd_efficiency_intersection(self) -> float:
+        """SIMD efficiency over leaf_entry, tri_test and tri_hit."""
+        return self._efficiency(INTERSECTION_BLOCKS)
+
+    @property
+    def mean_trav(self) -> float:
+        return self.n_trav / self.rays if self.rays else float("nan")
+
+    @property
+    def mean_leaf(self) -> float:
+        return self.n_leaf / self.rays if self.rays else float("nan")
+
+    @property
+    def mean_tri(self) -> float:
+        return self.n_tri / self.rays if self.rays else float("nan")
+
+    @property
+    def mrays_upper(self) -> float:
+        """Upper bound MRays/s: all SMs issue at full rate, memory is free."""
+        total = self.warp_instructions
+        if total == 0:
+            return float("nan")
+        g = self.gpu
+        return self.rays * g.sms * g.clock_hz * g.issue_rate / total / 1e6
+
+    # ---- persistent schemes ----------------------------------------------------------------
+    @property
+    def warp_totals(self) -> np.ndarray | None:
+        """Persistent schemes: instructions issued by each resident warp (None otherwise)."""
+        return self.counts.warp_totals
+
+    @property
+    def makespan(self) -> int | None:
+        """Persistent schemes: sum over launches of the busiest resident warp's instructions."""
+        return None if self.counts.warp_totals is None else self.counts.makespan
+
+    @property
+    def warp_balance(self) -> float | None:
+        """Busy fraction of the resident warps over the launches' makespans (1 = balanced)."""
+        totals = self.counts.warp_totals
+        if totals is None or self.counts.makespan == 0:
+            return None
+        return float(totals.sum()) / (totals.shape[0] * self.counts.makespan)
+
+    # ---- outputs and transformations -------------------------------------------------------
+    def to_row(self) -> dict[str, Any]:
+        """Flat summary for tables (one row per scene x ray type x scheme x GPU)."""
+        return {
+            "scene": self.scene,
+            "ray_type": self.ray_type,
+            "scheme": self.scheme,
+            "gpu": self.gpu.id,
+            "rays": self.rays,
+            "simd_efficiency": self.simd_efficiency,
+            "simd_efficiency_traversal": self.simd_efficiency_traversal,
+            "simd_efficiency_intersection": self.simd_efficiency_intersection,
+            "warp_instructions": self.warp_instructions,
+            "mrays_upper": self.mrays_upper,
+            "mean_trav": self.mean_trav,
+            "mean_leaf": self.mean_leaf,
+            "mean_tri": self.mean_tri,
+            "ir_arch": self.model_card.get("ir_arch", ""),
+            "makespan": self.makespan,
+        }
+
+    def recost(self, ir: KernelIR) -> SimResult:
+        """The same counts costed with another KernelIR, without replaying.
+
+        Valid for every scheme but dynamic fetch (its pool order follows the costs). The
+        per-warp totals of persistent schemes follow the costs too, so they are dropped.
+        """
+        if self.scheme == "dynamic_fetch":
+            raise SimtSimError(
+                "dynamic_fetch results cannot be re-costed (pool order depends on the block "
+                "costs); run simulate() again with the new KernelIR"
+            )
+        check_ir(ir, self.scheme)
+        c = self.counts
+        counts = Counts(c.executions, c.active, c.hist, None, 0)
+        card = dict(self.model_card)
+        card.update(ir_kernel=ir.kernel, ir_arch=ir.arch, ir_compiler=ir.compiler, recosted=True)
+        if c.warp_totals is not None:
+            card["schedule"] = "dropped on re-costing (warp loads follow the costs)"
+        return replace(self, counts=counts, costs=cost_vector(ir), model_card=card)
+
+
+def merge(results: Sequence[SimResult]) -> SimResult:
+    """Combine results of several cameras or launches: sum the counters, recompute metrics.
+
+    MRays/s of the merged result is total rays x ... / total instructions, as the paper
+    averages over cameras. All results must share scheme, GPU, warp size and costs.
+    """
+    if not results:
+        raise SimtSimError("merge() needs at least one SimResult")
+    first = results[0]
+    for r in results[1:]:
+        if (r.scheme, r.gpu, r.warp_size) != (first.scheme, first.gpu, first.warp_size):
+            raise SimtSimError(
+                f"cannot merge {r.scheme}/{r.gpu.id}/warp {r.warp_size} with "
+                f"{first.scheme}/{first.gpu.id}/warp {first.warp_size}; merge like with like"
+            )
+        if not np.array_equal(r.costs, first.costs):
+            raise SimtSimError("cannot merge results costed with different KernelIRs; recost first")
+    counts = first.counts
+    for r in results[1:]:
+        if counts.warp_totals is not None and (
+            r.counts.warp_totals is None or r.counts.warp_totals.shape != counts.warp_totals.shape
+        ):
+            counts = Counts(counts.executions, counts.active, counts.hist, None, 0)
+        counts = counts + r.counts
+
+    def joined(values: list[str]) -> str:
+        return "+".join(dict.fromkeys(values))
+
+    card = dict(first.model_card)
+    card["merged_results"] = len(results)
+    card["launches"] = sum(int(r.model_card.get("launches", 1)) for r in results)
+    return replace(
+        first,
+        scene=joined([r.scene for r in results]),
+        ray_type=joined([r.ray_type for r in results]),
+        rays=sum(r.rays for r in results),
+        counts=counts,
+        n_trav=sum(r.n_trav for r in results),
+        n_leaf=sum(r.n_leaf for r in results),
+        n_tri=sum(r.n_tri for r in results),
+        model_card=card,
+    )

@@ -1,0 +1,142 @@
+"""packet traversal (Günther et al. 2007): one shared stack per warp, the union of its rays.
+
+The warp visits every node any of its lanes visits, once; every lane takes part in every
+step, but only the lanes whose own ray needs a node count as active for it. Per warp:
+
+- ``ray_setup`` and ``finish`` with every lane that has a ray;
+- per distinct interior node (TRAV address) in the union of the lanes' streams:
+  ``trav_step`` with the lanes that visit it, plus the outcome branch the packet takes
+  (the largest outcome among those lanes: both > one > none) with the same lanes;
+- per distinct leaf: ``leaf_entry`` with the lanes whose stream enters it, and per
+  distinct triangle tested in it: ``tri_test`` with the lanes that test it and
+  ``tri_hit`` with the lanes that accept a hit on it;
+- ``loop_control`` once per distinct node or leaf (the packet loop pops one node per
+  iteration) with every lane that has a ray.
+
+Approximations: traversal order and the packet's culling by the lanes' tmax are ignored
+(the packet visits exactly the union of the recorded per-ray streams), and work is not
+conserved per lane, so SIMD efficiency here measures the useful fraction of the union.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from simt_sim.optrace import LEAF, TRAV_BOTH, TRI_HIT
+from simt_sim.simt.engine import (
+    FINISH,
+    LEAF_ENTRY,
+    LOOP_CONTROL,
+    N_BLOCKS,
+    N_CHUNKS,
+    RAY_SETUP,
+    TRAV_NONE_B,
+    TRAV_STEP,
+    TRI_HIT_B,
+    TRI_TEST,
+    Counts,
+    ReplayParams,
+    charge,
+    charge_many,
+    chunk_bounds,
+    chunk_counts,
+)
+
+NAME = "packet"
+PERSISTENT = False
+APPROXIMATIONS: tuple[str, ...] = (
+    "packet visits the union of its lanes' recorded nodes: traversal order and tmax "
+    "culling of the shared packet ignored",
+    "active lanes of a packet step = lanes whose own ray visits that node",
+)
+
+_HASH = np.int64(2654435761)
+
+
+@njit(cache=True, nogil=True)
+def _warp(offsets, op, addr, r0, n, tkey, tlanes, tlast, thits, tlasthit, tout, used, costs,
+          cnt, hist):
+    mask = tkey.shape[0] - 1
+    nused = 0
+    for lane in range(n):
+        for k in range(offsets[r0 + lane], offsets[r0 + lane + 1]):
+            o = op[k]
+            kind = 0 if o <= TRAV_BOTH else (1 if o == LEAF else 2)
+            key = (np.int64(addr[k]) << 2) | kind
+            s = (key * _HASH) & mask
+            while tkey[s] != key and tkey[s] >= 0:
+                s = (s + 1) & mask
+            if tkey[s] < 0:
+                tkey[s] = key
+                tlanes[s] = 0
+                tlast[s] = -1
+                thits[s] = 0
+                tlasthit[s] = -1
+                tout[s] = 0
+                used[nused] = s
+                nused += 1
+            if tlast[s] != lane:
+                tlast[s] = lane
+                tlanes[s] += 1
+            if kind == 0:
+                tout[s] = max(tout[s], o)
+            elif o == TRI_HIT and tlasthit[s] != lane:
+                tlasthit[s] = lane
+                thits[s] += 1
+    charge(cnt, hist, costs, RAY_SETUP, n)
+    visits = 0
+    for i in range(nused):
+        s = used[i]
+        kind = tkey[s] & 3
+        if kind == 0:
+            charge(cnt, hist, costs, TRAV_STEP, tlanes[s])
+            charge(cnt, hist, costs, TRAV_NONE_B + tout[s], tlanes[s])
+            visits += 1
+        elif kind == 1:
+            charge(cnt, hist, costs, LEAF_ENTRY, tlanes[s])
+            visits += 1
+        else:
+            charge(cnt, hist, costs, TRI_TEST, tlanes[s])
+            charge(cnt, hist, costs, TRI_HIT_B, thits[s])
+        tkey[s] = -1
+    charge_many(cnt, hist, costs, LOOP_CONTROL, n, visits)
+    charge(cnt, hist, costs, FINISH, n)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _replay(offsets, op, addr, costs, warp_size):
+    n_rays = offsets.shape[0] - 1
+    n_warps = (n_rays + warp_size - 1) // warp_size
+    nc = min(N_CHUNKS, max(n_warps, 1))
+    bounds = chunk_bounds(n_warps, nc)
+    cnt = np.zeros((nc, 2, N_BLOCKS), np.int64)
+    hist = np.zeros((nc, N_BLOCKS, warp_size + 1), np.int64)
+    for c in prange(nc):
+        most = 0
+        for w in range(bounds[c], bounds[c + 1]):
+            r0 = w * warp_size
+            r1 = min(r0 + warp_size, n_rays)
+            most = max(most, offsets[r1] - offsets[r0])
+        cap = 4
+        while cap < 2 * most + 1:
+            cap *= 2
+        tkey = np.full(cap, -1, np.int64)
+        tlanes = np.empty(cap, np.int64)
+        tlast = np.empty(cap, np.int64)
+        thits = np.empty(cap, np.int64)
+        tlasthit = np.empty(cap, np.int64)
+        tout = np.empty(cap, np.int64)
+        used = np.empty(cap, np.int64)
+        for w in range(bounds[c], bounds[c + 1]):
+            r0 = w * warp_size
+            _warp(offsets, op, addr, r0, min(warp_size, n_rays - r0), tkey, tlanes, tlast,
+                  thits, tlasthit, tout, used, costs, cnt[c], hist[c])
+    return cnt, hist
+
+
+def replay(
+    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, p: ReplayParams
+) -> Counts:
+    """Replay one batch (warps of consecutive rays, independent of each other)."""
+    return chunk_counts(*_replay(offsets, op, addr, costs, p.warp_size))

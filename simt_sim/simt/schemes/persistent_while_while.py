@@ -1,0 +1,73 @@
+"""persistent while-while: resident warps fetch 32 rays at a time from a global pool.
+
+Only ``resident_warps`` warps are launched; a warp whose lanes are all done executes
+``pool_fetch`` (one atomic; active lanes = the lanes that receive rays) and takes the
+next ``warp_size`` consecutive rays of the launch, which it then runs exactly like
+while-while (``ray_setup`` ... ``finish``). Each fetched group is independent, so the
+instruction totals do not depend on which warp runs it; groups are replayed in parallel
+and then assigned in pool order by ideal scheduling (the next fetch goes to the warp
+with the fewest instructions so far, ties to the lowest id), which gives each warp's
+total and the launch's makespan as a load-balance diagnostic.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from simt_sim.simt.engine import (
+    N_BLOCKS,
+    N_CHUNKS,
+    POOL_FETCH,
+    Counts,
+    ReplayParams,
+    charge,
+    chunk_bounds,
+    chunk_counts,
+    schedule_groups,
+)
+from simt_sim.simt.schemes.while_while import warp_body
+
+NAME = "persistent_while_while"
+PERSISTENT = True
+APPROXIMATIONS: tuple[str, ...] = (
+    "ideal work distribution: each fetch goes to the warp with the fewest instructions "
+    "so far, and the SMs are perfectly balanced",
+)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _replay(offsets, op, costs, warp_size):
+    n_rays = offsets.shape[0] - 1
+    n_groups = (n_rays + warp_size - 1) // warp_size
+    nc = min(N_CHUNKS, max(n_groups, 1))
+    bounds = chunk_bounds(n_groups, nc)
+    cnt = np.zeros((nc, 2, N_BLOCKS), np.int64)
+    hist = np.zeros((nc, N_BLOCKS, warp_size + 1), np.int64)
+    group_cost = np.zeros(n_groups, np.int64)
+    for c in prange(nc):
+        cur = np.empty(warp_size, np.int64)
+        end = np.empty(warp_size, np.int64)
+        lanes = np.empty(warp_size, np.int64)
+        work = np.empty(warp_size, np.int64)
+        sub = np.empty(warp_size, np.int64)
+        for g in range(bounds[c], bounds[c + 1]):
+            r0 = g * warp_size
+            n = min(warp_size, n_rays - r0)
+            issued = charge(cnt[c], hist[c], costs, POOL_FETCH, n)
+            issued += warp_body(
+                offsets, op, r0, n, cur, end, lanes, work, sub, costs, cnt[c], hist[c]
+            )
+            group_cost[g] = issued
+    return cnt, hist, group_cost
+
+
+def replay(
+    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, p: ReplayParams
+) -> Counts:
+    """Replay one launch: groups in parallel, then ideal assignment to resident warps."""
+    cnt, hist, group_cost = _replay(offsets, op, costs, p.warp_size)
+    totals = np.zeros(p.resident_warps, np.int64)
+    span = schedule_groups(group_cost, p.resident_warps, totals)
+    c = chunk_counts(cnt, hist)
+    return Counts(c.executions, c.active, c.hist, totals, int(span))

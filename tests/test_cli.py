@@ -1,0 +1,110 @@
+"""Every command through its real entry point, bad input included.
+
+Bad input must end with exactly one line on stderr, exit status 2, no traceback and no
+output file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SMALL = ["--scene", "cornell-box", "--resolution", "32x24", "--camera", "0"]
+
+
+def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ)
+    env.setdefault("NUMBA_NUM_THREADS", "2")
+    return subprocess.run(
+        [sys.executable, "-m", "simt_sim", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=env,
+        timeout=None,
+    )
+
+
+def assert_clean_error(proc: subprocess.CompletedProcess[str], *needles: str) -> None:
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert "Traceback" not in proc.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+@pytest.fixture()
+def bad_meshes(tmp_path: Path) -> dict[str, Path]:
+    empty = tmp_path / "empty.obj"
+    empty.write_text("# no faces\nv 0 0 0\nv 1 0 0\nv 0 1 0\n")
+    nan = tmp_path / "nan.obj"
+    nan.write_text("v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n")
+    garbage = tmp_path / "garbage.ply"
+    garbage.write_bytes(b"\x00\x01 this is not a mesh \xff")
+    return {"empty": empty, "nan": nan, "garbage": garbage}
+
+
+@pytest.mark.parametrize("kind", ["empty", "nan", "garbage"])
+def test_bench_bad_mesh(kind, bad_meshes):
+    proc = run_cli("bench", "--scene", str(bad_meshes[kind]), "--resolution", "8x8")
+    assert_clean_error(proc)
+
+
+def test_unknown_scene_names_the_known_ones():
+    proc = run_cli("bench", "--scene", "no-such-scene")
+    assert_clean_error(proc, "room")
+
+
+def test_missing_mesh_file():
+    proc = run_cli("trace", "--scene", "/nonexistent/dir/mesh.obj", "--out", "x.trace")
+    assert_clean_error(proc)
+
+
+def test_zero_resolution():
+    proc = run_cli("bench", "--scene", "cornell-box", "--resolution", "0x0")
+    assert_clean_error(proc, "0x0")
+
+
+def test_unknown_ray_type_and_tracer():
+    assert_clean_error(run_cli("bench", *SMALL, "--rays", "cosmic"), "cosmic")
+    assert_clean_error(run_cli("bench", *SMALL, "--tracers", "optix"), "optix")
+
+
+def test_usage_error_is_one_line():
+    assert_clean_error(run_cli("bench", "--no-such-flag"))
+
+
+def test_bench_rows_and_agreement():
+    proc = run_cli(
+        "bench", *SMALL, "--rays", "ao", "--spp", "4", "--repeats", "1", "--format", "json"
+    )
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads(proc.stdout)
+    tracers = {r["tracer"] for r in rows}
+    assert tracers == {"numba", "embree"}
+    for r in rows:
+        assert r["rays"] > 0 and r["mrays_per_s"] > 0
+        assert r["hit_agreement"] >= 0.999
+
+
+def test_trace_writes_file_and_summary(tmp_path):
+    out = tmp_path / "cb.trace"
+    proc = run_cli("trace", *SMALL, "--rays", "primary", "--out", str(out), "--format", "json")
+    assert proc.returncode == 0, proc.stderr
+    row = json.loads(proc.stdout)[0]
+    assert row["rays"] == 32 * 24
+    assert row["trav_per_ray"] > 0 and row["tri_per_ray"] > 0
+    assert out.exists()
+
+
+def test_trace_bad_input_leaves_no_file(tmp_path):
+    out = tmp_path / "never.trace"
+    proc = run_cli("trace", "--scene", "cornell-box", "--resolution", "0x4", "--out", str(out))
+    assert_clean_error(proc)
+    assert not out.exists()
