@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from importlib import resources
+from importlib.resources.abc import Traversable
 
 import pandas as pd
 
@@ -30,7 +31,7 @@ __all__ = [
 ]
 
 
-def _ir_files() -> dict[tuple[str, str], resources.abc.Traversable]:
+def _ir_files() -> dict[tuple[str, str], Traversable]:
     found = {}
     for entry in resources.files("kernels_ir").joinpath("ir").iterdir():
         name = entry.name

@@ -27,9 +27,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m kernels_ir", description=__doc__)
     sub = parser.add_subparsers(dest="cmd", required=True)
     b = sub.add_parser("build", help="compile every kernel and write kernels_ir/ir/*.json")
-    b.add_argument("--check", action="store_true",
-                   help="rebuild into a temporary directory and compare with the committed "
-                        "files byte for byte (exit 1 on a difference)")
+    b.add_argument(
+        "--check",
+        action="store_true",
+        help="rebuild into a temporary directory and compare with the committed "
+        "files byte for byte (exit 1 on a difference)",
+    )
     b.add_argument("--kernel", action="append", choices=KERNELS, help="only this kernel")
     b.add_argument("--arch", action="append", choices=ARCHS, help="only this arch")
     b.add_argument("--out", type=Path, default=IR_DIR, help="output directory")
@@ -56,8 +59,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.cmd == "show":
             ir = load(args.kernel, args.arch)
             print(f"{ir.kernel} {ir.arch}: {ir.registers} registers, {ir.compiler}")
-            print(f"unattributed: {ir.notes.get('unattributed_instructions', '?')} instructions "
-                  f"({ir.notes.get('unattributed_classes', '')})")
+            print(
+                f"unattributed: {ir.notes.get('unattributed_instructions', '?')} instructions "
+                f"({ir.notes.get('unattributed_classes', '')})"
+            )
             with pd.option_context("display.width", 200, "display.max_columns", 20):
                 print(format_ir_table(ir).to_string())
             return 0

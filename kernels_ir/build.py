@@ -104,8 +104,9 @@ def source_sha256(kernel: str) -> str:
 
 def _ptxas_info(log: str, kernel: str) -> tuple[int, dict[str, str]]:
     regs = re.search(r"Used (\d+) registers", log)
-    frame = re.search(r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill loads",
-                      log)
+    frame = re.search(
+        r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill loads", log
+    )
     if not (regs and frame):
         raise SimtSimError(f"{kernel}: ptxas -v printed no register/spill line; check the flags")
     notes = {
@@ -195,7 +196,9 @@ def check(jobs: int = 2) -> list[str]:
     problems = []
     for name in sorted(set(fresh) | set(committed)):
         if name not in committed:
-            problems.append(f"{name}: missing from kernels_ir/ir (run `python -m kernels_ir build`)")
+            problems.append(
+                f"{name}: missing from kernels_ir/ir (run `python -m kernels_ir build`)"
+            )
         elif name not in fresh:
             problems.append(f"{name}: committed but no longer built")
         elif fresh[name] != committed[name]:

@@ -21,11 +21,13 @@ _INSN = re.compile(r"^\s*/\*(?P<off>[0-9a-f]{4,})\*/\s+(?P<text>[^;]*);")
 _PRED = re.compile(r"^@!?U?P(?:T|\d+)\s+")
 
 #: exact base opcodes (mnemonic before the first dot) of each class; anything else is "other"
+# fmt: off
 OPCODE_CLASSES: dict[str, tuple[str, ...]] = {
     "fp32": (
         "FADD", "FADD32I", "FMUL", "FMUL32I", "FFMA", "FFMA32I", "FMNMX", "FSETP", "FSET",
         "FSEL", "FCHK", "FSWZADD", "HFMA2", "HADD2", "HMUL2", "HSETP2", "HMNMX2", "FRND",
-        "F2F", "F2I", "I2F", "I2FP", "F2IP",
+        "F2F", "F2I", "I2F", "I2FP", "F2IP", "FMNMX3", "FADD2", "FMUL2", "FFMA2", "FMNMX2",
+        "UFADD", "UFMUL", "UFFMA", "UFMNMX", "UFSETP", "UFSEL", "UF2F", "UI2F", "UF2I",
     ),
     "int": (
         "IADD", "IADD3", "IADD32I", "IMAD", "IMAD32I", "IMUL", "IMNMX", "VIMNMX", "VIMNMX3",
@@ -33,7 +35,8 @@ OPCODE_CLASSES: dict[str, tuple[str, ...]] = {
         "SHL", "SHR", "MOV", "MOV32I", "SEL", "PRMT", "POPC", "FLO", "BREV", "BMSK", "IABS",
         "P2R", "R2P", "PLOP3", "PSETP", "S2R", "S2UR", "CS2R", "LDC", "ULDC", "UMOV", "UIADD3",
         "UIMAD", "ULOP3", "USHF", "USEL", "UISETP", "ULEA", "UPLOP3", "UPRMT", "UFLO", "UPOPC",
-        "UBMSK", "UBREV", "R2UR", "UP2UR", "UR2P", "UVIADD", "UIMNMX", "UVIMNMX",
+        "UBMSK", "UBREV", "R2UR", "UP2UR", "UR2P", "UVIADD", "UIMNMX", "UVIMNMX", "LDCU",
+        "IMNMX3",
     ),
     "ld_global": ("LDG", "LD", "LDGSTS", "UBLKCP", "LDGDEPBAR"),
     "st_global": ("STG", "ST"),
@@ -47,6 +50,7 @@ OPCODE_CLASSES: dict[str, tuple[str, ...]] = {
     "vote_atomic": ("VOTE", "VOTEU", "ATOM", "ATOMG", "RED", "REDUX", "SHFL", "MATCH"),
     "sfu": ("MUFU",),
 }
+# fmt: on
 _CLASS_OF = {op: cls for cls, ops in OPCODE_CLASSES.items() for op in ops}
 #: opcodes that issue no work and are not counted at all
 EXCLUDED = ("NOP",)

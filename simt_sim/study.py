@@ -126,7 +126,9 @@ def run_study(spec: StudySpec, *, progress: bool = True) -> tuple[list[SimResult
                         r = simulate_queues(pt, "all", s, irs[(s, g.ir_arch)], g, scene=name)
                         per_combo[(s, g.id)] = [r]
                     if "megakernel" in spec.schemes:
-                        r = megakernel.simulate(pt, irs[("megakernel", g.ir_arch)], g, scene=name)
+                        r = megakernel.simulate(
+                            pt, irs[("megakernel", g.ir_arch)], g, scene=name, order="ray"
+                        )
                         per_combo[("megakernel", g.id)] = [r]
                     if "wavefront" in spec.schemes:
                         wirs = {k: irs[(k, g.ir_arch)] for k in wavefront.KERNELS}

@@ -17,6 +17,7 @@ from simt_sim.geometry import (
 
 F32 = np.float32
 INF = F32(np.inf)
+ZERO = F32(0.0)
 
 unit = st.floats(-1.0, 1.0, allow_nan=False)
 vec = st.tuples(unit, unit, unit)
@@ -26,7 +27,7 @@ scale_exp = st.integers(-20, 20)
 tri_scale_exp = st.integers(-18, 18)
 
 
-def box_interval(lo, hi, o, d, tmin=F32(0), tmax=INF):
+def box_interval(lo, hi, o, d, tmin=ZERO, tmax=INF):
     """(tnear, tfar) of box [lo, hi], computed as the traversal does (as both children)."""
     lo = np.asarray(lo, F32)
     hi = np.asarray(hi, F32)
@@ -134,7 +135,7 @@ def _woop(v0, v1, v2):
     return np.concatenate([w0, w1, w2]).astype(F32)
 
 
-def _tri_test(woop, o, d, tmin=F32(0), tmax=INF):
+def _tri_test(woop, o, d, tmin=ZERO, tmax=INF):
     o = np.asarray(o, F32)
     d = np.asarray(d, F32)
     return woop_hit_t(woop, 0, o[0], o[1], o[2], d[0], d[1], d[2], F32(tmin), F32(tmax))
@@ -164,7 +165,9 @@ def test_woop_hits_interior_points_at_any_scale(tri, bary, origin, e):
         return
     b = np.array(bary) / sum(bary)
     target = b @ v
-    o = target + n / np.linalg.norm(n) * 10.0**e * (0.5 + abs(origin[0])) + np.array(origin) * 10.0**e
+    nh = n / np.linalg.norm(n)
+    sideways = np.array(origin) - (np.array(origin) @ nh) * nh
+    o = target + (nh * (0.5 + abs(origin[0])) + sideways) * 10.0**e  # well off the plane
     w = _woop(*(x.astype(F32) for x in v))
     ok, t = _tri_test(w, o, target - o)
     assert ok and abs(t - 1.0) < 1e-3

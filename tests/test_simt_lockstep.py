@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numba
 import numpy as np
 import pytest
 
@@ -179,6 +180,31 @@ def test_approximation_error_is_bounded(bvh, scheme, query):
         assert err["warp_instructions_rel_err"] < 0
         if query == "closest":
             assert err["warp_instructions_rel_err"] != 0
+
+
+def test_independent_of_thread_count(bvh):
+    """Warps run in parallel; counters and hits must not depend on how many threads."""
+    rays = make_rays(320, "closest", seed=10)
+    scheme = "persistent_speculative_while_while"
+    before = numba.get_num_threads()
+    runs = []
+    try:
+        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+            numba.set_num_threads(threads)
+            runs.append(execute(bvh, rays, scheme, ir_for(scheme), GPU))
+    finally:
+        numba.set_num_threads(before)
+    assert_same_counts(runs[0].result, runs[1].result)
+    np.testing.assert_array_equal(runs[0].ops, runs[1].ops)
+    np.testing.assert_array_equal(runs[0].hits.t, runs[1].hits.t)
+
+
+def test_one_lane_warps_record_whole_batches(bvh):
+    """A warp size that is not 32 still replays the trace as one batch (one launch)."""
+    rays = make_rays(40, "closest", seed=11)
+    err = approximation_error(bvh, rays, "while_while", ir_for("while_while"), GPU, warp_size=1)
+    assert err["warp_instructions_rel_err"] == 0.0
+    assert err["simd_efficiency_exact"] == 1.0
 
 
 def test_bad_input_is_refused(bvh):

@@ -1,9 +1,8 @@
 // Packet traversal (Guenther et al. 2007): the 32 rays of a warp share one stack in
 // shared memory and walk the tree together. A child is visited when any lane's ray hits
 // its box; when both are visited, the lanes vote which one comes first (majority of the
-// lanes that hit one of them). Every lane takes part in every leaf; lanes whose ray
-// missed the leaf's box test its triangles all the same (their t bound rejects nothing
-// they would not have rejected alone).
+// lanes that hit one of them). Every lane takes part in every leaf, also lanes whose ray
+// missed its box: each tested triangle is a real one, so the closest hit stays exact.
 // Launch: blockDim.x a multiple of 32, dynamic shared memory
 // (blockDim.x / 32) * SIMT_STACK_SIZE * 4 bytes. any_hit != 0: a lane stops at its
 // first hit; the warp stops when every lane has.

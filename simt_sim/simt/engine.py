@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit, prange
 
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
-from simt_sim.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS
+from simt_sim.optrace import LEAF, TRI_HIT, TRI_MISS
 
 N_BLOCKS = len(BLOCKS)
 RAY_SETUP = BLOCKS.index("ray_setup")
@@ -143,42 +143,58 @@ def chunk_bounds(n_units, n_chunks):
     return b
 
 
+@njit(cache=True, nogil=True)
+def _first_bad(offsets, op, r0, r1):
+    """First op index in rays r0..r1-1 that is an unknown code or an orphan TRI (-1: none)."""
+    for r in range(r0, r1):
+        prev = 0
+        for k in range(offsets[r], offsets[r + 1]):
+            o = op[k]
+            if o > 5 or (IS_TRI[o] and not (IS_LEAF[prev] or IS_TRI[prev])):
+                return np.int64(k)
+            prev = o
+    return np.int64(-1)
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def scan_trace(offsets, op):
     """Validate op streams and count ops by kind.
 
     Returns ``(n_trav, n_leaf, n_tri, bad)`` where ``bad`` is the first op index that is
     not a known op code or a triangle test without a leaf before it (-1 if none): such a
-    stream would never leave a while-while loop, so the replay refuses it.
+    stream would never leave a while-while loop, so the replay refuses it. The counting
+    pass is branch-free; only a chunk that fails is scanned again to locate the op.
     """
     n = offsets.shape[0] - 1
     nc = min(N_CHUNKS, max(n, 1))
     bounds = chunk_bounds(n, nc)
-    tot = np.zeros((nc, 3), np.int64)
-    bad = np.full(nc, -1, np.int64)
+    tot = np.zeros((nc, 256), np.int64)
+    orphans = np.zeros(nc, np.int64)
     for c in prange(nc):
+        local = np.zeros(256, np.int64)
+        lo = offsets[bounds[c]]
+        hi = offsets[bounds[c + 1]]
+        starts = 0
         for r in range(bounds[c], bounds[c + 1]):
-            prev = np.uint8(0)
-            for k in range(offsets[r], offsets[r + 1]):
-                o = op[k]
-                if o <= TRAV_BOTH:
-                    tot[c, 0] += 1
-                elif o == LEAF:
-                    tot[c, 1] += 1
-                elif o == TRI_MISS or o == TRI_HIT:
-                    tot[c, 2] += 1
-                    if k == offsets[r] or prev < LEAF:
-                        if bad[c] < 0:
-                            bad[c] = k
-                elif bad[c] < 0:
-                    bad[c] = k
-                prev = o
+            # a TRI opening a stream is an orphan: count stream-opening TRIs separately
+            k = offsets[r]
+            starts += offsets[r + 1] > k and (op[k] == TRI_MISS or op[k] == TRI_HIT)
+        bad = starts
+        prev = np.uint8(LEAF)
+        for k in range(lo, hi):
+            o = op[k]
+            local[o] += 1
+            bad += (o == TRI_MISS or o == TRI_HIT) and not (prev >= LEAF and prev <= TRI_HIT)
+            prev = o
+        orphans[c] = bad
+        tot[c] = local
     first = np.int64(-1)
     for c in range(nc):
-        if bad[c] >= 0:
-            first = bad[c]
+        if orphans[c] > 0 or tot[c, 6:].sum() > 0:
+            first = _first_bad(offsets, op, bounds[c], bounds[c + 1])
             break
-    return tot[:, 0].sum(), tot[:, 1].sum(), tot[:, 2].sum(), first
+    trav = tot[:, 0].sum() + tot[:, 1].sum() + tot[:, 2].sum()
+    return trav, tot[:, 3].sum(), tot[:, 4].sum() + tot[:, 5].sum(), first
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -143,7 +143,9 @@ def load_gpus(extra: Path | None = None) -> dict[str, GpuConfig]:
         try:
             text = path.read_text("utf-8")
         except OSError as exc:
-            raise SimtSimError(f"cannot read GPU file {path}: {exc.strerror}; check the path")
+            raise SimtSimError(
+                f"cannot read GPU file {path}: {exc.strerror}; check the path"
+            ) from None
         gpus.update(_read(text, str(path)))
     return gpus
 

@@ -57,7 +57,13 @@ from numba import njit, prange
 from kernels_ir.kernel_ir import KernelIR
 from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
 from simt_sim.errors import SimtSimError
-from simt_sim.geometry import SENTINEL_I32, node_child_intervals, safe_inverse, woop_hit_t
+from simt_sim.geometry import (
+    SENTINEL_I32,
+    near_columns,
+    node_child_intervals,
+    safe_inverse,
+    woop_hit_t,
+)
 from simt_sim.hits import Hits
 from simt_sim.optrace import TRAV_BOTH, TRAV_NONE, TRAV_ONE
 from simt_sim.raybatch import RayBatch
@@ -96,9 +102,10 @@ _WHILE_WHILE, _IF_IF, _PERSISTENT, _SPECULATIVE, _PACKET = range(5)
 MAX_WARP = 64
 """Largest warp size the executor accepts (lane masks are small boolean arrays)."""
 
-# Lane integer state, one row per lane: position, triangle cursor, stack, hit, parked leaf.
-_STATE, _NODE, _J, _SP, _HIT, _PLEAF, _SEARCH = range(7)
-_N_INT = 7
+# Lane integer state, one row per lane: position, triangle cursor, stack, hit, parked leaf,
+# and the node columns of the ray's near slab planes (``geometry.near_columns``).
+_STATE, _NODE, _J, _SP, _HIT, _PLEAF, _SEARCH, _NX, _NY, _NZ = range(10)
+_N_INT = 10
 # Lane float32 state: origin, direction, inverse direction, tmin and the current tmax.
 _OX, _OY, _OZ, _DX, _DY, _DZ, _IX, _IY, _IZ, _TMIN, _TMAX = range(11)
 _N_FLOAT = 11
@@ -162,9 +169,16 @@ def _init_lane(li, lf, lane, r, origin, direction, tmin, tmax, root):
     lf[lane, _DX] = direction[r, 0]
     lf[lane, _DY] = direction[r, 1]
     lf[lane, _DZ] = direction[r, 2]
-    lf[lane, _IX] = safe_inverse(direction[r, 0])
-    lf[lane, _IY] = safe_inverse(direction[r, 1])
-    lf[lane, _IZ] = safe_inverse(direction[r, 2])
+    idx = safe_inverse(direction[r, 0])
+    idy = safe_inverse(direction[r, 1])
+    idz = safe_inverse(direction[r, 2])
+    lf[lane, _IX] = idx
+    lf[lane, _IY] = idy
+    lf[lane, _IZ] = idz
+    nx, ny, nz = near_columns(idx, idy, idz)
+    li[lane, _NX] = nx
+    li[lane, _NY] = ny
+    li[lane, _NZ] = nz
     lf[lane, _TMIN] = tmin[r]
     lf[lane, _TMAX] = tmax[r]
     li[lane, _SP] = 0
@@ -182,6 +196,7 @@ def _child_hits(nodes, li, lf, lane):
         nodes, li[lane, _NODE],
         lf[lane, _OX], lf[lane, _OY], lf[lane, _OZ],
         lf[lane, _IX], lf[lane, _IY], lf[lane, _IZ],
+        li[lane, _NX], li[lane, _NY], li[lane, _NZ],
         lf[lane, _TMIN], lf[lane, _TMAX],
     )  # fmt: skip
 
@@ -776,13 +791,12 @@ def approximation_error(
         ``<metric>_replay``, ``<metric>_exact`` and ``<metric>_rel_err`` =
         (replay - exact) / exact; and mean TRAV/LEAF/TRI per ray of both.
     """
-    from simt_sim.record import record_all
+    from simt_sim.record import WARP, record_all
     from simt_sim.simt.replay import simulate
 
     g = _gpu(gpu, warp_size)
     exact = execute(bvh, rays, scheme, ir, g, scene=scene).result
-    whole = max(g.warp_size, -(-len(rays) // g.warp_size) * g.warp_size)
-    trace = record_all(bvh, rays, batch_size=whole)
+    trace = record_all(bvh, rays, batch_size=max(WARP, -(-len(rays) // WARP) * WARP))
     replayed = simulate([trace], scheme, ir, g, scene=scene)
     row: dict[str, float | int | str] = {
         "scheme": scheme,

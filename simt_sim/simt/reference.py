@@ -246,7 +246,9 @@ def _dynamic_fetch(
             continue
         lanes = _Lanes([rays[r] if r is not None else [] for r in ray])
         lanes.cur = cur
-        alive = [lane for lane in range(w) if ray[lane] is not None and lanes.next(lane) is not None]
+        alive = [
+            lane for lane in range(w) if ray[lane] is not None and lanes.next(lane) is not None
+        ]
         if alive:
             issued += _ww_iteration(lanes, alive, rec)
         done = [lane for lane in range(w) if ray[lane] is not None and lanes.next(lane) is None]

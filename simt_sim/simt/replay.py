@@ -119,7 +119,9 @@ def simulate(
     if r < 1:
         raise SimtSimError(f"resident_warps must be >= 1, got {r}")
     if threshold < 1:
-        raise SimtSimError(f"threshold must be >= 1 (lanes alive before refilling), got {threshold}")
+        raise SimtSimError(
+            f"threshold must be >= 1 (lanes alive before refilling), got {threshold}"
+        )
     if launch_size is not None and (launch_size < 1 or launch_size % w):
         raise SimtSimError(
             f"launch_size must be a positive multiple of the warp size {w}, got {launch_size}"

@@ -35,8 +35,7 @@ def check_ir(ir: KernelIR, scheme: str) -> None:
     missing = [b for b in REQUIRED_BLOCKS[scheme] if b not in ir.blocks]
     if missing:
         raise SimtSimError(
-            f"KernelIR {ir.kernel}/{ir.arch} lacks block(s) {', '.join(missing)}; "
-            "regenerate the IR"
+            f"KernelIR {ir.kernel}/{ir.arch} lacks block(s) {', '.join(missing)}; regenerate the IR"
         )
 
 

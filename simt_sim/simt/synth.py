@@ -47,8 +47,22 @@ def _draw(s, q, divergence):
 
 
 @njit(cache=True, nogil=True)
-def _ray(ray, coherence, seed, depth, p_none, p_both, p_hit, divergence, any_hit, max_ops,
-         stack, op, addr, pos):
+def _ray(
+    ray,
+    coherence,
+    seed,
+    depth,
+    p_none,
+    p_both,
+    p_hit,
+    divergence,
+    any_hit,
+    max_ops,
+    stack,
+    op,
+    addr,
+    pos,
+):
     """Generate one stream; write it at ``pos`` if ``op`` is non-empty; return its length."""
     base = (np.uint64(seed) + np.uint64(1)) * _GOLD
     s = _step((base ^ (np.uint64(ray // coherence) + np.uint64(1)) * _MUL) | np.uint64(1))
@@ -119,8 +133,20 @@ def _generate(n_rays, coherence, seed, depth, p_none, p_both, p_hit, divergence,
         stack = np.empty(depth + 2, np.int64)
         for r in range(bounds[c], bounds[c + 1]):
             lengths[r] = _ray(
-                r, coherence, seed, depth, p_none, p_both, p_hit, divergence, any_hit, max_ops, stack,
-                dummy_op, dummy_addr, 0,
+                r,
+                coherence,
+                seed,
+                depth,
+                p_none,
+                p_both,
+                p_hit,
+                divergence,
+                any_hit,
+                max_ops,
+                stack,
+                dummy_op,
+                dummy_addr,
+                0,
             )
     offsets = np.zeros(n_rays + 1, np.int64)
     offsets[1:] = np.cumsum(lengths)
@@ -130,8 +156,20 @@ def _generate(n_rays, coherence, seed, depth, p_none, p_both, p_hit, divergence,
         stack = np.empty(depth + 2, np.int64)
         for r in range(bounds[c], bounds[c + 1]):
             _ray(
-                r, coherence, seed, depth, p_none, p_both, p_hit, divergence, any_hit, max_ops, stack,
-                op, addr, offsets[r],
+                r,
+                coherence,
+                seed,
+                depth,
+                p_none,
+                p_both,
+                p_hit,
+                divergence,
+                any_hit,
+                max_ops,
+                stack,
+                op,
+                addr,
+                offsets[r],
             )
     return offsets, op, addr
 
@@ -178,7 +216,13 @@ def synthetic_trace(
         raise SimtSimError(f"query must be 'closest' or 'any', got {query!r}")
     if n_rays < 0 or max_ops < 1 or coherence < 1:
         raise SimtSimError("n_rays must be >= 0 and max_ops, coherence >= 1")
-    if not (0 <= p_none and 0 <= p_both and p_none + p_both <= 1 and 0 <= p_hit <= 1 and 0 <= divergence <= 1):
+    if not (
+        0 <= p_none
+        and 0 <= p_both
+        and p_none + p_both <= 1
+        and 0 <= p_hit <= 1
+        and 0 <= divergence <= 1
+    ):
         raise SimtSimError("probabilities must lie in [0, 1] with p_none + p_both <= 1")
     offsets, op, addr = _generate(
         n_rays, coherence, seed, depth, p_none, p_both, p_hit, divergence, query == "any", max_ops

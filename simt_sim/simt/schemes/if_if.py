@@ -14,9 +14,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from simt_sim.optrace import LEAF, TRAV_BOTH, TRI_HIT
 from simt_sim.simt.engine import (
     FINISH,
+    IS_HIT,
+    IS_LEAF,
+    IS_TRAV,
+    IS_TRI,
     LEAF_ENTRY,
     LOOP_CONTROL,
     N_BLOCKS,
@@ -31,6 +34,7 @@ from simt_sim.simt.engine import (
     charge,
     chunk_bounds,
     chunk_counts,
+    next_op,
 )
 
 NAME = "if_if"
@@ -47,48 +51,42 @@ def _warp(offsets, op, r0, n, cur, end, lanes, costs, cnt, hist):
     while True:
         a = 0
         for lane in range(n):
-            if cur[lane] < end[lane]:
-                lanes[a] = lane
-                a += 1
+            lanes[a] = lane
+            a += cur[lane] < end[lane]
         if a == 0:
             break
         charge(cnt, hist, costs, LOOP_CONTROL, a)
+        k = 0
         c0 = 0
         c1 = 0
-        c2 = 0
         for i in range(a):
             lane = lanes[i]
             o = op[cur[lane]]
-            if o <= TRAV_BOTH:
-                if o == 0:
-                    c0 += 1
-                elif o == 1:
-                    c1 += 1
-                else:
-                    c2 += 1
-                cur[lane] += 1
-        charge(cnt, hist, costs, TRAV_STEP, c0 + c1 + c2)
+            t = IS_TRAV[o]
+            c0 += o == 0
+            c1 += o == 1
+            cur[lane] += t
+            k += t
+        charge(cnt, hist, costs, TRAV_STEP, k)
         charge(cnt, hist, costs, TRAV_NONE_B, c0)
         charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
-        charge(cnt, hist, costs, TRAV_NONE_B + 2, c2)
+        charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
         k = 0
         for i in range(a):
             lane = lanes[i]
-            c = cur[lane]
-            if c < end[lane] and op[c] == LEAF:
-                cur[lane] = c + 1
-                k += 1
+            t = IS_LEAF[next_op(op, cur, end, lane)]
+            cur[lane] += t
+            k += t
         charge(cnt, hist, costs, LEAF_ENTRY, k)
         k = 0
         h = 0
         for i in range(a):
             lane = lanes[i]
-            c = cur[lane]
-            if c < end[lane] and op[c] > LEAF:
-                if op[c] == TRI_HIT:
-                    h += 1
-                cur[lane] = c + 1
-                k += 1
+            o = next_op(op, cur, end, lane)
+            t = IS_TRI[o]
+            h += IS_HIT[o]
+            cur[lane] += t
+            k += t
         charge(cnt, hist, costs, TRI_TEST, k)
         charge(cnt, hist, costs, TRI_HIT_B, h)
     charge(cnt, hist, costs, FINISH, n)
@@ -108,7 +106,8 @@ def _replay(offsets, op, costs, warp_size):
         lanes = np.empty(warp_size, np.int64)
         for w in range(bounds[c], bounds[c + 1]):
             r0 = w * warp_size
-            _warp(offsets, op, r0, min(warp_size, n_rays - r0), cur, end, lanes, costs, cnt[c], hist[c])
+            n = min(warp_size, n_rays - r0)
+            _warp(offsets, op, r0, n, cur, end, lanes, costs, cnt[c], hist[c])
     return cnt, hist
 
 

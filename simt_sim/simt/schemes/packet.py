@@ -55,8 +55,9 @@ _HASH = np.int64(2654435761)
 
 
 @njit(cache=True, nogil=True)
-def _warp(offsets, op, addr, r0, n, tkey, tlanes, tlast, thits, tlasthit, tout, used, costs,
-          cnt, hist):
+def _warp(
+    offsets, op, addr, r0, n, tkey, tlanes, tlast, thits, tlasthit, tout, used, costs, cnt, hist
+):
     mask = tkey.shape[0] - 1
     nused = 0
     for lane in range(n):
@@ -130,8 +131,23 @@ def _replay(offsets, op, addr, costs, warp_size):
         used = np.empty(cap, np.int64)
         for w in range(bounds[c], bounds[c + 1]):
             r0 = w * warp_size
-            _warp(offsets, op, addr, r0, min(warp_size, n_rays - r0), tkey, tlanes, tlast,
-                  thits, tlasthit, tout, used, costs, cnt[c], hist[c])
+            _warp(
+                offsets,
+                op,
+                addr,
+                r0,
+                min(warp_size, n_rays - r0),
+                tkey,
+                tlanes,
+                tlast,
+                thits,
+                tlasthit,
+                tout,
+                used,
+                costs,
+                cnt[c],
+                hist[c],
+            )
     return cnt, hist
 
 

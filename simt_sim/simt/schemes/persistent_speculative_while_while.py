@@ -24,9 +24,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from simt_sim.optrace import LEAF, TRAV_BOTH
+from simt_sim.optrace import LEAF
 from simt_sim.simt.engine import (
     FINISH,
+    IS_LEAF,
+    IS_TRAV,
     LEAF_ENTRY,
     LOOP_CONTROL,
     N_BLOCKS,
@@ -41,6 +43,7 @@ from simt_sim.simt.engine import (
     charge,
     chunk_bounds,
     chunk_counts,
+    next_op,
     schedule_groups,
 )
 from simt_sim.simt.schemes.while_while import isect_loop, tri_loop
@@ -65,39 +68,34 @@ def _spec_trav_loop(op, cur, end, park, park_end, lanes, n, work, costs, cnt, hi
         k = 0
         c0 = 0
         c1 = 0
-        c2 = 0
         npost = 0
         without = False
         for i in range(m):
             lane = work[i]
-            c = cur[lane]
-            if c < end[lane] and op[c] <= TRAV_BOTH:
-                o = op[c]
-                if o == 0:
-                    c0 += 1
-                elif o == 1:
-                    c1 += 1
-                else:
-                    c2 += 1
+            o = next_op(op, cur, end, lane)
+            t = IS_TRAV[o]
+            c0 += o == 0
+            c1 += o == 1
+            cur[lane] += t
+            work[k] = lane
+            k += t
+            # only lanes that stepped may postpone (a waiting lane at a LEAF stays put)
+            if t and park[lane] < 0 and IS_LEAF[next_op(op, cur, end, lane)]:
+                c = cur[lane]
+                park[lane] = c
                 c += 1
-                if park[lane] < 0 and c < end[lane] and op[c] == LEAF:
-                    park[lane] = c
+                while c < end[lane] and op[c] > LEAF:
                     c += 1
-                    while c < end[lane] and op[c] > LEAF:
-                        c += 1
-                    park_end[lane] = c
-                    npost += 1
-                if park[lane] < 0:
-                    without = True
+                park_end[lane] = c
                 cur[lane] = c
-                work[k] = lane
-                k += 1
+                npost += 1
+            without |= t and park[lane] < 0
         if k == 0:
             return issued
         issued += charge(cnt, hist, costs, TRAV_STEP, k)
         issued += charge(cnt, hist, costs, TRAV_NONE_B, c0)
         issued += charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
-        issued += charge(cnt, hist, costs, TRAV_NONE_B + 2, c2)
+        issued += charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
         issued += charge(cnt, hist, costs, POSTPONE, npost)
         if not without:
             return issued
@@ -115,9 +113,8 @@ def _group(offsets, op, r0, n, cur, end, park, park_end, pcur, lanes, work, sub,
     while True:
         a = 0
         for lane in range(n):
-            if cur[lane] < end[lane]:
-                lanes[a] = lane
-                a += 1
+            lanes[a] = lane
+            a += cur[lane] < end[lane]
         if a == 0:
             break
         issued += charge(cnt, hist, costs, LOOP_CONTROL, a)
@@ -160,8 +157,21 @@ def _replay(offsets, op, costs, warp_size):
             r0 = g * warp_size
             n = min(warp_size, n_rays - r0)
             group_cost[g] = _group(
-                offsets, op, r0, n, cur, end, park, park_end, pcur, lanes, work, sub, costs,
-                cnt[c], hist[c],
+                offsets,
+                op,
+                r0,
+                n,
+                cur,
+                end,
+                park,
+                park_end,
+                pcur,
+                lanes,
+                work,
+                sub,
+                costs,
+                cnt[c],
+                hist[c],
             )
     return cnt, hist, group_cost
 

@@ -36,6 +36,13 @@ APPROXIMATIONS: tuple[str, ...] = (
 )
 
 
+@njit(cache=True, nogil=True)
+def _group(offsets, op, r0, n, cur, end, lanes, work, sub, costs, cnt, hist):
+    """One fetched group: ``pool_fetch`` with its lanes, then the while-while warp body."""
+    issued = charge(cnt, hist, costs, POOL_FETCH, n)
+    return issued + warp_body(offsets, op, r0, n, cur, end, lanes, work, sub, costs, cnt, hist)
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _replay(offsets, op, costs, warp_size):
     n_rays = offsets.shape[0] - 1
@@ -54,11 +61,9 @@ def _replay(offsets, op, costs, warp_size):
         for g in range(bounds[c], bounds[c + 1]):
             r0 = g * warp_size
             n = min(warp_size, n_rays - r0)
-            issued = charge(cnt[c], hist[c], costs, POOL_FETCH, n)
-            issued += warp_body(
+            group_cost[g] = _group(
                 offsets, op, r0, n, cur, end, lanes, work, sub, costs, cnt[c], hist[c]
             )
-            group_cost[g] = issued
     return cnt, hist, group_cost
 
 

@@ -1,4 +1,4 @@
-"""while-while: ``while ray alive { while node interior: traverse; while node is leaf: intersect }``.
+"""while-while: ``while alive { while interior: traverse; while leaf: intersect }``.
 
 Each warp is 32 consecutive rays of the trace. Lanes that leave an inner loop wait until
 every lane has left it (reconvergence at each loop exit), which is where SIMD efficiency

@@ -1,0 +1,287 @@
+"""Scheme semantics: hand-computed warps, the pure-Python reference, conservation, coherence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kernels_ir.kernel_ir import BLOCKS, KernelIR
+from simt_sim.optrace import LEAF, TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS, OpTrace
+from simt_sim.simt.gpus import GpuConfig
+from simt_sim.simt.reference import reference_replay
+from simt_sim.simt.replay import simulate
+from simt_sim.simt.result import SimResult
+from simt_sim.simt.schemes import SCHEMES
+from simt_sim.simt.synth import synthetic_trace, trace_from_lists
+
+COSTS = {b: i + 1 for i, b in enumerate(BLOCKS)}  # small distinct costs per block
+CONSERVING = [s for s in SCHEMES if s != "packet"]
+
+
+def ir_for(scheme: str) -> KernelIR:
+    return KernelIR(scheme, "sm_75", {b: {"int": c} for b, c in COSTS.items()})
+
+
+def gpu_for(warp_size: int, resident_warps: int = 4) -> GpuConfig:
+    return GpuConfig("test", "test", 1, 1000.0, 1.0, warp_size, resident_warps, 0, 0, "sm_75", "")
+
+
+def run(trace: OpTrace, scheme: str, warp_size: int, **kw: object) -> SimResult:
+    return simulate([trace], scheme, ir_for(scheme), gpu_for(warp_size), **kw)
+
+
+def random_streams(
+    rng: np.random.Generator, n: int, any_hit: bool = False
+) -> tuple[list[list[int]], list[list[int]]]:
+    """Well-formed random streams: TRAV runs, LEAF + 1-8 TRI; also empty and leaf-first."""
+    ops: list[list[int]] = []
+    for _ in range(n):
+        o: list[int] = []
+        if rng.random() < 0.05:
+            ops.append(o)
+            continue
+        for seg in range(int(rng.integers(1, 6))):
+            if not (seg == 0 and rng.random() < 0.05):  # sometimes the stream starts at a leaf
+                o += [int(x) for x in rng.integers(0, 3, int(rng.integers(1, 8)))]
+            for _ in range(int(rng.integers(0, 3))):
+                tris = [
+                    TRI_HIT if rng.random() < 0.2 else TRI_MISS for _ in range(rng.integers(1, 9))
+                ]
+                if any_hit and TRI_HIT in tris:
+                    o += [LEAF] + tris[: tris.index(TRI_HIT) + 1]
+                    break
+                o += [LEAF] + tris
+            if any_hit and o and o[-1] == TRI_HIT:
+                break
+        ops.append(o)
+    addrs = [[int(a) for a in rng.integers(0, 40, len(o))] for o in ops]
+    return ops, addrs
+
+
+def counters(r: SimResult) -> dict[str, tuple[int, int, list[int]]]:
+    return {
+        b: (r.executions[b], r.active_sum[b], [int(x) for x in r.counts.hist[i]])
+        for i, b in enumerate(BLOCKS)
+    }
+
+
+def expect(r: SimResult, table: dict[str, tuple[int, int]]) -> None:
+    """Executions / active sums of every block (blocks not listed: never issued)."""
+    got = {b: (r.executions[b], r.active_sum[b]) for b in BLOCKS if r.executions[b]}
+    assert got == table
+
+
+# ---- hand-computed warps -----------------------------------------------------------------
+CASE_A = [
+    [TRAV_ONE, TRAV_BOTH, LEAF, TRI_MISS, TRI_HIT, TRAV_NONE],
+    [TRAV_NONE],
+]
+CASE_B = [
+    [TRAV_ONE, LEAF, TRI_MISS, TRI_MISS, TRI_MISS],
+    [TRAV_BOTH, TRAV_ONE, LEAF, TRI_HIT],
+]
+
+
+def test_while_while_by_hand() -> None:
+    expect(
+        run(trace_from_lists(CASE_A), "while_while", 2),
+        {
+            "ray_setup": (1, 2),
+            "loop_control": (2, 3),
+            "trav_step": (3, 4),
+            "trav_none": (2, 2),
+            "trav_one": (1, 1),
+            "trav_both": (1, 1),
+            "leaf_entry": (1, 1),
+            "tri_test": (2, 2),
+            "tri_hit": (1, 1),
+            "finish": (1, 2),
+        },
+    )
+    expect(
+        run(trace_from_lists(CASE_B), "while_while", 2),
+        {
+            "ray_setup": (1, 2),
+            "loop_control": (1, 2),
+            "trav_step": (2, 3),
+            "trav_one": (2, 2),
+            "trav_both": (1, 1),
+            "leaf_entry": (1, 2),
+            "tri_test": (3, 4),
+            "tri_hit": (1, 1),
+            "finish": (1, 2),
+        },
+    )
+
+
+def test_if_if_by_hand() -> None:
+    expect(
+        run(trace_from_lists(CASE_A), "if_if", 2),
+        {
+            "ray_setup": (1, 2),
+            "loop_control": (4, 5),
+            "trav_step": (3, 4),
+            "trav_none": (2, 2),
+            "trav_one": (1, 1),
+            "trav_both": (1, 1),
+            "leaf_entry": (1, 1),
+            "tri_test": (2, 2),
+            "tri_hit": (1, 1),
+            "finish": (1, 2),
+        },
+    )
+    expect(
+        run(trace_from_lists(CASE_B), "if_if", 2),
+        {
+            "ray_setup": (1, 2),
+            "loop_control": (3, 5),
+            "trav_step": (2, 3),
+            "trav_one": (2, 2),
+            "trav_both": (1, 1),
+            "leaf_entry": (2, 2),
+            "tri_test": (3, 4),
+            "tri_hit": (1, 1),
+            "finish": (1, 2),
+        },
+    )
+
+
+def test_speculative_by_hand() -> None:
+    streams = [
+        [TRAV_BOTH, LEAF, TRI_MISS, TRAV_ONE, LEAF, TRI_HIT],
+        [TRAV_ONE, TRAV_ONE, TRAV_ONE, LEAF, TRI_MISS],
+    ]
+    expect(
+        run(trace_from_lists(streams), "persistent_speculative_while_while", 2),
+        {
+            "pool_fetch": (1, 2),
+            "ray_setup": (1, 2),
+            "loop_control": (1, 2),
+            "trav_step": (3, 5),
+            "trav_one": (3, 4),
+            "trav_both": (1, 1),
+            "postpone": (2, 2),
+            "leaf_entry": (2, 3),
+            "tri_test": (2, 3),
+            "tri_hit": (1, 1),
+            "finish": (1, 2),
+        },
+    )
+
+
+def test_dynamic_fetch_by_hand() -> None:
+    streams = [[TRAV_NONE], [TRAV_ONE, TRAV_NONE], [TRAV_NONE]]
+    r = simulate(
+        [trace_from_lists(streams)],
+        "dynamic_fetch",
+        ir_for("dynamic_fetch"),
+        gpu_for(2, 1),
+        threshold=2,
+    )
+    expect(
+        r,
+        {
+            "pool_fetch": (2, 3),
+            "ray_setup": (2, 3),
+            "loop_control": (2, 3),
+            "trav_step": (3, 4),
+            "trav_none": (3, 3),
+            "trav_one": (1, 1),
+            "finish": (2, 3),
+        },
+    )
+    assert r.makespan == r.warp_instructions == int(r.warp_totals.sum())
+
+
+def test_packet_by_hand() -> None:
+    ops = [[TRAV_BOTH, TRAV_ONE, LEAF, TRI_MISS, TRI_HIT], [TRAV_ONE, TRAV_NONE]]
+    addrs = [[1, 2, 10, 10, 13], [1, 3]]  # LEAF 10 and TRI 10 are different things
+    expect(
+        run(trace_from_lists(ops, addrs), "packet", 2),
+        {
+            "ray_setup": (1, 2),
+            "loop_control": (4, 8),
+            "trav_step": (3, 4),
+            "trav_none": (1, 1),
+            "trav_one": (1, 1),
+            "trav_both": (1, 2),
+            "leaf_entry": (1, 1),
+            "tri_test": (2, 2),
+            "tri_hit": (1, 1),
+            "finish": (1, 2),
+        },
+    )
+
+
+# ---- the numba replay against the plain reference ----------------------------------------
+@pytest.mark.parametrize("scheme", list(SCHEMES))
+@pytest.mark.parametrize(("warp_size", "any_hit"), [(32, False), (4, True)])
+def test_numba_replay_matches_reference(scheme: str, warp_size: int, any_hit: bool) -> None:
+    rng = np.random.default_rng(7 + warp_size)
+    ops, addrs = random_streams(rng, 200 * warp_size + 5, any_hit)
+    launch = 64 * warp_size
+    r = run(trace_from_lists(ops, addrs), scheme, warp_size, launch_size=launch)
+    ref = reference_replay(
+        ops, addrs, scheme, COSTS, warp_size, resident_warps=4, launch_size=launch
+    )
+    assert counters(r) == {b: (ref.executions[b], ref.active[b], ref.hist[b]) for b in BLOCKS}
+    if ref.warp_totals is None:
+        assert r.warp_totals is None
+    else:
+        assert r.warp_totals.tolist() == ref.warp_totals
+        assert r.makespan == ref.makespan
+
+
+# ---- properties ------------------------------------------------------------------------------
+@pytest.mark.parametrize("scheme", CONSERVING)
+def test_each_lane_work_is_conserved(scheme: str) -> None:
+    rng = np.random.default_rng(3)
+    ops, addrs = random_streams(rng, 32 * 50 + 9, any_hit=False)
+    trace = trace_from_lists(ops, addrs)
+    r = run(trace, scheme, 32)
+    flat = np.concatenate([np.asarray(o, np.int64) for o in ops])
+    by_code = np.bincount(flat, minlength=6)
+    a = r.active_sum
+    assert a["trav_step"] == by_code[:3].sum() == r.n_trav
+    assert (a["trav_none"], a["trav_one"], a["trav_both"]) == tuple(by_code[:3])
+    assert a["leaf_entry"] == by_code[LEAF] == r.n_leaf
+    assert a["tri_test"] == by_code[TRI_MISS] + by_code[TRI_HIT] == r.n_tri
+    assert a["tri_hit"] == by_code[TRI_HIT]
+    assert a["ray_setup"] == a["finish"] == r.rays == len(ops)
+    if scheme != "while_while" and scheme != "if_if":
+        assert a["pool_fetch"] == len(ops)
+    assert r.mean_trav == pytest.approx(by_code[:3].sum() / len(ops))
+
+
+@pytest.mark.parametrize("scheme", list(SCHEMES))
+def test_identical_rays_in_a_warp_are_fully_efficient(scheme: str) -> None:
+    trace = synthetic_trace(32 * 40, seed=5, coherence=32, divergence=0.0)
+    r = run(trace, scheme, 32)
+    assert r.simd_efficiency_traversal == 1.0
+    assert r.simd_efficiency_intersection == 1.0
+    assert r.simd_efficiency == 1.0
+
+
+@pytest.mark.parametrize("scheme", list(SCHEMES))
+def test_warp_size_one_is_fully_efficient(scheme: str) -> None:
+    r = run(synthetic_trace(300, seed=2), scheme, 1)
+    assert r.simd_efficiency == r.simd_efficiency_traversal == 1.0
+    assert r.active_lanes_hist[0] == 0 and r.active_lanes_hist[1] == r.warp_instructions
+
+
+@pytest.mark.parametrize("scheme", list(SCHEMES))
+def test_divergent_rays_lose_efficiency_within_bounds(scheme: str) -> None:
+    r = run(synthetic_trace(32 * 60, seed=9), scheme, 32)
+    for eff in (r.simd_efficiency, r.simd_efficiency_traversal, r.simd_efficiency_intersection):
+        assert 1 / 32 <= eff < 1.0
+    assert int(r.active_lanes_hist.sum()) == r.warp_instructions
+    assert r.active_lanes_hist[0] == 0
+
+
+def test_speculation_keeps_lanes_traversing() -> None:
+    """Postponing a leaf fills the traversal loop: speculative traversal is more efficient."""
+    trace = synthetic_trace(32 * 200, seed=11, coherence=32, divergence=0.3)
+    plain = run(trace, "persistent_while_while", 32)
+    spec = run(trace, "persistent_speculative_while_while", 32)
+    assert spec.simd_efficiency_traversal > plain.simd_efficiency_traversal
+    assert spec.executions["postpone"] > 0
