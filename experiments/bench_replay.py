@@ -1,13 +1,20 @@
-"""Replay throughput of every scheme on a synthetic trace (rays per second, recording excluded).
+"""Replay throughput of every scheme (rays per second, recording excluded).
 
-Usage: python experiments/bench_replay.py [--rays 1048576] [--repeats 3] [--threads N]
+Usage: python experiments/bench_replay.py [--rays 1048576] [--repeats 3] [--threads 1,2]
+       [--traces synthetic,recorded] [--scene room] [--resolution 256x192] [--spp 8]
 
-Builds a coherent synthetic trace (warps of rays sharing a random stream, each ray taking
-20% of its decisions alone; ~60 ops per ray), replays it once per scheme to warm up
-(numba compile / cache load), then reports the median of ``--repeats`` timed replays of
-``simulate`` (validation included) with a KernelIR of small distinct block costs.
-Also reports the process CPU time per replay: on a shared machine, rays per CPU-second
-x threads estimates the throughput on idle cores.
+Two traces:
+
+- ``synthetic``: a coherent synthetic trace (warps of rays sharing a random stream, each
+  ray taking 20% of its decisions alone; ~60 ops per ray), costed with a KernelIR of small
+  distinct block costs;
+- ``recorded``: the real target, diffuse rays of ``--scene`` (camera 0) recorded with
+  ``record_all`` and costed with each scheme's committed sm_75 KernelIR.
+
+For each trace, thread count and scheme: one replay to warm up (numba compile / cache
+load), then the median of ``--repeats`` timed replays of ``simulate`` (validation
+included). Also reports the process CPU time per replay: on a shared machine, rays per
+CPU-second x threads estimates the throughput on idle cores.
 """
 
 from __future__ import annotations
@@ -15,48 +22,98 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from collections.abc import Callable
 
 import numba
 import numpy as np
 
+import kernels_ir
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
-from simt_sim.simt.gpus import get_gpu
+from simt_sim.optrace import OpTrace
+from simt_sim.simt.gpus import GpuConfig, get_gpu
 from simt_sim.simt.replay import simulate
 from simt_sim.simt.schemes import SCHEMES
 from simt_sim.simt.synth import synthetic_trace
+from simt_sim.workload import make_workload, parse_resolution
+
+
+def _synthetic_ir(scheme: str, gpu: GpuConfig) -> KernelIR:
+    return KernelIR(scheme, gpu.ir_arch, {b: {"int": i + 1} for i, b in enumerate(BLOCKS)})
+
+
+def _recorded_ir(scheme: str, gpu: GpuConfig) -> KernelIR:
+    return kernels_ir.load(scheme, "sm_75")
+
+
+def _recorded_trace(scene: str, resolution: tuple[int, int], spp: int) -> OpTrace:
+    from simt_sim.record import record_all
+
+    wl = make_workload(scene, "diffuse", cameras="0", resolution=resolution, spp=spp)
+    return record_all(wl.bvh, wl.rays)
+
+
+def _bench(
+    name: str,
+    trace: OpTrace,
+    ir_of: Callable[[str, GpuConfig], KernelIR],
+    gpu: GpuConfig,
+    threads: list[int],
+    repeats: int,
+) -> None:
+    ops = trace.op.shape[0] / trace.n_rays
+    print(f"\n{name} trace: {trace.n_rays} rays, {ops:.1f} ops/ray, {gpu.name}")
+    print(
+        f"{'scheme':36s} {'thr':>3s} {'Mrays/s':>8s} {'wall s':>7s} {'cpu s':>7s} "
+        f"{'Mrays/cpu-s':>11s} {'SIMD eff':>8s} {'MRays/s upper':>13s}"
+    )
+    for scheme in SCHEMES:
+        ir = ir_of(scheme, gpu)
+        for nt in threads:
+            numba.set_num_threads(nt)
+            simulate([trace], scheme, ir, gpu)
+            times, cpus = [], []
+            for _ in range(repeats):
+                t0, c0 = time.perf_counter(), time.process_time()
+                res = simulate([trace], scheme, ir, gpu)
+                times.append(time.perf_counter() - t0)
+                cpus.append(time.process_time() - c0)
+            med, cpu = statistics.median(times), statistics.median(cpus)
+            print(
+                f"{scheme:36s} {nt:3d} {trace.n_rays / med / 1e6:8.2f} {med:7.3f} {cpu:7.3f} "
+                f"{trace.n_rays / cpu / 1e6:11.2f} {res.simd_efficiency:8.3f} "
+                f"{res.mrays_upper:13.1f}",
+                flush=True,
+            )
+            np.testing.assert_equal(res.rays, trace.n_rays)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rays", type=int, default=1 << 20)
+    ap.add_argument("--rays", type=int, default=1 << 20, help="synthetic trace size")
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--threads", type=int, default=numba.config.NUMBA_NUM_THREADS)
+    ap.add_argument(
+        "--threads", default=f"1,{numba.config.NUMBA_NUM_THREADS}", help="e.g. 1,2"
+    )
+    ap.add_argument("--traces", default="synthetic,recorded")
+    ap.add_argument("--scene", default="room")
+    ap.add_argument("--resolution", default="256x192")
+    ap.add_argument("--spp", type=int, default=8)
     ap.add_argument("--gpu", default="gtx285")
     args = ap.parse_args()
-    numba.set_num_threads(args.threads)
-    trace = synthetic_trace(args.rays, seed=1, coherence=32, divergence=0.2)
-    ops = trace.op.shape[0] / trace.n_rays
-    print(f"trace: {trace.n_rays} rays, {ops:.1f} ops/ray, {args.threads} threads, {args.gpu}")
+    threads = sorted({int(t) for t in args.threads.split(",")})
     gpu = get_gpu(args.gpu)
-    print(
-        f"{'scheme':36s} {'Mrays/s':>8s} {'wall s':>7s} {'cpu s':>7s} {'Mrays/cpu-s':>11s} "
-        f"{'SIMD eff':>8s} {'MRays/s upper':>13s}"
-    )
-    for scheme in SCHEMES:
-        ir = KernelIR(scheme, gpu.ir_arch, {b: {"int": i + 1} for i, b in enumerate(BLOCKS)})
-        simulate([trace], scheme, ir, gpu)
-        times, cpus = [], []
-        for _ in range(args.repeats):
-            t0, c0 = time.perf_counter(), time.process_time()
-            res = simulate([trace], scheme, ir, gpu)
-            times.append(time.perf_counter() - t0)
-            cpus.append(time.process_time() - c0)
-        med, cpu = statistics.median(times), statistics.median(cpus)
-        print(
-            f"{scheme:36s} {trace.n_rays / med / 1e6:8.2f} {med:7.3f} {cpu:7.3f} "
-            f"{trace.n_rays / cpu / 1e6:11.2f} {res.simd_efficiency:8.3f} {res.mrays_upper:13.1f}"
-        )
-    np.testing.assert_equal(res.rays, trace.n_rays)
+    print(f"numba threading layer: {numba.config.THREADING_LAYER}, threads {threads}")
+    for name in args.traces.split(","):
+        if name == "synthetic":
+            trace = synthetic_trace(args.rays, seed=1, coherence=32, divergence=0.2)
+            _bench(name, trace, _synthetic_ir, gpu, threads, args.repeats)
+        elif name == "recorded":
+            t0 = time.perf_counter()
+            trace = _recorded_trace(args.scene, parse_resolution(args.resolution), args.spp)
+            print(f"\nrecorded {args.scene} diffuse in {time.perf_counter() - t0:.1f} s")
+            _bench(name, trace, _recorded_ir, gpu, threads, args.repeats)
+        else:
+            raise SystemExit(f"unknown trace {name!r}; use synthetic and/or recorded")
 
 
 if __name__ == "__main__":

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-SMALL = ["--scene", "cornell-box", "--resolution", "32x24", "--camera", "0"]
+SMALL = ["--scene", "room", "--resolution", "32x24", "--camera", "0"]
 
 
 def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
@@ -67,7 +67,7 @@ def test_missing_mesh_file():
 
 
 def test_zero_resolution():
-    proc = run_cli("bench", "--scene", "cornell-box", "--resolution", "0x0")
+    proc = run_cli("bench", "--scene", "room", "--resolution", "0x0")
     assert_clean_error(proc, "0x0")
 
 
@@ -105,6 +105,6 @@ def test_trace_writes_file_and_summary(tmp_path):
 
 def test_trace_bad_input_leaves_no_file(tmp_path):
     out = tmp_path / "never.trace"
-    proc = run_cli("trace", "--scene", "cornell-box", "--resolution", "0x4", "--out", str(out))
+    proc = run_cli("trace", "--scene", "room", "--resolution", "0x4", "--out", str(out))
     assert_clean_error(proc)
     assert not out.exists()

@@ -16,7 +16,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from llvmlite import ir as llvm_ir
+from numba import njit, prange, types
+from numba.extending import intrinsic
 
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
 from simt_sim.optrace import LEAF, TRI_HIT, TRI_MISS
@@ -45,6 +47,32 @@ IS_TRAV = np.array([1, 1, 1, 0, 0, 0, 0, 0], np.int64)
 IS_LEAF = np.array([0, 0, 0, 1, 0, 0, 0, 0], np.int64)
 IS_TRI = np.array([0, 0, 0, 0, 1, 1, 0, 0], np.int64)
 IS_HIT = np.array([0, 0, 0, 0, 0, 1, 0, 0], np.int64)
+#: lanes per mask: a warp's lanes are bits of an int64 (lane l is bit l)
+MAX_MASK_LANES = 64
+
+
+@intrinsic
+def popcount(typingctx, x):
+    """Number of set bits of an integer (LLVM ctpop): the active lanes of a lane mask."""
+    if not isinstance(x, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.ctpop(args[0])
+
+    return x(x), codegen
+
+
+@intrinsic
+def lowest_lane(typingctx, x):
+    """Index of the lowest set bit of a non-zero integer (LLVM cttz): the next lane of a mask."""
+    if not isinstance(x, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.cttz(args[0], llvm_ir.Constant(llvm_ir.IntType(1), 1))
+
+    return x(x), codegen
 
 
 @dataclass(frozen=True)
@@ -118,6 +146,16 @@ def charge(cnt, hist, costs, block, n):
 def next_op(op, cur, end, lane):
     """The op at the lane's cursor, or NO_OP once its stream has ended (branch-free)."""
     c = cur[lane]
+    ok = c < end[lane]
+    o = op[c if ok else 0]
+    return o if ok else np.uint8(NO_OP)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def step(op, cur, end, lane):
+    """Advance the lane past its op; return its new op, or NO_OP at the end (branch-free)."""
+    c = cur[lane] + 1
+    cur[lane] = c
     ok = c < end[lane]
     o = op[c if ok else 0]
     return o if ok else np.uint8(NO_OP)

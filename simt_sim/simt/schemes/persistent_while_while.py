@@ -26,7 +26,7 @@ from simt_sim.simt.engine import (
     chunk_counts,
     schedule_groups,
 )
-from simt_sim.simt.schemes.while_while import warp_body
+from simt_sim.simt.schemes.while_while import WINDOW, warp_body
 
 NAME = "persistent_while_while"
 PERSISTENT = True
@@ -37,10 +37,10 @@ APPROXIMATIONS: tuple[str, ...] = (
 
 
 @njit(cache=True, nogil=True)
-def _group(offsets, op, r0, n, cur, end, lanes, work, sub, costs, cnt, hist):
+def _group(offsets, op, r0, n, cur, end, acc, costs, cnt, hist):
     """One fetched group: ``pool_fetch`` with its lanes, then the while-while warp body."""
     issued = charge(cnt, hist, costs, POOL_FETCH, n)
-    return issued + warp_body(offsets, op, r0, n, cur, end, lanes, work, sub, costs, cnt, hist)
+    return issued + warp_body(offsets, op, r0, n, cur, end, acc, costs, cnt, hist)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -55,14 +55,12 @@ def _replay(offsets, op, costs, warp_size):
     for c in prange(nc):
         cur = np.empty(warp_size, np.int64)
         end = np.empty(warp_size, np.int64)
-        lanes = np.empty(warp_size, np.int64)
-        work = np.empty(warp_size, np.int64)
-        sub = np.empty(warp_size, np.int64)
+        acc = np.zeros(WINDOW, np.int64)
         for g in range(bounds[c], bounds[c + 1]):
             r0 = g * warp_size
             n = min(warp_size, n_rays - r0)
             group_cost[g] = _group(
-                offsets, op, r0, n, cur, end, lanes, work, sub, costs, cnt[c], hist[c]
+                offsets, op, r0, n, cur, end, acc, costs, cnt[c], hist[c]
             )
     return cnt, hist, group_cost
 

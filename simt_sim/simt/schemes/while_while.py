@@ -13,7 +13,11 @@ is lost. Per warp:
 - ``finish`` with every lane that had a ray.
 
 The traversal and intersection loops are shared with the persistent and dynamic-fetch
-schemes, which run the same kernel body.
+schemes, which run the same kernel body. A warp's lanes are bits of an int64 mask
+(``engine.MAX_MASK_LANES``): each loop iteration visits only the lanes that execute it,
+and a loop hands the next one the mask of lanes that stopped at its op kind, so no lane
+is ever scanned just to find out that it waits. After an outer iteration every lane that
+has ops left is at a TRAV op, so only a warp's first iteration needs to look at its lanes.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from simt_sim.optrace import TRAV_BOTH
 from simt_sim.simt.engine import (
     FINISH,
     IS_HIT,
@@ -29,6 +34,7 @@ from simt_sim.simt.engine import (
     IS_TRI,
     LEAF_ENTRY,
     LOOP_CONTROL,
+    MAX_MASK_LANES,
     N_BLOCKS,
     N_CHUNKS,
     RAY_SETUP,
@@ -41,127 +47,190 @@ from simt_sim.simt.engine import (
     charge,
     chunk_bounds,
     chunk_counts,
+    lowest_lane,
     next_op,
+    popcount,
+    step,
 )
 
 NAME = "while_while"
 PERSISTENT = False
 APPROXIMATIONS: tuple[str, ...] = ()
+#: loop iterations a lane runs ahead of the others (length of the ``acc`` scratch)
+WINDOW = 64
+
+
+#: a lane's TRAV op as packed counters: 1 stepping lane, plus 1 in the TRAV_NONE field
+#: (bits 21-41) or the TRAV_ONE field (bits 42-62); TRAV_BOTH lanes are the remainder
+_FIELD = 21
+_LOW = (1 << _FIELD) - 1
+TRAV_PACK = np.array([1 + (1 << _FIELD), 1 + (1 << (2 * _FIELD)), 1, 0, 0, 0, 0, 0], np.int64)
 
 
 @njit(cache=True, nogil=True)
-def trav_loop(op, cur, end, lanes, n, work, costs, cnt, hist):
-    """Inner traversal loop over ``lanes[:n]``; returns the instructions issued.
+def trav_loop(op, cur, end, trav, acc, costs, cnt, hist):
+    """Inner traversal loop of the lanes in mask ``trav`` (all at a TRAV op).
 
-    A lane takes part while its next op is a TRAV; one that is not waits for the others
-    (it cannot become a TRAV again without advancing, so it is dropped from ``work``).
-    The lane filters are branch-free: outcomes are unpredictable.
+    Each iteration steps every lane of the mask; a lane whose next op is not a TRAV leaves
+    the loop and waits (it cannot become a TRAV again without advancing). Lanes do not
+    interact inside the loop, so each lane runs ahead through up to ``len(acc)``
+    iterations, adding its outcome to that iteration's packed counters in ``acc`` (all
+    zero on entry and on return); then the window's iterations are charged. Returns the
+    instructions issued and the mask of lanes that stopped at a LEAF.
     """
     issued = np.int64(0)
-    for i in range(n):
-        work[i] = lanes[i]
-    m = n
-    while True:
-        k = 0
-        c0 = 0
-        c1 = 0
-        for i in range(m):
-            lane = work[i]
-            o = next_op(op, cur, end, lane)
-            t = IS_TRAV[o]
-            c0 += o == 0
-            c1 += o == 1
-            cur[lane] += t
-            work[k] = lane
-            k += t
-        if k == 0:
-            return issued
-        issued += charge(cnt, hist, costs, TRAV_STEP, k)
-        issued += charge(cnt, hist, costs, TRAV_NONE_B, c0)
-        issued += charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
-        issued += charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
-        m = k
+    leaf = np.int64(0)
+    window = acc.shape[0]
+    while trav:
+        nxt = np.int64(0)
+        span = 0
+        m = trav
+        while m:
+            lane = lowest_lane(m)
+            m &= m - 1
+            c = cur[lane]
+            e = end[lane]
+            j = 0
+            while True:
+                acc[j] += TRAV_PACK[op[c]]
+                c += 1
+                j += 1
+                if c == e:
+                    break
+                o = op[c]
+                if o > TRAV_BOTH:
+                    leaf |= IS_LEAF[o] << lane
+                    break
+                if j == window:
+                    nxt |= np.int64(1) << lane
+                    break
+            cur[lane] = c
+            span = max(span, j)
+        for j in range(span):
+            a = acc[j]
+            acc[j] = 0
+            k = a & _LOW
+            c0 = (a >> _FIELD) & _LOW
+            c1 = a >> (2 * _FIELD)
+            issued += charge(cnt, hist, costs, TRAV_STEP, k)
+            issued += charge(cnt, hist, costs, TRAV_NONE_B, c0)
+            issued += charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
+            issued += charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
+        trav = nxt
+    return issued, leaf
 
 
 @njit(cache=True, nogil=True)
-def tri_loop(op, cur, end, lanes, n, costs, cnt, hist):
-    """Triangle loop of one leaf iteration over ``lanes[:n]`` (reordered in place).
+def tri_loop(op, cur, end, tri, costs, cnt, hist):
+    """Triangle loop of one leaf iteration over the lanes in mask ``tri`` (all at a TRI op).
 
-    While any of the lanes is at a TRI op: ``tri_test`` with them, ``tri_hit`` with the
-    TRI_HIT ones, advance one op.
+    While any lane is at a TRI op: ``tri_test`` with them, ``tri_hit`` with the TRI_HIT
+    ones, advance one op. Returns the instructions issued and the masks of lanes that
+    stopped at a LEAF and at a TRAV.
     """
     issued = np.int64(0)
-    m = n
-    while True:
-        k = 0
+    leaf = np.int64(0)
+    trav = np.int64(0)
+    while tri:
+        k = popcount(tri)
         h = 0
-        for i in range(m):
-            lane = lanes[i]
-            o = next_op(op, cur, end, lane)
-            t = IS_TRI[o]
-            h += IS_HIT[o]
-            cur[lane] += t
-            lanes[k] = lane
-            k += t
-        if k == 0:
-            return issued
+        nxt = np.int64(0)
+        m = tri
+        while m:
+            lane = lowest_lane(m)
+            m &= m - 1
+            h += IS_HIT[op[cur[lane]]]
+            o = step(op, cur, end, lane)
+            nxt |= IS_TRI[o] << lane
+            leaf |= IS_LEAF[o] << lane
+            trav |= IS_TRAV[o] << lane
         issued += charge(cnt, hist, costs, TRI_TEST, k)
         issued += charge(cnt, hist, costs, TRI_HIT_B, h)
-        m = k
+        tri = nxt
+    return issued, leaf, trav
 
 
 @njit(cache=True, nogil=True)
-def isect_loop(op, cur, end, lanes, n, work, sub, costs, cnt, hist):
-    """Inner intersection loop over ``lanes[:n]``: leaf after leaf, in lockstep.
+def isect_loop(op, cur, end, leaf, costs, cnt, hist):
+    """Inner intersection loop of the lanes in mask ``leaf`` (all at a LEAF): leaf after leaf.
 
     While any lane is at a LEAF: ``leaf_entry`` with those lanes, then their triangle
-    loop. Lanes at a TRAV op or out of ops leave the loop and wait.
+    loop. Lanes at a TRAV op or out of ops leave the loop and wait. Returns the
+    instructions issued and the mask of lanes that stopped at a TRAV.
     """
     issued = np.int64(0)
-    for i in range(n):
-        work[i] = lanes[i]
-    m = n
-    while True:
-        k = 0
-        for i in range(m):
-            lane = work[i]
-            t = IS_LEAF[next_op(op, cur, end, lane)]
-            cur[lane] += t
-            work[k] = lane
-            k += t
-        if k == 0:
-            return issued
-        issued += charge(cnt, hist, costs, LEAF_ENTRY, k)
-        for i in range(k):
-            sub[i] = work[i]
-        issued += tri_loop(op, cur, end, sub, k, costs, cnt, hist)
-        m = k
+    trav = np.int64(0)
+    while leaf:
+        issued += charge(cnt, hist, costs, LEAF_ENTRY, popcount(leaf))
+        tri = np.int64(0)
+        nxt = np.int64(0)
+        m = leaf
+        while m:
+            lane = lowest_lane(m)
+            m &= m - 1
+            o = step(op, cur, end, lane)
+            tri |= IS_TRI[o] << lane
+            nxt |= IS_LEAF[o] << lane
+            trav |= IS_TRAV[o] << lane
+        t_issued, t_leaf, t_trav = tri_loop(op, cur, end, tri, costs, cnt, hist)
+        issued += t_issued
+        trav |= t_trav
+        leaf = nxt | t_leaf
+    return issued, trav
+
+
+@njit(cache=True, nogil=True)
+def outer_step(op, cur, end, trav, leaf, acc, costs, cnt, hist):
+    """One outer-loop iteration of the lanes at a TRAV (mask ``trav``) or a LEAF (``leaf``).
+
+    Returns the instructions issued and the mask of lanes with ops left afterwards (all
+    of them at a TRAV op: the next iteration's ``trav``, with no lane at a LEAF).
+    """
+    issued = charge(cnt, hist, costs, LOOP_CONTROL, popcount(trav | leaf))
+    t_issued, t_leaf = trav_loop(op, cur, end, trav, acc, costs, cnt, hist)
+    i_issued, alive = isect_loop(op, cur, end, leaf | t_leaf, costs, cnt, hist)
+    return issued + t_issued + i_issued, alive
+
+
+@njit(cache=True, nogil=True)
+def classify(op, cur, end, lane, trav, leaf):
+    """Add ``lane`` to the mask of its next op's kind: returns ``(trav, leaf)``."""
+    o = next_op(op, cur, end, lane)
+    return trav | (IS_TRAV[o] << lane), leaf | (IS_LEAF[o] << lane)
 
 
 @njit(cache=True, nogil=True)
 def outer_iteration(op, cur, end, lanes, n, work, sub, costs, cnt, hist):
-    """One outer-loop iteration for the alive lanes ``lanes[:n]`` (n > 0)."""
-    issued = charge(cnt, hist, costs, LOOP_CONTROL, n)
-    issued += trav_loop(op, cur, end, lanes, n, work, costs, cnt, hist)
-    issued += isect_loop(op, cur, end, lanes, n, work, sub, costs, cnt, hist)
-    return issued
+    """One outer-loop iteration for the alive lanes ``lanes[:n]`` (n > 0, lane ids < 64).
+
+    The list form of :func:`outer_step` for callers that keep lane lists (megakernel,
+    wavefront); ``work`` and ``sub`` are scratch the mask form no longer needs.
+    """
+    trav = np.int64(0)
+    leaf = np.int64(0)
+    for i in range(n):
+        lane = lanes[i]
+        if lane >= MAX_MASK_LANES:
+            raise ValueError("warp_size above 64 lanes is not supported by the replay")
+        trav, leaf = classify(op, cur, end, lane, trav, leaf)
+    work[:] = 0
+    return outer_step(op, cur, end, trav, leaf, work, costs, cnt, hist)[0]
 
 
 @njit(cache=True, nogil=True)
-def warp_body(offsets, op, r0, n, cur, end, lanes, work, sub, costs, cnt, hist):
+def warp_body(offsets, op, r0, n, cur, end, acc, costs, cnt, hist):
     """Rays ``r0 .. r0+n-1`` as one warp, from ray_setup to finish; returns instructions."""
+    trav = np.int64(0)
+    leaf = np.int64(0)
     for lane in range(n):
         cur[lane] = offsets[r0 + lane]
         end[lane] = offsets[r0 + lane + 1]
+        trav, leaf = classify(op, cur, end, lane, trav, leaf)
     issued = charge(cnt, hist, costs, RAY_SETUP, n)
-    while True:
-        a = 0
-        for lane in range(n):
-            lanes[a] = lane
-            a += cur[lane] < end[lane]
-        if a == 0:
-            break
-        issued += outer_iteration(op, cur, end, lanes, a, work, sub, costs, cnt, hist)
+    while trav | leaf:
+        o_issued, trav = outer_step(op, cur, end, trav, leaf, acc, costs, cnt, hist)
+        issued += o_issued
+        leaf = np.int64(0)
     issued += charge(cnt, hist, costs, FINISH, n)
     return issued
 
@@ -177,13 +246,11 @@ def _replay(offsets, op, costs, warp_size):
     for c in prange(nc):
         cur = np.empty(warp_size, np.int64)
         end = np.empty(warp_size, np.int64)
-        lanes = np.empty(warp_size, np.int64)
-        work = np.empty(warp_size, np.int64)
-        sub = np.empty(warp_size, np.int64)
+        acc = np.zeros(WINDOW, np.int64)
         for w in range(bounds[c], bounds[c + 1]):
             r0 = w * warp_size
             n = min(warp_size, n_rays - r0)
-            warp_body(offsets, op, r0, n, cur, end, lanes, work, sub, costs, cnt[c], hist[c])
+            warp_body(offsets, op, r0, n, cur, end, acc, costs, cnt[c], hist[c])
     return cnt, hist
 
 
