@@ -88,7 +88,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from simt_sim.tracers.embree_tracer import EmbreeTracer
 
     tracers = [t.strip() for t in args.tracers.split(",") if t.strip()]
-    known = ("numba", "embree")
+    known = ("numba", "embree", "cuda")
     bad = [t for t in tracers if t not in known]
     if bad or not tracers:
         raise SimtSimError(
@@ -98,7 +98,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise SimtSimError(f"--repeats must be at least 1, got {args.repeats}")
     wl = _workload(args, args.rays)
     rays = wl.rays
-    results: list[tuple[str, int, object, float]] = []
+    results: list[tuple[str, int | str, object, float]] = []
     if "embree" in tracers:
         emb = EmbreeTracer(wl.scene.vertices, wl.scene.triangles)
         hits, sec = _time(lambda: emb.trace(rays), args.repeats)
@@ -110,6 +110,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
             hits, sec = _time(lambda: numba_tracer.trace(wl.bvh, rays), args.repeats)
             results.append(("numba", threads, hits, sec))
         numba.set_num_threads(all_threads)
+    if "cuda" in tracers:
+        from simt_sim.tracers.cuda_tracer import TRACE_KERNELS, CudaTracer
+
+        cu = CudaTracer(wl.bvh)
+        for kernel in TRACE_KERNELS:
+            hits, secs = cu.trace_timed(rays, kernel)
+            results.append((f"cuda:{kernel}", cu.device_name, hits, statistics.median(secs)))
     ref = next((h for name, _, h, _ in results if name == "embree"), None)
     rows = []
     for name, threads, hits, sec in results:
@@ -193,6 +200,7 @@ def cmd_table(args: argparse.Namespace) -> int:
         resolution=parse_resolution(args.resolution),
         spp=args.spp,
         seed=args.seed,
+        actual=args.actual,
     )
     progress = not args.quiet and sys.stderr.isatty()
     _, df = run_study(spec, progress=progress)
@@ -248,7 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--tracers",
         default="numba,embree",
-        help="comma list of numba, embree (default: %(default)s)",
+        help="comma list of numba, embree, cuda (default: %(default)s; cuda needs an "
+        "NVIDIA GPU and 'pip install simt-sim[cuda]')",
     )
     p.add_argument(
         "--repeats",
@@ -293,6 +302,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="comma list of GPU ids or 'all' (see 'simt-sim gpus'; default: %(default)s)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--actual",
+        action="store_true",
+        help="also run the CUDA kernels on this machine's GPU and add measured "
+        "MRays/s and the share of the upper bound (needs simt-sim[cuda])",
+    )
     _add_output_args(p)
     p.set_defaults(func=cmd_table)
 

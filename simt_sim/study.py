@@ -42,6 +42,7 @@ class StudySpec:
     seed: int = 0
     max_bounces: int = 8
     launch_size: int = LAUNCH_SIZE
+    actual: bool = False
 
 
 def parse_list(text: str, known: Sequence[str], what: str) -> tuple[str, ...]:
@@ -64,6 +65,44 @@ def _not_applicable(scene: str, ray_type: str, scheme: str, gpu: GpuConfig) -> d
         "scheme": scheme,
         "gpu": gpu.id,
         "note": "n/a: megakernel and wavefront apply to path traces (--rays path)",
+    }
+
+
+def measure_actual(wl, schemes: list[str], ray_type: str, out: dict) -> str:
+    """Time each scheme's CUDA kernel on this machine's GPU on the workload's rays.
+
+    Fills ``out[(ray_type, scheme)]`` with measured MRays/s (median of 10 launches after
+    2 warm-ups, as the paper) and returns the device name.
+    """
+    import statistics
+
+    from simt_sim.tracers.cuda_tracer import TRACE_KERNELS, CudaTracer
+
+    cu = CudaTracer(wl.bvh)
+    for s in schemes:
+        if s in TRACE_KERNELS:
+            _, secs = cu.trace_timed(wl.rays, s)
+            out[(ray_type, s)] = len(wl.rays) / statistics.median(secs) / 1e6
+    return cu.device_name
+
+
+def actual_columns(
+    measured: dict, device: str | None, ray_type: str, scheme: str, gpu: GpuConfig, r: SimResult
+) -> dict:
+    """Measured MRays/s and its share of the upper bound, for the GPU config of the device.
+
+    A configuration matches the device when its id (``h100``, ``rtx4090``) appears in the
+    device's name with spaces removed ("NVIDIA H100 80GB HBM3"); other GPUs' rows get no
+    measured figure.
+    """
+    value = measured.get((ray_type, scheme))
+    matches = device is not None and gpu.id in device.lower().replace(" ", "")
+    if value is None or not matches:
+        return {"mrays_actual": float("nan"), "pct_of_upper": float("nan"), "device": device}
+    return {
+        "mrays_actual": value,
+        "pct_of_upper": 100.0 * value / r.mrays_upper,
+        "device": device,
     }
 
 
@@ -91,6 +130,8 @@ def run_study(spec: StudySpec, *, progress: bool = True) -> tuple[list[SimResult
         )
     }
     trace_schemes = [s for s in spec.schemes if s not in PATH_SCHEMES]
+    measured: dict[tuple[str, str], float] = {}
+    device = None
     results: list[SimResult] = []
     rows: list[dict] = []
     wl = None
@@ -138,6 +179,8 @@ def run_study(spec: StudySpec, *, progress: bool = True) -> tuple[list[SimResult
                 bar.update(pt.n_rays)
             else:
                 bar.total += len(wl.rays)
+                if spec.actual:
+                    device = measure_actual(wl, trace_schemes, rt, measured)
                 for batch in record(wl.bvh, wl.rays, batch_size=spec.launch_size):
                     for g in gpus:
                         for s in trace_schemes:
@@ -149,7 +192,10 @@ def run_study(spec: StudySpec, *, progress: bool = True) -> tuple[list[SimResult
                     if (s, g.id) in per_combo:
                         merged = merge(per_combo[(s, g.id)])
                         results.append(merged)
-                        rows.append({**merged.to_row(), "note": ""})
+                        row = {**merged.to_row(), "note": ""}
+                        if spec.actual:
+                            row.update(actual_columns(measured, device, rt, s, g, merged))
+                        rows.append(row)
                     else:
                         rows.append(_not_applicable(name, rt, s, g))
     finally:

@@ -108,3 +108,83 @@ def test_trace_bad_input_leaves_no_file(tmp_path):
     proc = run_cli("trace", "--scene", "room", "--resolution", "0x4", "--out", str(out))
     assert_clean_error(proc)
     assert not out.exists()
+
+
+def test_gpu_paths_without_a_gpu_are_clean_errors():
+    proc = run_cli("bench", *SMALL, "--tracers", "cuda")
+    assert_clean_error(proc, "cuda")
+    proc = run_cli("table", *SMALL, "--rays", "primary", "--actual", "--quiet")
+    assert_clean_error(proc, "cuda")
+
+
+def test_table_json_rows_and_not_applicable(tmp_path):
+    out = tmp_path / "t.json"
+    proc = run_cli(
+        "table",
+        *SMALL,
+        "--rays",
+        "primary",
+        "--schemes",
+        "while_while,if_if,wavefront",
+        "--gpu",
+        "gtx285,h100",
+        "--format",
+        "json",
+        "--out",
+        str(out),
+        "--quiet",
+    )
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads(out.read_text())
+    assert len(rows) == 6
+    for r in rows:
+        for key in (
+            "scene",
+            "ray_type",
+            "scheme",
+            "gpu",
+            "rays",
+            "simd_efficiency",
+            "simd_efficiency_traversal",
+            "simd_efficiency_intersection",
+            "warp_instructions",
+            "mrays_upper",
+        ):
+            assert key in r
+        if r["scheme"] == "wavefront":
+            assert r["note"].startswith("n/a") and r["mrays_upper"] is None
+        else:
+            assert 1 / 32 <= r["simd_efficiency"] <= 1 and r["mrays_upper"] > 0
+
+
+def test_table_path_rays_have_megakernel_and_wavefront():
+    proc = run_cli(
+        "table",
+        *SMALL,
+        "--rays",
+        "path",
+        "--schemes",
+        "megakernel,wavefront,while_while",
+        "--format",
+        "json",
+        "--quiet",
+    )
+    assert proc.returncode == 0, proc.stderr
+    rows = {r["scheme"]: r for r in json.loads(proc.stdout)}
+    assert rows["wavefront"]["simd_efficiency"] > rows["megakernel"]["simd_efficiency"]
+
+
+@pytest.mark.parametrize(
+    "args",
+    [["scenes"], ["gpus"], ["ir", "show", "while_while", "--arch", "sm_90"]],
+)
+def test_listing_commands(args):
+    proc = run_cli(*args, "--format", "csv")
+    assert proc.returncode == 0, proc.stderr
+    assert len(proc.stdout.strip().splitlines()) >= 2
+
+
+def test_unknown_gpu_and_scheme():
+    assert_clean_error(run_cli("table", *SMALL, "--gpu", "voodoo2"), "voodoo2")
+    assert_clean_error(run_cli("table", *SMALL, "--schemes", "magic"), "magic")
+    assert_clean_error(run_cli("ir", "show", "nope", "--arch", "sm_90"), "nope")

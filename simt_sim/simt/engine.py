@@ -21,7 +21,7 @@ from numba import njit, prange, types
 from numba.extending import intrinsic
 
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
-from simt_sim.optrace import LEAF, TRI_HIT, TRI_MISS
+from simt_sim.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS
 
 N_BLOCKS = len(BLOCKS)
 RAY_SETUP = BLOCKS.index("ray_setup")
@@ -194,6 +194,34 @@ def _first_bad(offsets, op, r0, r1):
     return np.int64(-1)
 
 
+@njit(cache=True, nogil=True)
+def _scan_chunk(op, lo, hi):
+    """Counts of TRAV, LEAF, TRI ops and of invalid ops (codes > 5 and TRI ops that follow
+    neither a LEAF nor a TRI) in ``op[lo:hi]``; the op before ``lo`` is taken as a LEAF.
+
+    Register accumulators over two aligned slices (each op and its predecessor), a form
+    the compiler vectorises: a histogram in memory would serialise on repeated op codes.
+    A predecessor with an invalid code (> 5) is counted as bad itself.
+    """
+    if hi <= lo:
+        return np.int64(0), np.int64(0), np.int64(0), np.int64(0)
+    o = op[lo]
+    trav = np.int64(o <= TRAV_BOTH)
+    leaf = np.int64(o == LEAF)
+    tri = np.int64((o == TRI_MISS) | (o == TRI_HIT))
+    bad = np.int64(o > TRI_HIT)
+    ops = op[lo + 1 : hi]
+    prev = op[lo : hi - 1]
+    for k in range(ops.shape[0]):
+        o = ops[k]
+        is_tri = (o == TRI_MISS) | (o == TRI_HIT)
+        trav += o <= TRAV_BOTH
+        leaf += o == LEAF
+        tri += is_tri
+        bad += (o > TRI_HIT) | (is_tri & (prev[k] < LEAF))
+    return trav, leaf, tri, bad
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def scan_trace(offsets, op):
     """Validate op streams and count ops by kind.
@@ -206,33 +234,24 @@ def scan_trace(offsets, op):
     n = offsets.shape[0] - 1
     nc = min(N_CHUNKS, max(n, 1))
     bounds = chunk_bounds(n, nc)
-    tot = np.zeros((nc, 256), np.int64)
-    orphans = np.zeros(nc, np.int64)
+    tot = np.zeros((nc, 4), np.int64)
     for c in prange(nc):
-        local = np.zeros(256, np.int64)
-        lo = offsets[bounds[c]]
-        hi = offsets[bounds[c + 1]]
         starts = 0
         for r in range(bounds[c], bounds[c + 1]):
             # a TRI opening a stream is an orphan: count stream-opening TRIs separately
             k = offsets[r]
             starts += offsets[r + 1] > k and (op[k] == TRI_MISS or op[k] == TRI_HIT)
-        bad = starts
-        prev = np.uint8(LEAF)
-        for k in range(lo, hi):
-            o = op[k]
-            local[o] += 1
-            bad += (o == TRI_MISS or o == TRI_HIT) and not (prev >= LEAF and prev <= TRI_HIT)
-            prev = o
-        orphans[c] = bad
-        tot[c] = local
+        trav, leaf, tri, bad = _scan_chunk(op, offsets[bounds[c]], offsets[bounds[c + 1]])
+        tot[c, 0] = trav
+        tot[c, 1] = leaf
+        tot[c, 2] = tri
+        tot[c, 3] = bad + starts
     first = np.int64(-1)
     for c in range(nc):
-        if orphans[c] > 0 or tot[c, 6:].sum() > 0:
+        if tot[c, 3] > 0:
             first = _first_bad(offsets, op, bounds[c], bounds[c + 1])
             break
-    trav = tot[:, 0].sum() + tot[:, 1].sum() + tot[:, 2].sum()
-    return trav, tot[:, 3].sum(), tot[:, 4].sum() + tot[:, 5].sum(), first
+    return tot[:, 0].sum(), tot[:, 1].sum(), tot[:, 2].sum(), first
 
 
 @njit(cache=True, nogil=True, inline="always")
