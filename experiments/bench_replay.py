@@ -91,9 +91,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rays", type=int, default=1 << 20, help="synthetic trace size")
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument(
-        "--threads", default=f"1,{numba.config.NUMBA_NUM_THREADS}", help="e.g. 1,2"
-    )
+    ap.add_argument("--threads", default=f"1,{numba.config.NUMBA_NUM_THREADS}", help="e.g. 1,2")
     ap.add_argument("--traces", default="synthetic,recorded")
     ap.add_argument("--scene", default="room")
     ap.add_argument("--resolution", default="256x192")

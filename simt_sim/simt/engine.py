@@ -143,12 +143,17 @@ def charge(cnt, hist, costs, block, n):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def next_op(op, cur, end, lane):
-    """The op at the lane's cursor, or NO_OP once its stream has ended (branch-free)."""
-    c = cur[lane]
-    ok = c < end[lane]
+def op_at(op, c, e):
+    """The op at cursor ``c`` of a stream ending at ``e``, or NO_OP past it (branch-free)."""
+    ok = c < e
     o = op[c if ok else 0]
     return o if ok else np.uint8(NO_OP)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def next_op(op, cur, end, lane):
+    """The op at the lane's cursor, or NO_OP once its stream has ended (branch-free)."""
+    return op_at(op, cur[lane], end[lane])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -156,9 +161,7 @@ def step(op, cur, end, lane):
     """Advance the lane past its op; return its new op, or NO_OP at the end (branch-free)."""
     c = cur[lane] + 1
     cur[lane] = c
-    ok = c < end[lane]
-    o = op[c if ok else 0]
-    return o if ok else np.uint8(NO_OP)
+    return op_at(op, c, end[lane])
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -13,6 +13,9 @@ Scheduling is a discrete-event simulation: the warp with the fewest instructions
 so far runs its next outer iteration (ties to the lowest id), so which rays a warp gets
 depends on the block costs: results depend on the launch size and cannot be re-costed
 with another KernelIR without replaying.
+
+Each warp keeps the mask of lanes holding a ray; after an outer iteration every lane
+still holding one is at a TRAV op, so only refilled lanes need classifying.
 """
 
 from __future__ import annotations
@@ -29,8 +32,9 @@ from simt_sim.simt.engine import (
     ReplayParams,
     charge,
     heap_sift_down,
+    popcount,
 )
-from simt_sim.simt.schemes.while_while import outer_iteration
+from simt_sim.simt.schemes.while_while import WINDOW, classify, outer_step
 
 NAME = "dynamic_fetch"
 PERSISTENT = True
@@ -45,12 +49,10 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, warp_total
     n_rays = offsets.shape[0] - 1
     cnt = np.zeros((2, N_BLOCKS), np.int64)
     hist = np.zeros((N_BLOCKS, warp_size + 1), np.int64)
-    has = np.zeros((resident_warps, warp_size), np.bool_)
+    has = np.zeros(resident_warps, np.int64)  # lanes holding a ray, all at a TRAV op
     cur = np.zeros((resident_warps, warp_size), np.int64)
     end = np.zeros((resident_warps, warp_size), np.int64)
-    lanes = np.empty(warp_size, np.int64)
-    work = np.empty(warp_size, np.int64)
-    sub = np.empty(warp_size, np.int64)
+    acc = np.zeros(WINDOW, np.int64)
     key = np.zeros(resident_warps, np.int64)
     wid = np.arange(resident_warps)
     size = resident_warps
@@ -60,24 +62,22 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, warp_total
         w = wid[0]
         wcur = cur[w]
         wend = end[w]
-        whas = has[w]
-        held = 0
-        for lane in range(warp_size):
-            if whas[lane]:
-                held += 1
+        held = has[w]
+        trav = held
+        leaf = np.int64(0)
         issued = np.int64(0)
-        if held < threshold and pool < n_rays:
+        if popcount(held) < threshold and pool < n_rays:
             k = 0
             for lane in range(warp_size):
-                if not whas[lane] and pool < n_rays:
-                    whas[lane] = True
+                if not (held >> lane) & 1 and pool < n_rays:
+                    held |= np.int64(1) << lane
                     wcur[lane] = offsets[pool]
                     wend[lane] = offsets[pool + 1]
+                    trav, leaf = classify(op, wcur, wend, lane, trav, leaf)
                     pool += 1
                     k += 1
             issued += charge(cnt, hist, costs, POOL_FETCH, k)
             issued += charge(cnt, hist, costs, RAY_SETUP, k)
-            held += k
         if held == 0:
             span = max(span, key[0])
             warp_totals[w] += key[0]
@@ -86,19 +86,12 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, warp_total
             wid[0] = wid[size]
             heap_sift_down(key, wid, size, 0)
             continue
-        a = 0
-        for lane in range(warp_size):
-            if whas[lane] and wcur[lane] < wend[lane]:
-                lanes[a] = lane
-                a += 1
-        if a > 0:
-            issued += outer_iteration(op, wcur, wend, lanes, a, work, sub, costs, cnt, hist)
-        f = 0
-        for lane in range(warp_size):
-            if whas[lane] and wcur[lane] >= wend[lane]:
-                whas[lane] = False
-                f += 1
-        issued += charge(cnt, hist, costs, FINISH, f)
+        alive = np.int64(0)
+        if trav | leaf:
+            o_issued, alive = outer_step(op, wcur, wend, trav, leaf, acc, costs, cnt, hist)
+            issued += o_issued
+        issued += charge(cnt, hist, costs, FINISH, popcount(held & ~alive))
+        has[w] = alive
         key[0] += issued
         heap_sift_down(key, wid, size, 0)
     return cnt, hist, span

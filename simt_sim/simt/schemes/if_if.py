@@ -34,7 +34,9 @@ from simt_sim.simt.engine import (
     charge,
     chunk_bounds,
     chunk_counts,
-    next_op,
+    lowest_lane,
+    op_at,
+    popcount,
 )
 
 NAME = "if_if"
@@ -43,52 +45,59 @@ APPROXIMATIONS: tuple[str, ...] = ()
 
 
 @njit(cache=True, nogil=True)
-def _warp(offsets, op, r0, n, cur, end, lanes, costs, cnt, hist):
+def _warp(offsets, op, r0, n, cur, end, costs, cnt, hist):
+    """Rays ``r0 .. r0+n-1`` as one warp; each lane's iteration in one pass over its ops.
+
+    Within an iteration a lane's traversal step, leaf entry and triangle test only depend
+    on its own stream, so one pass per alive lane (a bit of the ``alive`` mask) gathers
+    all of the iteration's active-lane counts before they are charged.
+    """
+    alive = np.int64(0)
     for lane in range(n):
         cur[lane] = offsets[r0 + lane]
         end[lane] = offsets[r0 + lane + 1]
+        alive |= np.int64(cur[lane] < end[lane]) << lane
     charge(cnt, hist, costs, RAY_SETUP, n)
-    while True:
-        a = 0
-        for lane in range(n):
-            lanes[a] = lane
-            a += cur[lane] < end[lane]
-        if a == 0:
-            break
-        charge(cnt, hist, costs, LOOP_CONTROL, a)
+    while alive:
+        charge(cnt, hist, costs, LOOP_CONTROL, popcount(alive))
         k = 0
         c0 = 0
         c1 = 0
-        for i in range(a):
-            lane = lanes[i]
-            o = op[cur[lane]]
+        nl = 0
+        nt = 0
+        h = 0
+        nxt = np.int64(0)
+        m = alive
+        while m:
+            lane = lowest_lane(m)
+            m &= m - 1
+            c = cur[lane]
+            e = end[lane]
+            o = op[c]
             t = IS_TRAV[o]
             c0 += o == 0
             c1 += o == 1
-            cur[lane] += t
             k += t
+            c += t
+            o = op_at(op, c, e)
+            t = IS_LEAF[o]
+            nl += t
+            c += t
+            o = op_at(op, c, e)
+            t = IS_TRI[o]
+            nt += t
+            h += IS_HIT[o]
+            c += t
+            cur[lane] = c
+            nxt |= np.int64(c < e) << lane
         charge(cnt, hist, costs, TRAV_STEP, k)
         charge(cnt, hist, costs, TRAV_NONE_B, c0)
         charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
         charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
-        k = 0
-        for i in range(a):
-            lane = lanes[i]
-            t = IS_LEAF[next_op(op, cur, end, lane)]
-            cur[lane] += t
-            k += t
-        charge(cnt, hist, costs, LEAF_ENTRY, k)
-        k = 0
-        h = 0
-        for i in range(a):
-            lane = lanes[i]
-            o = next_op(op, cur, end, lane)
-            t = IS_TRI[o]
-            h += IS_HIT[o]
-            cur[lane] += t
-            k += t
-        charge(cnt, hist, costs, TRI_TEST, k)
+        charge(cnt, hist, costs, LEAF_ENTRY, nl)
+        charge(cnt, hist, costs, TRI_TEST, nt)
         charge(cnt, hist, costs, TRI_HIT_B, h)
+        alive = nxt
     charge(cnt, hist, costs, FINISH, n)
 
 
@@ -103,11 +112,10 @@ def _replay(offsets, op, costs, warp_size):
     for c in prange(nc):
         cur = np.empty(warp_size, np.int64)
         end = np.empty(warp_size, np.int64)
-        lanes = np.empty(warp_size, np.int64)
         for w in range(bounds[c], bounds[c + 1]):
             r0 = w * warp_size
             n = min(warp_size, n_rays - r0)
-            _warp(offsets, op, r0, n, cur, end, lanes, costs, cnt[c], hist[c])
+            _warp(offsets, op, r0, n, cur, end, costs, cnt[c], hist[c])
     return cnt, hist
 
 

@@ -41,6 +41,7 @@ from simt_sim.simt.engine import (
     charge_many,
     chunk_bounds,
     chunk_counts,
+    popcount,
 )
 
 NAME = "packet"
@@ -52,55 +53,56 @@ APPROXIMATIONS: tuple[str, ...] = (
 )
 
 _HASH = np.int64(2654435761)
+# columns of the node table, one row (32 bytes, one cache line) per distinct node
+_KEY, _LANES, _HITS, _OUT = 0, 1, 2, 3
 
 
 @njit(cache=True, nogil=True)
-def _warp(
-    offsets, op, addr, r0, n, tkey, tlanes, tlast, thits, tlasthit, tout, used, costs, cnt, hist
-):
-    mask = tkey.shape[0] - 1
+def _warp(offsets, op, addr, r0, n, table, used, costs, cnt, hist):
+    """One warp: gather the union of its lanes' nodes in ``table``, then charge each once.
+
+    ``table`` is an open-addressing hash table (rows of key, lane mask, hit-lane mask,
+    largest outcome; key -1 marks a free row) left empty again on return; ``used`` lists
+    the rows taken, in first-visit order.
+    """
+    mask = table.shape[0] - 1
     nused = 0
     for lane in range(n):
+        bit = np.int64(1) << lane
         for k in range(offsets[r0 + lane], offsets[r0 + lane + 1]):
             o = op[k]
             kind = 0 if o <= TRAV_BOTH else (1 if o == LEAF else 2)
             key = (np.int64(addr[k]) << 2) | kind
             s = (key * _HASH) & mask
-            while tkey[s] != key and tkey[s] >= 0:
+            while table[s, _KEY] != key and table[s, _KEY] >= 0:
                 s = (s + 1) & mask
-            if tkey[s] < 0:
-                tkey[s] = key
-                tlanes[s] = 0
-                tlast[s] = -1
-                thits[s] = 0
-                tlasthit[s] = -1
-                tout[s] = 0
+            if table[s, _KEY] < 0:
+                table[s, _KEY] = key
+                table[s, _LANES] = 0
+                table[s, _HITS] = 0
+                table[s, _OUT] = 0
                 used[nused] = s
                 nused += 1
-            if tlast[s] != lane:
-                tlast[s] = lane
-                tlanes[s] += 1
-            if kind == 0:
-                tout[s] = max(tout[s], o)
-            elif o == TRI_HIT and tlasthit[s] != lane:
-                tlasthit[s] = lane
-                thits[s] += 1
+            table[s, _LANES] |= bit
+            table[s, _HITS] |= np.int64(o == TRI_HIT) << lane
+            table[s, _OUT] = max(table[s, _OUT], np.int64(o) * (kind == 0))
     charge(cnt, hist, costs, RAY_SETUP, n)
     visits = 0
     for i in range(nused):
         s = used[i]
-        kind = tkey[s] & 3
+        kind = table[s, _KEY] & 3
+        lanes = popcount(table[s, _LANES])
         if kind == 0:
-            charge(cnt, hist, costs, TRAV_STEP, tlanes[s])
-            charge(cnt, hist, costs, TRAV_NONE_B + tout[s], tlanes[s])
+            charge(cnt, hist, costs, TRAV_STEP, lanes)
+            charge(cnt, hist, costs, TRAV_NONE_B + table[s, _OUT], lanes)
             visits += 1
         elif kind == 1:
-            charge(cnt, hist, costs, LEAF_ENTRY, tlanes[s])
+            charge(cnt, hist, costs, LEAF_ENTRY, lanes)
             visits += 1
         else:
-            charge(cnt, hist, costs, TRI_TEST, tlanes[s])
-            charge(cnt, hist, costs, TRI_HIT_B, thits[s])
-        tkey[s] = -1
+            charge(cnt, hist, costs, TRI_TEST, lanes)
+            charge(cnt, hist, costs, TRI_HIT_B, popcount(table[s, _HITS]))
+        table[s, _KEY] = -1
     charge_many(cnt, hist, costs, LOOP_CONTROL, n, visits)
     charge(cnt, hist, costs, FINISH, n)
 
@@ -122,32 +124,12 @@ def _replay(offsets, op, addr, costs, warp_size):
         cap = 4
         while cap < 2 * most + 1:
             cap *= 2
-        tkey = np.full(cap, -1, np.int64)
-        tlanes = np.empty(cap, np.int64)
-        tlast = np.empty(cap, np.int64)
-        thits = np.empty(cap, np.int64)
-        tlasthit = np.empty(cap, np.int64)
-        tout = np.empty(cap, np.int64)
+        table = np.full((cap, 4), -1, np.int64)
         used = np.empty(cap, np.int64)
         for w in range(bounds[c], bounds[c + 1]):
             r0 = w * warp_size
-            _warp(
-                offsets,
-                op,
-                addr,
-                r0,
-                min(warp_size, n_rays - r0),
-                tkey,
-                tlanes,
-                tlast,
-                thits,
-                tlasthit,
-                tout,
-                used,
-                costs,
-                cnt[c],
-                hist[c],
-            )
+            n = min(warp_size, n_rays - r0)
+            _warp(offsets, op, addr, r0, n, table, used, costs, cnt[c], hist[c])
     return cnt, hist
 
 

@@ -43,10 +43,13 @@ from simt_sim.simt.engine import (
     charge,
     chunk_bounds,
     chunk_counts,
+    lowest_lane,
     next_op,
+    popcount,
     schedule_groups,
+    step,
 )
-from simt_sim.simt.schemes.while_while import isect_loop, tri_loop
+from simt_sim.simt.schemes.while_while import WINDOW, classify, isect_loop, tri_loop
 
 NAME = "persistent_speculative_while_while"
 PERSISTENT = True
@@ -59,28 +62,33 @@ APPROXIMATIONS: tuple[str, ...] = (
 
 
 @njit(cache=True, nogil=True)
-def _spec_trav_loop(op, cur, end, park, park_end, lanes, n, work, costs, cnt, hist):
+def _spec_trav_loop(op, cur, end, park, park_end, trav, costs, cnt, hist):
+    """Speculative traversal loop of the lanes in mask ``trav`` (all at a TRAV op).
+
+    Returns the instructions issued and the masks of lanes holding a postponed leaf,
+    of lanes waiting at a LEAF, and of lanes still at a TRAV when the loop ended.
+    """
     issued = np.int64(0)
-    for i in range(n):
-        work[i] = lanes[i]
-    m = n
-    while True:
-        k = 0
+    parked = np.int64(0)
+    leaf = np.int64(0)
+    while trav:
+        k = popcount(trav)
         c0 = 0
         c1 = 0
         npost = 0
-        without = False
-        for i in range(m):
-            lane = work[i]
-            o = next_op(op, cur, end, lane)
-            t = IS_TRAV[o]
+        without = np.int64(0)
+        nxt = np.int64(0)
+        m = trav
+        while m:
+            lane = lowest_lane(m)
+            m &= m - 1
+            bit = np.int64(1) << lane
+            o = op[cur[lane]]
             c0 += o == 0
             c1 += o == 1
-            cur[lane] += t
-            work[k] = lane
-            k += t
+            o = step(op, cur, end, lane)
             # only lanes that stepped may postpone (a waiting lane at a LEAF stays put)
-            if t and park[lane] < 0 and IS_LEAF[next_op(op, cur, end, lane)]:
+            if IS_LEAF[o] and not parked & bit:
                 c = cur[lane]
                 park[lane] = c
                 c += 1
@@ -88,49 +96,53 @@ def _spec_trav_loop(op, cur, end, park, park_end, lanes, n, work, costs, cnt, hi
                     c += 1
                 park_end[lane] = c
                 cur[lane] = c
+                parked |= bit
                 npost += 1
-            without |= t and park[lane] < 0
-        if k == 0:
-            return issued
+                o = next_op(op, cur, end, lane)
+            nxt |= IS_TRAV[o] << lane
+            leaf |= IS_LEAF[o] << lane
+            without |= bit & ~parked
         issued += charge(cnt, hist, costs, TRAV_STEP, k)
         issued += charge(cnt, hist, costs, TRAV_NONE_B, c0)
         issued += charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
         issued += charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
         issued += charge(cnt, hist, costs, POSTPONE, npost)
+        trav = nxt
         if not without:
-            return issued
-        m = k
+            break
+    return issued, parked, leaf, trav
 
 
 @njit(cache=True, nogil=True)
-def _group(offsets, op, r0, n, cur, end, park, park_end, pcur, lanes, work, sub, costs, cnt, hist):
+def _group(offsets, op, r0, n, cur, end, park, park_end, pcur, acc, costs, cnt, hist):
+    trav = np.int64(0)
+    leaf = np.int64(0)
     for lane in range(n):
         cur[lane] = offsets[r0 + lane]
         end[lane] = offsets[r0 + lane + 1]
-        park[lane] = -1
+        trav, leaf = classify(op, cur, end, lane, trav, leaf)
     issued = charge(cnt, hist, costs, POOL_FETCH, n)
     issued += charge(cnt, hist, costs, RAY_SETUP, n)
-    while True:
-        a = 0
-        for lane in range(n):
-            lanes[a] = lane
-            a += cur[lane] < end[lane]
-        if a == 0:
-            break
-        issued += charge(cnt, hist, costs, LOOP_CONTROL, a)
-        issued += _spec_trav_loop(op, cur, end, park, park_end, lanes, a, work, costs, cnt, hist)
-        q = 0
-        for i in range(a):
-            lane = lanes[i]
-            if park[lane] >= 0:
+    while trav | leaf:
+        issued += charge(cnt, hist, costs, LOOP_CONTROL, popcount(trav | leaf))
+        t_issued, parked, t_leaf, trav = _spec_trav_loop(
+            op, cur, end, park, park_end, trav, costs, cnt, hist
+        )
+        issued += t_issued
+        if parked:
+            issued += charge(cnt, hist, costs, LEAF_ENTRY, popcount(parked))
+            tri = np.int64(0)
+            m = parked
+            while m:
+                lane = lowest_lane(m)
+                m &= m - 1
                 pcur[lane] = park[lane] + 1
-                park[lane] = -1
-                sub[q] = lane
-                q += 1
-        if q > 0:
-            issued += charge(cnt, hist, costs, LEAF_ENTRY, q)
-            issued += tri_loop(op, pcur, park_end, sub, q, costs, cnt, hist)
-        issued += isect_loop(op, cur, end, lanes, a, work, sub, costs, cnt, hist)
+                tri |= np.int64(pcur[lane] < park_end[lane]) << lane
+            issued += tri_loop(op, pcur, park_end, tri, acc, costs, cnt, hist)[0]
+        i_issued, i_trav = isect_loop(op, cur, end, leaf | t_leaf, acc, costs, cnt, hist)
+        issued += i_issued
+        trav |= i_trav
+        leaf = np.int64(0)
     issued += charge(cnt, hist, costs, FINISH, n)
     return issued
 
@@ -150,28 +162,12 @@ def _replay(offsets, op, costs, warp_size):
         park = np.empty(warp_size, np.int64)
         park_end = np.empty(warp_size, np.int64)
         pcur = np.empty(warp_size, np.int64)
-        lanes = np.empty(warp_size, np.int64)
-        work = np.empty(warp_size, np.int64)
-        sub = np.empty(warp_size, np.int64)
+        acc = np.zeros(WINDOW, np.int64)
         for g in range(bounds[c], bounds[c + 1]):
             r0 = g * warp_size
             n = min(warp_size, n_rays - r0)
             group_cost[g] = _group(
-                offsets,
-                op,
-                r0,
-                n,
-                cur,
-                end,
-                park,
-                park_end,
-                pcur,
-                lanes,
-                work,
-                sub,
-                costs,
-                cnt[c],
-                hist[c],
+                offsets, op, r0, n, cur, end, park, park_end, pcur, acc, costs, cnt[c], hist[c]
             )
     return cnt, hist, group_cost
 

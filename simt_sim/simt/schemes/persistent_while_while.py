@@ -59,9 +59,7 @@ def _replay(offsets, op, costs, warp_size):
         for g in range(bounds[c], bounds[c + 1]):
             r0 = g * warp_size
             n = min(warp_size, n_rays - r0)
-            group_cost[g] = _group(
-                offsets, op, r0, n, cur, end, acc, costs, cnt[c], hist[c]
-            )
+            group_cost[g] = _group(offsets, op, r0, n, cur, end, acc, costs, cnt[c], hist[c])
     return cnt, hist, group_cost
 
 

@@ -14,9 +14,11 @@ is lost. Per warp:
 
 The traversal and intersection loops are shared with the persistent and dynamic-fetch
 schemes, which run the same kernel body. A warp's lanes are bits of an int64 mask
-(``engine.MAX_MASK_LANES``): each loop iteration visits only the lanes that execute it,
-and a loop hands the next one the mask of lanes that stopped at its op kind, so no lane
-is ever scanned just to find out that it waits. After an outer iteration every lane that
+(``engine.MAX_MASK_LANES``): a loop visits only the lanes that execute it and hands the
+next loop the mask of lanes that stopped at its op kind, so no lane is ever scanned just
+to find out that it waits. Inside the traversal and triangle loops lanes do not interact,
+so each lane runs ahead through a window of iterations (its ops are contiguous) while
+per-iteration counters gather the active lanes. After an outer iteration every lane that
 has ops left is at a TRAV op, so only a warp's first iteration needs to look at its lanes.
 """
 
@@ -25,10 +27,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from simt_sim.optrace import TRAV_BOTH
+from simt_sim.optrace import TRAV_BOTH, TRI_MISS
 from simt_sim.simt.engine import (
     FINISH,
-    IS_HIT,
     IS_LEAF,
     IS_TRAV,
     IS_TRI,
@@ -65,6 +66,8 @@ WINDOW = 64
 _FIELD = 21
 _LOW = (1 << _FIELD) - 1
 TRAV_PACK = np.array([1 + (1 << _FIELD), 1 + (1 << (2 * _FIELD)), 1, 0, 0, 0, 0, 0], np.int64)
+#: a lane's TRI op as packed counters: 1 testing lane, plus 1 in bits 21-41 for a TRI_HIT
+TRI_PACK = np.array([0, 0, 0, 0, 1, 1 + (1 << _FIELD), 0, 0], np.int64)
 
 
 @njit(cache=True, nogil=True)
@@ -121,37 +124,54 @@ def trav_loop(op, cur, end, trav, acc, costs, cnt, hist):
 
 
 @njit(cache=True, nogil=True)
-def tri_loop(op, cur, end, tri, costs, cnt, hist):
+def tri_loop(op, cur, end, tri, acc, costs, cnt, hist):
     """Triangle loop of one leaf iteration over the lanes in mask ``tri`` (all at a TRI op).
 
     While any lane is at a TRI op: ``tri_test`` with them, ``tri_hit`` with the TRI_HIT
-    ones, advance one op. Returns the instructions issued and the masks of lanes that
-    stopped at a LEAF and at a TRAV.
+    ones, advance one op. Run ahead lane by lane as in :func:`trav_loop`. Returns the
+    instructions issued and the masks of lanes that stopped at a LEAF and at a TRAV.
     """
     issued = np.int64(0)
     leaf = np.int64(0)
     trav = np.int64(0)
+    window = acc.shape[0]
     while tri:
-        k = popcount(tri)
-        h = 0
         nxt = np.int64(0)
+        span = 0
         m = tri
         while m:
             lane = lowest_lane(m)
             m &= m - 1
-            h += IS_HIT[op[cur[lane]]]
-            o = step(op, cur, end, lane)
-            nxt |= IS_TRI[o] << lane
-            leaf |= IS_LEAF[o] << lane
-            trav |= IS_TRAV[o] << lane
-        issued += charge(cnt, hist, costs, TRI_TEST, k)
-        issued += charge(cnt, hist, costs, TRI_HIT_B, h)
+            c = cur[lane]
+            e = end[lane]
+            j = 0
+            while True:
+                acc[j] += TRI_PACK[op[c]]
+                c += 1
+                j += 1
+                if c == e:
+                    break
+                o = op[c]
+                if o < TRI_MISS:
+                    leaf |= IS_LEAF[o] << lane
+                    trav |= IS_TRAV[o] << lane
+                    break
+                if j == window:
+                    nxt |= np.int64(1) << lane
+                    break
+            cur[lane] = c
+            span = max(span, j)
+        for j in range(span):
+            a = acc[j]
+            acc[j] = 0
+            issued += charge(cnt, hist, costs, TRI_TEST, a & _LOW)
+            issued += charge(cnt, hist, costs, TRI_HIT_B, a >> _FIELD)
         tri = nxt
     return issued, leaf, trav
 
 
 @njit(cache=True, nogil=True)
-def isect_loop(op, cur, end, leaf, costs, cnt, hist):
+def isect_loop(op, cur, end, leaf, acc, costs, cnt, hist):
     """Inner intersection loop of the lanes in mask ``leaf`` (all at a LEAF): leaf after leaf.
 
     While any lane is at a LEAF: ``leaf_entry`` with those lanes, then their triangle
@@ -172,7 +192,7 @@ def isect_loop(op, cur, end, leaf, costs, cnt, hist):
             tri |= IS_TRI[o] << lane
             nxt |= IS_LEAF[o] << lane
             trav |= IS_TRAV[o] << lane
-        t_issued, t_leaf, t_trav = tri_loop(op, cur, end, tri, costs, cnt, hist)
+        t_issued, t_leaf, t_trav = tri_loop(op, cur, end, tri, acc, costs, cnt, hist)
         issued += t_issued
         trav |= t_trav
         leaf = nxt | t_leaf
@@ -188,7 +208,7 @@ def outer_step(op, cur, end, trav, leaf, acc, costs, cnt, hist):
     """
     issued = charge(cnt, hist, costs, LOOP_CONTROL, popcount(trav | leaf))
     t_issued, t_leaf = trav_loop(op, cur, end, trav, acc, costs, cnt, hist)
-    i_issued, alive = isect_loop(op, cur, end, leaf | t_leaf, costs, cnt, hist)
+    i_issued, alive = isect_loop(op, cur, end, leaf | t_leaf, acc, costs, cnt, hist)
     return issued + t_issued + i_issued, alive
 
 
@@ -204,7 +224,8 @@ def outer_iteration(op, cur, end, lanes, n, work, sub, costs, cnt, hist):
     """One outer-loop iteration for the alive lanes ``lanes[:n]`` (n > 0, lane ids < 64).
 
     The list form of :func:`outer_step` for callers that keep lane lists (megakernel,
-    wavefront); ``work`` and ``sub`` are scratch the mask form no longer needs.
+    wavefront): ``work`` serves as the run-ahead window (zeroed here); ``sub`` is scratch
+    the mask form no longer needs, kept so the callers' signature holds.
     """
     trav = np.int64(0)
     leaf = np.int64(0)
