@@ -26,14 +26,23 @@ from simt_sim.tracers.embree_tracer import EmbreeTracer
 from simt_sim.workload import make_workload, parse_resolution
 
 
-def median_time(fn, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
+def interleaved_medians(fns: dict[str, tuple[int, object]], repeats: int) -> dict[str, float]:
+    """Median seconds of each ``(threads, fn)``, timed round-robin so load drifts hit all.
+
+    Each function runs once untimed first; then every round times each function once.
+    """
+    for threads, fn in fns.values():
+        numba.set_num_threads(threads)
         fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    times: dict[str, list[float]] = {k: [] for k in fns}
+    for _ in range(repeats):
+        for key, (threads, fn) in fns.items():
+            numba.set_num_threads(threads)
+            t0 = time.perf_counter()
+            fn()
+            times[key].append(time.perf_counter() - t0)
+    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    return {k: statistics.median(v) for k, v in times.items()}
 
 
 def drain(bvh, rays) -> None:
@@ -44,17 +53,16 @@ def drain(bvh, rays) -> None:
 def measure(rays, bvh, emb: EmbreeTracer, repeats: int) -> dict:
     """MRays/s of Embree, the numba tracer and the recorder on ``rays``, and their ratios."""
     all_threads = numba.config.NUMBA_NUM_THREADS
-    n = len(rays)
-    row: dict = {"rays": n}
-    numba.set_num_threads(1)
-    row["embree_1t"] = n / median_time(lambda: emb.trace(rays), repeats) / 1e6
-    row["numba_1t"] = n / median_time(lambda: numba_tracer.trace(bvh, rays), repeats) / 1e6
-    row["record_1t"] = n / median_time(lambda: drain(bvh, rays), repeats) / 1e6
-    numba.set_num_threads(all_threads)
-    row[f"numba_{all_threads}t"] = (
-        n / median_time(lambda: numba_tracer.trace(bvh, rays), repeats) / 1e6
-    )
-    row[f"record_{all_threads}t"] = n / median_time(lambda: drain(bvh, rays), repeats) / 1e6
+    fns = {
+        "embree_1t": (1, lambda: emb.trace(rays)),
+        "numba_1t": (1, lambda: numba_tracer.trace(bvh, rays)),
+        "record_1t": (1, lambda: drain(bvh, rays)),
+        f"numba_{all_threads}t": (all_threads, lambda: numba_tracer.trace(bvh, rays)),
+        f"record_{all_threads}t": (all_threads, lambda: drain(bvh, rays)),
+    }
+    seconds = interleaved_medians(fns, repeats)
+    row: dict = {"rays": len(rays)}
+    row.update({k: len(rays) / s / 1e6 for k, s in seconds.items()})
     row["numba/embree (1t)"] = row["numba_1t"] / row["embree_1t"]
     row["record/numba (1t)"] = row["record_1t"] / row["numba_1t"]
     return row
@@ -70,7 +78,9 @@ def main() -> int:
     args = ap.parse_args()
 
     scene = load_scene(args.scene)
-    build = median_time(lambda: build_bvh(scene.vertices, scene.triangles), args.repeats)
+    build = interleaved_medians(
+        {"build": (1, lambda: build_bvh(scene.vertices, scene.triangles))}, args.repeats
+    )["build"]
     bvh = build_bvh(scene.vertices, scene.triangles)
     emb = EmbreeTracer(scene.vertices, scene.triangles)
     rows = []
@@ -89,7 +99,7 @@ def main() -> int:
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
         f"scene {scene.name} ({scene.n_triangles} triangles), camera {args.camera}, "
         f"{args.resolution}, {args.spp} secondary rays per primary hit; "
-        f"median of {args.repeats} after a warm-up. MRays/s.\n"
+        f"median of {args.repeats} rounds after a warm-up, tracers timed round-robin. MRays/s.\n"
     )
     print(df.to_markdown(index=False, floatfmt=".3g"))
     print(

@@ -210,6 +210,105 @@ def cmd_table(args: argparse.Namespace) -> int:
     return 0
 
 
+def _measure_numba(wl) -> float:
+    """MRays/s of the numba tracer on the workload's rays (median of 3 after a warm-up)."""
+    from simt_sim.tracers import numba_tracer
+
+    _, sec = _time(lambda: numba_tracer.trace(wl.bvh, wl.rays), 3)
+    return len(wl.rays) / sec / 1e6 if sec > 0 else float("nan")
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    """Draw the study's figures (active lanes, per-pixel, warp timeline, MRays/s) into a
+    directory; every figure is built before the directory is touched, so bad input leaves
+    nothing behind."""
+    from pathlib import Path
+
+    import kernels_ir
+    from kernels_ir.kernel_ir import BLOCKS
+    from simt_sim import plots
+    from simt_sim.record import record_all
+    from simt_sim.simt.engine import cost_vector
+    from simt_sim.simt.gpus import get_gpu, load_gpus
+    from simt_sim.study import ALL_SCHEMES, RAY_TYPES, StudySpec, parse_list, run_study
+    from simt_sim.warpstats import TIMELINE_SCHEMES, WARP_SCHEMES, warp_counts, warp_timeline
+    from simt_sim.workload import make_workload, parse_resolution
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise SimtSimError(f"--out {out} is a file; give a directory for the figures")
+    if not out.parent.is_dir():
+        raise SimtSimError(f"the parent of --out {out} does not exist; create it first")
+    if not args.camera.strip().isdigit():
+        raise SimtSimError(f"--camera {args.camera!r} is not one camera index like 0")
+    if args.warp is not None and args.warp < 0:
+        raise SimtSimError(f"--warp must be a warp index >= 0, got {args.warp}")
+    spec = StudySpec(
+        scene=args.scene,
+        ray_types=parse_list(args.rays, RAY_TYPES, "ray type"),
+        schemes=parse_list(args.schemes, ALL_SCHEMES, "scheme"),
+        gpus=parse_list(args.gpu, tuple(load_gpus()), "GPU"),
+        cameras=args.camera.strip(),
+        resolution=parse_resolution(args.resolution),
+        spp=args.spp,
+        seed=args.seed,
+    )
+    results, table = run_study(spec, progress=not args.quiet and sys.stderr.isatty())
+    width, height = spec.resolution
+    setup = f"{width}x{height}, camera {spec.cameras}"
+    figures = {}
+    for rt in spec.ray_types:
+        figures[f"active_lanes_{rt}"] = plots.active_lanes_figure(
+            [r for r in results if r.ray_type == rt and r.gpu.id == spec.gpus[0]],
+            f"{rt} rays on {results[0].scene} ({setup}, {spec.gpus[0]}): active lanes "
+            "per issued instruction",
+        )
+    wl = make_workload(
+        spec.scene, "primary", cameras=spec.cameras, resolution=spec.resolution,
+        spp=spec.spp, seed=spec.seed,
+    )  # fmt: skip
+    measured = {}
+    if args.measured:
+        for rt in spec.ray_types:
+            if rt != "path":
+                rays = make_workload(
+                    wl.scene, rt, cameras=spec.cameras, resolution=spec.resolution,
+                    spp=spec.spp, seed=spec.seed, bvh=wl.bvh,
+                )  # fmt: skip
+                measured[rt] = _measure_numba(rays)
+    figures["mrays"] = plots.mrays_figure(
+        table, f"Upper-bound MRays/s on {wl.scene.name} ({setup})", measured
+    )
+    trace = record_all(wl.bvh, wl.rays)
+    per_ray = trace.counts()
+    gpu = get_gpu(spec.gpus[0])
+    for s in (s for s in spec.schemes if s in WARP_SCHEMES):
+        ir = kernels_ir.load(s, gpu.ir_arch)
+        wc = warp_counts(trace, s, cost_vector(ir), gpu.warp_size)
+        eff = wc.efficiency[np.arange(trace.n_rays) // gpu.warp_size]
+        figures[f"pixels_{s}"] = plots.pixels_figure(
+            *(plots.to_image(v, wl.rays.pixel, width, height) for v in (
+                per_ray[:, 0], per_ray[:, 2], eff
+            )),
+            f"{s}: primary rays on {wl.scene.name} ({setup}, {gpu.id})",
+        )  # fmt: skip
+        if s in TIMELINE_SCHEMES:
+            warp = int(np.argmax(wc.warp_instructions)) if args.warp is None else args.warp
+            costs = {b: ir.cost(b) for b in BLOCKS}
+            figures[f"timeline_{s}"] = plots.timeline_figure(
+                warp_timeline(trace, warp, s, costs, gpu.warp_size),
+                costs,
+                gpu.warp_size,
+                f"{s}: warp {warp} of the primary rays on {wl.scene.name} ({setup}, {gpu.id})",
+            )
+    out.mkdir(exist_ok=True)
+    written = []
+    for stem, fig in figures.items():
+        written += [str(p) for p in plots.write_figure(fig, out, stem)]
+    emit(pd.DataFrame({"file": written}), "md", None)
+    return 0
+
+
 def cmd_scenes(args: argparse.Namespace) -> int:
     """List the named scenes, their sizes and where they come from."""
     from simt_sim.scene import list_scenes
@@ -310,6 +409,40 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_output_args(p)
     p.set_defaults(func=cmd_table)
+
+    p = sub.add_parser(
+        "plot",
+        help="figures: active lanes, per-pixel cost, one warp's timeline, MRays/s",
+        epilog="example: simt-sim plot --scene room --rays primary,ao --schemes "
+        "while_while,if_if --camera 0 --out figures",
+    )
+    _add_workload_args(
+        p, rays_help="comma list of primary, ao, diffuse, path or 'all' (default: %(default)s)"
+    )
+    p.set_defaults(rays="primary,ao,diffuse", resolution="128x96", spp=4, camera="0")
+    p.add_argument(
+        "--schemes", default="all", help="comma list of schemes or 'all' (default: %(default)s)"
+    )
+    p.add_argument(
+        "--gpu",
+        default="gtx285",
+        help="comma list of GPU ids or 'all'; the first one costs the per-pixel and "
+        "timeline figures (default: %(default)s)",
+    )
+    p.add_argument(
+        "--warp",
+        type=int,
+        default=None,
+        help="warp of the primary rays the timeline shows (default: the one issuing most)",
+    )
+    p.add_argument(
+        "--measured",
+        action="store_true",
+        help="add the numba tracer's measured MRays/s (this CPU) to the MRays/s figure",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--out", required=True, help="directory for the PNG and SVG files")
+    p.set_defaults(func=cmd_plot)
 
     p = sub.add_parser(
         "scenes", help="list the named scenes", epilog="example: simt-sim scenes --format csv"
