@@ -22,10 +22,12 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from kernels_ir.kernel_ir import BLOCKS
+from simt_sim.errors import SimtSimError
 from simt_sim.simt.result import INTERSECTION_BLOCKS, TRAVERSAL_BLOCKS, SimResult
 from simt_sim.tables import write_atomic
 
@@ -34,7 +36,7 @@ BLOCK_COLOURS = {
     "ray_setup": "#7f7f7f",
     "pool_fetch": "#17becf",
     "loop_control": "#bcbd22",
-    "trav_step": "#1f77b4",
+    "trav_step": "#08306b",
     "trav_none": "#9ecae1",
     "trav_one": "#6baed6",
     "trav_both": "#3182bd",
@@ -63,7 +65,9 @@ def active_lanes_figure(results: Sequence[SimResult], title: str) -> Figure:
     different instruction totals compare on one scale; each panel names its SIMD
     efficiency (mean active lanes / warp size).
     """
-    n = max(len(results), 1)
+    if not results:
+        raise SimtSimError(f"no results to draw for {title!r}; simulate at least one scheme")
+    n = len(results)
     fig = Figure(figsize=(2.6 * n + 0.8, 5.2), layout="constrained")
     axes = fig.subplots(2, n, sharex=True, sharey="row", squeeze=False)
     phases = (
@@ -76,7 +80,8 @@ def active_lanes_figure(results: Sequence[SimResult], title: str) -> Figure:
             h = phase_histogram(r, blocks).astype(np.float64)
             total = h.sum()
             share = 100.0 * h / total if total else h
-            ax.bar(np.arange(h.shape[0]), share, width=1.0, color=colour, edgecolor="none")
+            edges = np.arange(h.shape[0] + 1) - 0.5
+            ax.stairs(share, edges, fill=True, color=colour)
             eff = getattr(r, metric)
             ax.set_title(f"{r.scheme}\n{phase}: efficiency {100 * eff:.0f}%", fontsize=8)
             ax.set_xlim(-0.5, r.warp_size + 0.5)
@@ -85,8 +90,6 @@ def active_lanes_figure(results: Sequence[SimResult], title: str) -> Figure:
                 ax.set_xlabel("active lanes")
             if col == 0:
                 ax.set_ylabel(f"{phase}: % of issued\nwarp instructions")
-    for ax in axes.flat[len(results) :]:
-        ax.set_axis_off()
     fig.suptitle(title)
     return fig
 
@@ -137,12 +140,15 @@ def timeline_figure(
     fig = Figure(figsize=(12, 4), layout="constrained")
     ax = fig.subplots()
     shown = [b for b in BLOCKS if np.any(names == b)]
-    for b in shown:
-        sel = (names == b) & (widths > 0)
-        ax.bar(
-            starts[sel], lanes[sel], width=widths[sel], align="edge",
-            color=BLOCK_COLOURS[b], edgecolor="none",
-        )  # fmt: skip
+    # one collection of rectangles (x0, 0)-(x1, lanes): thousands of bar patches draw slowly
+    x0, x1 = starts.astype(np.float64), (starts + widths).astype(np.float64)
+    y = lanes.astype(np.float64)
+    verts = np.stack(
+        [np.stack([x0, np.zeros_like(y)], 1), np.stack([x0, y], 1),
+         np.stack([x1, y], 1), np.stack([x1, np.zeros_like(y)], 1)], axis=1,
+    )  # fmt: skip
+    colours = [BLOCK_COLOURS[b] for b in names]
+    ax.add_collection(PolyCollection(verts, facecolors=colours, linewidths=0))
     ax.axhline(warp_size, color="black", linestyle="--", linewidth=0.8)
     ax.set_xlim(0, max(issued, 1))
     ax.set_ylim(0, warp_size * 1.08)
@@ -170,7 +176,7 @@ def mrays_figure(
     ray_types = list(dict.fromkeys(df["ray_type"]))
     gpus = list(dict.fromkeys(df["gpu"]))
     n = max(len(ray_types), 1)
-    fig = Figure(figsize=(7.5, 3.2 * n), layout="constrained")
+    fig = Figure(figsize=(9.5, 3.2 * n), layout="constrained")
     axes = fig.subplots(n, 1, squeeze=False)[:, 0]
     for ax, rt in zip(axes, ray_types, strict=False):
         part = df[df["ray_type"] == rt]
@@ -197,7 +203,10 @@ def mrays_figure(
         ax.set_ylabel("MRays/s")
         ax.set_title(f"{rt} rays", fontsize=10)
         ax.grid(axis="y", alpha=0.3)
-        ax.legend(fontsize=8, title="upper bound on", title_fontsize=8)
+        ax.legend(
+            fontsize=8, title="upper bound on", title_fontsize=8,
+            loc="upper left", bbox_to_anchor=(1.0, 1.0),
+        )  # fmt: skip
     fig.suptitle(title)
     return fig
 

@@ -1,0 +1,158 @@
+"""Regression goldens: committed study tables that every change must reproduce.
+
+Each golden is the ``simt-sim table`` of one scene for every scheme and ray type on the
+GTX 285, at a size small enough for the test suite (:data:`GOLDENS`). Integer columns
+(rays, warp instructions, makespan) must match exactly and float columns to a relative
+1e-9, so a changed instruction cost, op stream, ray generator or BVH shows up at once.
+
+When a change is meant to move the numbers, regenerate the goldens and commit them with
+the change, saying why in the commit message::
+
+    python -m simt_sim.goldens --regenerate
+
+``python -m simt_sim.goldens`` (no flag) compares and lists every differing cell.
+Scenes that need the shared meshes are skipped when those are missing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import math
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from simt_sim.errors import SimtSimError
+from simt_sim.study import ALL_SCHEMES, RAY_TYPES, StudySpec, run_study
+from simt_sim.tables import write_atomic
+
+GOLDEN_DIR = Path(__file__).resolve().parents[1] / "tests" / "goldens"
+#: relative tolerance of float columns (the replay is integer; floats are ratios of them)
+RTOL = 1e-9
+INT_COLUMNS = ("rays", "warp_instructions", "makespan")
+
+
+@dataclass(frozen=True)
+class Golden:
+    """One golden table: the scene and whether it needs the shared meshes."""
+
+    scene: str
+    shared: bool
+
+    @property
+    def path(self) -> Path:
+        return GOLDEN_DIR / f"{self.scene}.csv"
+
+    def spec(self) -> StudySpec:
+        """Every scheme and ray type on the GTX 285; one camera, 32x24, 2 spp."""
+        return StudySpec(
+            scene=self.scene,
+            ray_types=RAY_TYPES,
+            schemes=ALL_SCHEMES,
+            gpus=("gtx285",),
+            cameras="0",
+            resolution=(32, 24),
+            spp=2,
+            seed=0,
+        )
+
+
+GOLDENS = (Golden("room", False), Golden("cornell-box", True), Golden("bunny", True))
+
+
+def _read(source: str | Path | io.StringIO) -> pd.DataFrame:
+    return pd.read_csv(source, dtype={c: "Int64" for c in INT_COLUMNS})
+
+
+def compute_csv(golden: Golden) -> str:
+    """The golden's table as the current code makes it, as CSV text."""
+    _, df = run_study(golden.spec(), progress=False)
+    return df.to_csv(index=False)
+
+
+def compute(golden: Golden) -> pd.DataFrame:
+    """The golden's table as the current code makes it, read back from its CSV text (so
+    it has exactly the dtypes of a committed file)."""
+    return _read(io.StringIO(compute_csv(golden)))
+
+
+def load(golden: Golden) -> pd.DataFrame:
+    """The committed table of ``golden``."""
+    if not golden.path.is_file():
+        raise SimtSimError(
+            f"golden {golden.path} is missing; run 'python -m simt_sim.goldens --regenerate'"
+        )
+    return _read(golden.path)
+
+
+def _same(a: object, b: object, column: str) -> bool:
+    if pd.isna(a) or pd.isna(b):
+        return bool(pd.isna(a) and pd.isna(b))
+    if column in INT_COLUMNS or isinstance(a, str) or isinstance(b, str):
+        return a == b
+    return math.isclose(float(a), float(b), rel_tol=RTOL, abs_tol=0.0)
+
+
+def compare(expected: pd.DataFrame, actual: pd.DataFrame) -> list[str]:
+    """Every difference between two golden tables, one line each (empty: they agree).
+
+    Rows are matched by position (a study lists them in a fixed order); integer columns
+    must be equal, float columns equal to :data:`RTOL` relative, text equal.
+    """
+    problems = []
+    if list(expected.columns) != list(actual.columns):
+        return [f"columns differ: expected {list(expected.columns)}, got {list(actual.columns)}"]
+    if len(expected) != len(actual):
+        return [f"row count differs: expected {len(expected)}, got {len(actual)}"]
+    keys = [c for c in ("ray_type", "scheme", "gpu") if c in expected.columns]
+    for i in range(len(expected)):
+        row = "/".join(str(expected.iloc[i][k]) for k in keys)
+        for col in expected.columns:
+            a, b = expected.iloc[i][col], actual.iloc[i][col]
+            a = a.item() if isinstance(a, np.generic) else a
+            b = b.item() if isinstance(b, np.generic) else b
+            if not _same(a, b, col):
+                problems.append(f"{row} {col}: expected {a!r}, got {b!r}")
+    return problems
+
+
+def available(golden: Golden) -> bool:
+    """Whether the golden's scene can be loaded here (shared meshes may be absent)."""
+    if not golden.shared:
+        return True
+    from simt_sim.scene import list_scenes
+
+    table = list_scenes()
+    row = table[table["name"] == golden.scene]
+    return bool(len(row)) and row["available"].iloc[0] == "yes"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m simt_sim.goldens [--regenerate]``: compare (exit 1 on drift) or rewrite."""
+    parser = argparse.ArgumentParser(prog="python -m simt_sim.goldens", description=__doc__)
+    parser.add_argument("--regenerate", action="store_true", help="rewrite the golden CSVs")
+    args = parser.parse_args(argv)
+    failed = False
+    for g in GOLDENS:
+        if not available(g):
+            print(f"{g.scene}: skipped (shared scene not present; set SIMT_SIM_SCENES)")
+            continue
+        if args.regenerate:
+            write_atomic(g.path, compute_csv(g))
+            print(f"{g.scene}: wrote {g.path}")
+            continue
+        problems = compare(load(g), compute(g))
+        failed |= bool(problems)
+        print(f"{g.scene}: {'ok' if not problems else f'{len(problems)} differences'}")
+        for p in problems:
+            print(f"  {p}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
