@@ -31,3 +31,13 @@ def test_failed_write_keeps_the_old_file(tmp_path):
 def test_missing_directory_is_a_clear_error(tmp_path):
     with pytest.raises(SimtSimError, match="does not exist"):
         write_atomic(tmp_path / "nope" / "t.csv", "x")
+
+
+def test_written_file_has_the_usual_mode(tmp_path):
+    import os
+
+    target = tmp_path / "t.csv"
+    write_atomic(target, "x")
+    mask = os.umask(0)
+    os.umask(mask)
+    assert target.stat().st_mode & 0o777 == 0o666 & ~mask
