@@ -44,14 +44,18 @@ def woop_transform(
     ok = det > 0.0
     inv_det = np.zeros_like(det)
     inv_det[ok] = 1.0 / det[ok]
+    # The z row n / |n|^2 grows like 1/size^2 and leaves float32 below sizes of ~1e-19;
+    # t = (w0.w - O.w0) / (D.w0) does not change when w0 is scaled, so it is stored as
+    # n / |n| instead (u and v rows grow only like 1/size).
+    inv_len = np.sqrt(inv_det)
     rows = (
-        (np.cross(e1, n), False),  # u row -> w1
-        (np.cross(n, e0), False),  # v row -> w2
-        (n, True),  # z row -> w0, translation negated
+        (np.cross(e1, n), inv_det, False),  # u row -> w1
+        (np.cross(n, e0), inv_det, False),  # v row -> w2
+        (n, inv_len, True),  # z row -> w0 (unit normal), translation negated
     )
     out = []
-    for r, negate in rows:
-        r = r * inv_det[:, None]
+    for r, scale, negate in rows:
+        r = r * scale[:, None]
         t = -np.einsum("ij,ij->i", r, c)  # translation: M^-1 maps v2 to the origin
         w = np.empty((r.shape[0], 4), dtype=np.float32)
         w[:, :3] = r
