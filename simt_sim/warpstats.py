@@ -86,15 +86,7 @@ def _warp_counts(offsets, op, addr, costs, warp_size, scheme):
         acc = np.zeros(WINDOW, np.int64)
         cnt = np.zeros((2, N_BLOCKS), np.int64)
         hist = np.zeros((N_BLOCKS, warp_size + 1), np.int64)
-        most = 0
-        for w in range(bounds[c], bounds[c + 1]):
-            r1 = min(w * warp_size + warp_size, n_rays)
-            most = max(most, offsets[r1] - offsets[w * warp_size])
-        cap = 4
-        while cap < 2 * most + 1:
-            cap *= 2
-        table = np.full((cap, 4), -1, np.int64)
-        used = np.empty(cap, np.int64)
+        table, used = packet.node_table(offsets, warp_size, bounds[c], bounds[c + 1])
         for w in range(bounds[c], bounds[c + 1]):
             r0 = w * warp_size
             n = min(warp_size, n_rays - r0)

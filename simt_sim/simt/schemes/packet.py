@@ -107,6 +107,25 @@ def _warp(offsets, op, addr, r0, n, table, used, costs, cnt, hist):
     charge(cnt, hist, costs, FINISH, n)
 
 
+@njit(cache=True, nogil=True)
+def node_table(offsets, warp_size, w0, w1):
+    """The open-addressing table (and its used-slot list) for warps ``w0:w1``.
+
+    Sized to a power of two above twice the most ops any of those warps holds, so every
+    distinct node or leaf of a warp finds a slot; reused across the warps of a chunk.
+    """
+    n_rays = offsets.shape[0] - 1
+    most = 0
+    for w in range(w0, w1):
+        r0 = w * warp_size
+        r1 = min(r0 + warp_size, n_rays)
+        most = max(most, offsets[r1] - offsets[r0])
+    cap = 4
+    while cap < 2 * most + 1:
+        cap *= 2
+    return np.full((cap, 4), -1, np.int64), np.empty(cap, np.int64)
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _replay(offsets, op, addr, costs, warp_size):
     n_rays = offsets.shape[0] - 1
@@ -116,16 +135,7 @@ def _replay(offsets, op, addr, costs, warp_size):
     cnt = np.zeros((nc, 2, N_BLOCKS), np.int64)
     hist = np.zeros((nc, N_BLOCKS, warp_size + 1), np.int64)
     for c in prange(nc):
-        most = 0
-        for w in range(bounds[c], bounds[c + 1]):
-            r0 = w * warp_size
-            r1 = min(r0 + warp_size, n_rays)
-            most = max(most, offsets[r1] - offsets[r0])
-        cap = 4
-        while cap < 2 * most + 1:
-            cap *= 2
-        table = np.full((cap, 4), -1, np.int64)
-        used = np.empty(cap, np.int64)
+        table, used = node_table(offsets, warp_size, bounds[c], bounds[c + 1])
         for w in range(bounds[c], bounds[c + 1]):
             r0 = w * warp_size
             n = min(warp_size, n_rays - r0)
