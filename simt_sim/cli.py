@@ -20,6 +20,16 @@ from simt_sim.errors import SimtSimError
 from simt_sim.tables import FORMATS, emit
 
 DEFAULT_SCENE = "room"
+MEMORY_DETAIL = (
+    "lines_per_warp_step",
+    "line_bytes_per_ray",
+    "working_set_kib",
+    "l1_hit_rate",
+    "l2_hit_rate",
+)
+"""Memory-model columns left out of the terminal (markdown) table; CSV and JSON keep them."""
+#: timed launches per CUDA kernel in ``bench`` (after 2 warm-ups, as the paper measured)
+CUDA_TIMED_LAUNCHES = 10
 
 
 class _Parser(argparse.ArgumentParser):
@@ -29,7 +39,12 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
-def _add_workload_args(p: argparse.ArgumentParser, *, rays_help: str) -> None:
+def _add_workload_args(
+    p: argparse.ArgumentParser,
+    *,
+    rays_help: str,
+    camera_help: str = "'all' or camera indices, e.g. 0,2 (default: %(default)s)",
+) -> None:
     p.add_argument(
         "--scene",
         default=DEFAULT_SCENE,
@@ -37,9 +52,7 @@ def _add_workload_args(p: argparse.ArgumentParser, *, rays_help: str) -> None:
         "path (default: %(default)s)",
     )
     p.add_argument("--rays", default="primary", help=rays_help)
-    p.add_argument(
-        "--camera", default="all", help="'all' or camera indices, e.g. 0,2 (default: %(default)s)"
-    )
+    p.add_argument("--camera", default="all", help=camera_help)
     p.add_argument("--resolution", default="1024x768", help="WxH (default: %(default)s)")
     p.add_argument(
         "--spp", type=int, default=32, help="secondary rays per primary hit (default: %(default)s)"
@@ -52,6 +65,14 @@ def _add_output_args(p: argparse.ArgumentParser) -> None:
         "--format", choices=FORMATS, default="md", help="table format (default: %(default)s)"
     )
     p.add_argument("--out", default=None, help="write the table to this file instead of stdout")
+
+
+def _add_quiet_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no progress bar (bars are drawn only when stderr is a terminal)",
+    )
 
 
 def _workload(args: argparse.Namespace, ray_type: str):
@@ -67,14 +88,21 @@ def _workload(args: argparse.Namespace, ray_type: str):
     )
 
 
-def _time(fn: Callable[[], object], repeats: int) -> tuple[object, float]:
-    """Run once to warm up, then ``repeats`` times; the last result and the median seconds."""
+def _time(
+    fn: Callable[[], object], repeats: int, done: Callable[[], object] = lambda: None
+) -> tuple[object, float]:
+    """Run once to warm up, then ``repeats`` times; the last result and the median seconds.
+
+    ``done`` is called after each run, outside the timed span (a progress bar's update).
+    """
     result = fn()
+    done()
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         result = fn()
         times.append(time.perf_counter() - t0)
+        done()
     return result, statistics.median(times)
 
 
@@ -82,6 +110,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     """Measure real tracers on the same rays; agreement is against Embree's hits."""
     import numba
 
+    from simt_sim import progress
     from simt_sim.hits import agreement
     from simt_sim.tracers import numba_tracer
     from simt_sim.tracers.embree_tracer import THREADS as EMBREE_THREADS
@@ -96,27 +125,43 @@ def cmd_bench(args: argparse.Namespace) -> int:
         )
     if args.repeats < 1:
         raise SimtSimError(f"--repeats must be at least 1, got {args.repeats}")
-    wl = _workload(args, args.rays)
-    rays = wl.rays
-    results: list[tuple[str, int | str, object, float]] = []
-    if "embree" in tracers:
-        emb = EmbreeTracer(wl.scene.vertices, wl.scene.triangles)
-        hits, sec = _time(lambda: emb.trace(rays), args.repeats)
-        results.append(("embree", EMBREE_THREADS, hits, sec))
-    if "numba" in tracers:
-        all_threads = numba.config.NUMBA_NUM_THREADS
-        for threads in sorted({1, all_threads}):
-            numba.set_num_threads(threads)
-            hits, sec = _time(lambda: numba_tracer.trace(wl.bvh, rays), args.repeats)
-            results.append(("numba", threads, hits, sec))
-        numba.set_num_threads(all_threads)
-    if "cuda" in tracers:
-        from simt_sim.tracers.cuda_tracer import TRACE_KERNELS, CudaTracer
+    all_threads = numba.config.NUMBA_NUM_THREADS
+    numba_threads = sorted({1, all_threads})
+    with progress.bar("loading", enabled=progress.wanted(args.quiet)) as bar:
+        wl = _workload(args, args.rays)
+        rays = wl.rays
+        runs = (("embree" in tracers) + ("numba" in tracers) * len(numba_threads)) * (
+            args.repeats + 1
+        )
+        if "cuda" in tracers:
+            from simt_sim.tracers.cuda_tracer import TRACE_KERNELS, CudaTracer
 
-        cu = CudaTracer(wl.bvh)
-        for kernel in TRACE_KERNELS:
-            hits, secs = cu.trace_timed(rays, kernel)
-            results.append((f"cuda:{kernel}", cu.device_name, hits, statistics.median(secs)))
+            runs += CUDA_TIMED_LAUNCHES * len(TRACE_KERNELS)
+        bar.reset(total=len(rays) * runs)
+
+        def traced(n: int = 1) -> None:
+            bar.update(n * len(rays))
+
+        results: list[tuple[str, int | str, object, float]] = []
+        if "embree" in tracers:
+            bar.set_description("embree")
+            emb = EmbreeTracer(wl.scene.vertices, wl.scene.triangles)
+            hits, sec = _time(lambda: emb.trace(rays), args.repeats, traced)
+            results.append(("embree", EMBREE_THREADS, hits, sec))
+        if "numba" in tracers:
+            for threads in numba_threads:
+                bar.set_description(f"numba, {threads} thread{'s' * (threads > 1)}")
+                numba.set_num_threads(threads)
+                hits, sec = _time(lambda: numba_tracer.trace(wl.bvh, rays), args.repeats, traced)
+                results.append(("numba", threads, hits, sec))
+            numba.set_num_threads(all_threads)
+        if "cuda" in tracers:
+            cu = CudaTracer(wl.bvh)
+            for kernel in TRACE_KERNELS:
+                bar.set_description(f"cuda:{kernel}")
+                hits, secs = cu.trace_timed(rays, kernel, repeats=CUDA_TIMED_LAUNCHES)
+                traced(len(secs))
+                results.append((f"cuda:{kernel}", cu.device_name, hits, statistics.median(secs)))
     ref = next((h for name, _, h, _ in results if name == "embree"), None)
     rows = []
     for name, threads, hits, sec in results:
@@ -137,33 +182,38 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 def cmd_trace(args: argparse.Namespace) -> int:
     """Record every ray's op sequence and save it; print the summary."""
+    from simt_sim import progress
     from simt_sim.optrace import OpTrace
     from simt_sim.record import record
     from simt_sim.tracefile import save_trace
 
-    wl = _workload(args, args.rays)
-    meta = {
-        "scene": wl.scene.name,
-        "ray_type": args.rays,
-        "cameras": list(wl.cameras),
-        "resolution": list(wl.resolution),
-        "spp": wl.spp,
-        "seed": wl.seed,
-    }
     totals = np.zeros(3, dtype=np.int64)
     hits = 0
     n = 0
+    with progress.bar("loading", enabled=progress.wanted(args.quiet)) as bar:
+        wl = _workload(args, args.rays)
+        meta = {
+            "scene": wl.scene.name,
+            "ray_type": args.rays,
+            "cameras": list(wl.cameras),
+            "resolution": list(wl.resolution),
+            "spp": wl.spp,
+            "seed": wl.seed,
+        }
+        bar.reset(total=len(wl.rays))
+        bar.set_description(f"recording {args.rays} rays")
 
-    def batches():
-        nonlocal hits, n
-        for tr in record(wl.bvh, wl.rays):
-            assert isinstance(tr, OpTrace)
-            totals[:] += tr.counts().sum(axis=0)
-            hits += int(np.count_nonzero(tr.hits.hit_mask))
-            n += tr.n_rays
-            yield tr
+        def batches():
+            nonlocal hits, n
+            for tr in record(wl.bvh, wl.rays):
+                assert isinstance(tr, OpTrace)
+                totals[:] += tr.counts().sum(axis=0)
+                hits += int(np.count_nonzero(tr.hits.hit_mask))
+                n += tr.n_rays
+                bar.update(tr.n_rays)
+                yield tr
 
-    save_trace(args.out, batches(), meta)
+        save_trace(args.out, batches(), meta)
     per_ray = totals / max(n, 1)
     df = pd.DataFrame(
         [
@@ -185,6 +235,7 @@ def cmd_trace(args: argparse.Namespace) -> int:
 
 def cmd_table(args: argparse.Namespace) -> int:
     """Simulate every scheme on the same recorded rays and print the efficiency table."""
+    from simt_sim.sampling import check_fraction
     from simt_sim.simt.gpus import load_gpus
     from simt_sim.study import ALL_SCHEMES, RAY_TYPES, StudySpec, parse_list, run_study
     from simt_sim.workload import parse_resolution
@@ -201,11 +252,21 @@ def cmd_table(args: argparse.Namespace) -> int:
         spp=args.spp,
         seed=args.seed,
         actual=args.actual,
+        sample=check_fraction(args.sample),
+        memory=args.memory_model,
     )
-    progress = not args.quiet and sys.stderr.isatty()
-    _, df = run_study(spec, progress=progress)
+    from simt_sim import progress
+
+    if args.workers is None and args.scheduler is None:
+        _, df = run_study(spec, progress=progress.wanted(args.quiet))
+    else:
+        from simt_sim.cluster import dask_client
+
+        with dask_client(args.workers, args.scheduler) as client:
+            _, df = run_study(spec, progress=progress.wanted(args.quiet), client=client)
     if args.format == "md":
-        df = df.drop(columns=[c for c in ("makespan", "ir_arch") if c in df])
+        detail = ("makespan", "ir_arch", *MEMORY_DETAIL)
+        df = df.drop(columns=[c for c in detail if c in df])
     emit(df, args.format, args.out)
     return 0
 
@@ -226,7 +287,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
     import kernels_ir
     from kernels_ir.kernel_ir import BLOCKS
-    from simt_sim import plots
+    from simt_sim import plots, progress
     from simt_sim.record import record_all
     from simt_sim.simt.engine import cost_vector
     from simt_sim.simt.gpus import get_gpu, load_gpus
@@ -253,58 +314,78 @@ def cmd_plot(args: argparse.Namespace) -> int:
         spp=args.spp,
         seed=args.seed,
     )
-    results, table = run_study(spec, progress=not args.quiet and sys.stderr.isatty())
+    show = progress.wanted(args.quiet)
+    results, table = run_study(spec, progress=show)
     width, height = spec.resolution
     setup = f"{width}x{height}, camera {spec.cameras}"
+    warp_schemes = [s for s in spec.schemes if s in WARP_SCHEMES]
+    n_figures = len(spec.ray_types) + 1 + len(warp_schemes)
+    n_figures += len([s for s in warp_schemes if s in TIMELINE_SCHEMES])
+    n_measured = len([rt for rt in spec.ray_types if rt != "path"]) if args.measured else 0
     figures = {}
-    for rt in spec.ray_types:
-        figures[f"active_lanes_{rt}"] = plots.active_lanes_figure(
-            [r for r in results if r.ray_type == rt and r.gpu.id == spec.gpus[0]],
-            f"{rt} rays on {results[0].scene} ({setup}, {spec.gpus[0]}): active lanes "
-            "per issued instruction",
-        )
-    wl = make_workload(
-        spec.scene, "primary", cameras=spec.cameras, resolution=spec.resolution,
-        spp=spec.spp, seed=spec.seed,
-    )  # fmt: skip
-    measured = {}
-    if args.measured:
+    # every figure is drawn, then written: one step each, plus loading, measuring, recording
+    with progress.bar(
+        "drawing", enabled=show, unit="step", total=2 * n_figures + n_measured + 2
+    ) as steps:
         for rt in spec.ray_types:
-            if rt != "path":
-                rays = make_workload(
-                    wl.scene, rt, cameras=spec.cameras, resolution=spec.resolution,
-                    spp=spec.spp, seed=spec.seed, bvh=wl.bvh,
-                )  # fmt: skip
-                measured[rt] = _measure_numba(rays)
-    figures["mrays"] = plots.mrays_figure(
-        table, f"Upper-bound MRays/s on {wl.scene.name} ({setup})", measured
-    )
-    trace = record_all(wl.bvh, wl.rays)
-    per_ray = trace.counts()
-    gpu = get_gpu(spec.gpus[0])
-    for s in (s for s in spec.schemes if s in WARP_SCHEMES):
-        ir = kernels_ir.load(s, gpu.ir_arch)
-        wc = warp_counts(trace, s, cost_vector(ir), gpu.warp_size)
-        eff = wc.efficiency[np.arange(trace.n_rays) // gpu.warp_size]
-        figures[f"pixels_{s}"] = plots.pixels_figure(
-            *(plots.to_image(v, wl.rays.pixel, width, height) for v in (
-                per_ray[:, 0], per_ray[:, 2], eff
-            )),
-            f"{s}: primary rays on {wl.scene.name} ({setup}, {gpu.id})",
-        )  # fmt: skip
-        if s in TIMELINE_SCHEMES:
-            warp = int(np.argmax(wc.warp_instructions)) if args.warp is None else args.warp
-            costs = {b: ir.cost(b) for b in BLOCKS}
-            figures[f"timeline_{s}"] = plots.timeline_figure(
-                warp_timeline(trace, warp, s, costs, gpu.warp_size),
-                costs,
-                gpu.warp_size,
-                f"{s}: warp {warp} of the primary rays on {wl.scene.name} ({setup}, {gpu.id})",
+            figures[f"active_lanes_{rt}"] = plots.active_lanes_figure(
+                [r for r in results if r.ray_type == rt and r.gpu.id == spec.gpus[0]],
+                f"{rt} rays on {results[0].scene} ({setup}, {spec.gpus[0]}): active lanes "
+                "per issued instruction",
             )
-    out.mkdir(exist_ok=True)
-    written = []
-    for stem, fig in figures.items():
-        written += [str(p) for p in plots.write_figure(fig, out, stem)]
+            steps.update()
+        wl = make_workload(
+            spec.scene, "primary", cameras=spec.cameras, resolution=spec.resolution,
+            spp=spec.spp, seed=spec.seed,
+        )  # fmt: skip
+        steps.update()
+        measured = {}
+        if args.measured:
+            steps.set_description("measuring")
+            for rt in spec.ray_types:
+                if rt != "path":
+                    rays = make_workload(
+                        wl.scene, rt, cameras=spec.cameras, resolution=spec.resolution,
+                        spp=spec.spp, seed=spec.seed, bvh=wl.bvh,
+                    )  # fmt: skip
+                    measured[rt] = _measure_numba(rays)
+                    steps.update()
+        steps.set_description("drawing")
+        figures["mrays"] = plots.mrays_figure(
+            table, f"Upper-bound MRays/s on {wl.scene.name} ({setup})", measured
+        )
+        steps.update()
+        trace = record_all(wl.bvh, wl.rays)
+        steps.update()
+        per_ray = trace.counts()
+        gpu = get_gpu(spec.gpus[0])
+        for s in warp_schemes:
+            ir = kernels_ir.load(s, gpu.ir_arch)
+            wc = warp_counts(trace, s, cost_vector(ir), gpu.warp_size)
+            eff = wc.efficiency[np.arange(trace.n_rays) // gpu.warp_size]
+            figures[f"pixels_{s}"] = plots.pixels_figure(
+                *(plots.to_image(v, wl.rays.pixel, width, height) for v in (
+                    per_ray[:, 0], per_ray[:, 2], eff
+                )),
+                f"{s}: primary rays on {wl.scene.name} ({setup}, {gpu.id})",
+            )  # fmt: skip
+            steps.update()
+            if s in TIMELINE_SCHEMES:
+                warp = int(np.argmax(wc.warp_instructions)) if args.warp is None else args.warp
+                costs = {b: ir.cost(b) for b in BLOCKS}
+                figures[f"timeline_{s}"] = plots.timeline_figure(
+                    warp_timeline(trace, warp, s, costs, gpu.warp_size),
+                    costs,
+                    gpu.warp_size,
+                    f"{s}: warp {warp} of the primary rays on {wl.scene.name} ({setup}, {gpu.id})",
+                )
+                steps.update()
+        steps.set_description("writing")
+        out.mkdir(exist_ok=True)
+        written = []
+        for stem, fig in figures.items():
+            written += [str(p) for p in plots.write_figure(fig, out, stem)]
+            steps.update()
     emit(pd.DataFrame({"file": written}), "md", None)
     return 0
 
@@ -364,6 +445,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=5,
         help="timed runs after one warm-up; the median is reported (default: %(default)s)",
     )
+    _add_quiet_arg(p)
     _add_output_args(p)
     p.set_defaults(func=cmd_bench)
 
@@ -380,6 +462,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="md",
         help="summary table format (default: %(default)s)",
     )
+    _add_quiet_arg(p)
     p.set_defaults(func=cmd_trace)
 
     p = sub.add_parser(
@@ -400,12 +483,41 @@ def build_parser() -> argparse.ArgumentParser:
         default="gtx285",
         help="comma list of GPU ids or 'all' (see 'simt-sim gpus'; default: %(default)s)",
     )
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_quiet_arg(p)
     p.add_argument(
         "--actual",
         action="store_true",
         help="also run the CUDA kernels on this machine's GPU and add measured "
         "MRays/s and the share of the upper bound (needs simt-sim[cuda])",
+    )
+    p.add_argument(
+        "--sample",
+        type=float,
+        default=1.0,
+        metavar="F",
+        help="simulate a stratified random fraction F of the warps (0 < F <= 1) and add "
+        "95%% confidence intervals (default: %(default)s, every warp)",
+    )
+    p.add_argument(
+        "--memory-model",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="bytes, 128-byte lines and caches per warp step, and bandwidth-bound MRays/s: "
+        "auto runs it when the scene's BVH outgrows the GPU's L2 (default: %(default)s)",
+    )
+    cluster = p.add_mutually_exclusive_group()
+    cluster.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="run the launch batches on a local Dask cluster of N processes",
+    )
+    cluster.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="run the launch batches on the Dask cluster at ADDRESS (tcp://host:8786)",
     )
     _add_output_args(p)
     p.set_defaults(func=cmd_table)
@@ -417,7 +529,10 @@ def build_parser() -> argparse.ArgumentParser:
         "while_while,if_if --camera 0 --out figures",
     )
     _add_workload_args(
-        p, rays_help="comma list of primary, ao, diffuse, path or 'all' (default: %(default)s)"
+        p,
+        rays_help="comma list of primary, ao, diffuse, path or 'all' (default: %(default)s)",
+        camera_help="one camera index, e.g. 2: the per-pixel images show one view "
+        "(default: %(default)s)",
     )
     p.set_defaults(rays="primary,ao,diffuse", resolution="128x96", spp=4, camera="0")
     p.add_argument(
@@ -440,7 +555,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="add the numba tracer's measured MRays/s (this CPU) to the MRays/s figure",
     )
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_quiet_arg(p)
     p.add_argument("--out", required=True, help="directory for the PNG and SVG files")
     p.set_defaults(func=cmd_plot)
 

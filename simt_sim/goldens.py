@@ -1,7 +1,8 @@
 """Regression goldens: committed study tables that every change must reproduce.
 
 Each golden is the ``simt-sim table`` of one scene for every scheme and ray type on the
-GTX 285, at a size small enough for the test suite (:data:`GOLDENS`). Integer columns
+GTX 285, at a size small enough for the test suite (:data:`GOLDENS`: the built-in room,
+Cornell box, bunny and a Conference subset). Integer columns
 (rays, warp instructions, makespan) must match exactly and float columns to a relative
 1e-9, so a changed instruction cost, op stream, ray generator or BVH shows up at once.
 
@@ -39,30 +40,38 @@ INT_COLUMNS = ("rays", "warp_instructions", "makespan")
 
 @dataclass(frozen=True)
 class Golden:
-    """One golden table: the scene and whether it needs the shared meshes."""
+    """One golden table: the scene, whether it needs the shared meshes, and its image size
+    (a large scene such as Conference needs more pixels for its rays to cover the model)."""
 
     scene: str
     shared: bool
+    resolution: tuple[int, int] = (32, 24)
 
     @property
     def path(self) -> Path:
         return GOLDEN_DIR / f"{self.scene}.csv"
 
     def spec(self) -> StudySpec:
-        """Every scheme and ray type on the GTX 285; one camera, 32x24, 2 spp."""
+        """Every scheme and ray type on the GTX 285; camera 0, 2 spp."""
         return StudySpec(
             scene=self.scene,
             ray_types=RAY_TYPES,
             schemes=ALL_SCHEMES,
             gpus=("gtx285",),
             cameras="0",
-            resolution=(32, 24),
+            resolution=self.resolution,
             spp=2,
             seed=0,
         )
 
 
-GOLDENS = (Golden("room", False), Golden("cornell-box", True), Golden("bunny", True))
+GOLDENS = (
+    Golden("room", False),
+    Golden("cornell-box", True),
+    Golden("bunny", True),
+    # a subset of the paper's protocol: camera 0 of Conference at 64x48 (3,072 primary rays)
+    Golden("conference", True, (64, 48)),
+)
 
 
 def _read(source: str | Path | io.StringIO) -> pd.DataFrame:

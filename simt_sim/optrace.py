@@ -81,6 +81,18 @@ class OpTrace:
         """Per-ray op counts, int64 (n, 3): TRAV, LEAF, TRI."""
         return _kind_counts(self.offsets, self.op)
 
+    def slice(self, start: int, stop: int) -> OpTrace:
+        """Rays ``start:stop`` as a trace of their own (offsets rebased to 0)."""
+        lo, hi = int(self.offsets[start]), int(self.offsets[stop])
+        return OpTrace(
+            offsets=self.offsets[start : stop + 1] - lo,
+            op=self.op[lo:hi],
+            addr=self.addr[lo:hi],
+            hits=Hits(tri=self.hits.tri[start:stop], t=self.hits.t[start:stop]),
+            query=self.query,
+            ray_type=self.ray_type,
+        )
+
 
 @njit(cache=True, nogil=True, parallel=True)
 def _kind_counts(offsets: np.ndarray, op: np.ndarray) -> np.ndarray:

@@ -18,6 +18,8 @@ class RayBatch:
     origin, direction : float32 (n, 3)
         Directions need not be unit length; ``t`` is in units of ``|direction|``.
     tmin, tmax : float32 (n,)
+        A hit needs ``tmin < t < tmax``; an empty interval (``tmin >= tmax``, including
+        ``tmin > tmax``) is a valid query that hits nothing, in every tracer.
     query : str
         ``"closest"`` (primary, diffuse) or ``"any"`` (AO, shadow).
     ray_type : str

@@ -6,12 +6,16 @@ Halton set on the hemisphere of the (incoming-facing) geometric normal, rotated 
 the normal by a per-pixel pseudo-random angle; secondary rays are sorted by a 6D Morton
 key within consecutive batches of 2^20. Tracing is the caller's business: ``paper_rays``
 takes a ``tracer(rays) -> Hits`` callable, so this module never imports a tracer.
+
+Large ray sets stream: :class:`RayStream` keeps only the primary hits and spawns any
+batch on its own, bit for bit the rows of the whole set (``paper_ray_batches``).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
@@ -225,27 +229,51 @@ def _check_secondary(
     return mask
 
 
-def _spawn_into(
-    out: RayBatch,
-    start: int,
-    scene: Scene,
-    primary: RayBatch,
-    hits: Hits,
-    mask: np.ndarray,
-    kind: str,
-    spp: int,
-    seed: int,
-) -> int:
-    """Write the secondary rays of ``primary``'s hits into ``out`` from row ``start``;
-    return the row after the last one written."""
-    hit = np.flatnonzero(mask)
-    stop = start + hit.size * spp
-    if hit.size == 0:
-        return stop
-    d = primary.direction[hit]
-    t = hits.t[hit].astype(np.float32)
-    point = primary.origin[hit] + d * np.maximum(t - BACKOFF, np.float32(0))[:, None]
-    tri = scene.triangles[hits.tri[hit]]
+@dataclass(frozen=True, eq=False)
+class _HitRays:
+    """Primary rays that hit, with their hits: all secondary generation needs of them."""
+
+    origin: np.ndarray
+    direction: np.ndarray
+    t: np.ndarray
+    tri: np.ndarray
+    camera: np.ndarray
+    pixel: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    @classmethod
+    def of(cls, primary: RayBatch, hits: Hits, mask: np.ndarray) -> _HitRays:
+        hit = np.flatnonzero(mask)
+        return cls(
+            primary.origin[hit], primary.direction[hit], hits.t[hit].astype(np.float32),
+            hits.tri[hit], primary.camera[hit], primary.pixel[hit],
+        )  # fmt: skip
+
+    @classmethod
+    def concat(cls, parts: Sequence[_HitRays]) -> _HitRays:
+        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in _HIT_FIELDS))
+
+    def slice(self, start: int, stop: int) -> _HitRays:
+        return _HitRays(*(getattr(self, f)[start:stop] for f in _HIT_FIELDS))
+
+
+_HIT_FIELDS = ("origin", "direction", "t", "tri", "camera", "pixel")
+
+
+def _spawn(scene: Scene, hit: _HitRays, kind: str, spp: int, seed: int) -> RayBatch:
+    """The ``spp`` secondary rays of each hit, hit ``h`` at rows ``h*spp .. h*spp+spp-1``.
+
+    Every row depends only on its own hit, so spawning any run of hits gives exactly the
+    rows spawning all of them would (what lets the rays stream batch by batch).
+    """
+    out = _empty_batch(len(hit) * spp, "any" if kind == "ao" else "closest", kind)
+    if len(hit) == 0:
+        return out
+    d = hit.direction
+    point = hit.origin + d * np.maximum(hit.t - BACKOFF, np.float32(0))[:, None]
+    tri = scene.triangles[hit.tri]
     v = scene.vertices
     v0 = v[tri[:, 0]].astype(np.float64)
     n = np.cross(v[tri[:, 1]] - v0, v[tri[:, 2]] - v0)
@@ -253,22 +281,17 @@ def _spawn_into(
     n = np.where(length > 0, n / np.where(length > 0, length, 1.0), -d.astype(np.float64))
     facing = np.einsum("ij,ij->i", n, d.astype(np.float64)) > 0
     n[facing] = -n[facing]
-    cams = primary.camera[hit]
-    pix = primary.pixel[hit]
-    angle = pixel_rotation(pix, cams, seed)
-    s = slice(start, stop)
-    _spawn_directions(
-        n, angle, halton(spp, 2), halton(spp, 3), point, out.origin[s], out.direction[s]
-    )
-    out.tmin[s] = 0
+    angle = pixel_rotation(hit.pixel, hit.camera, seed)
+    _spawn_directions(n, angle, halton(spp, 2), halton(spp, 3), point, out.origin, out.direction)
+    out.tmin[:] = 0
     if kind == "ao":
-        out.tmax[s] = np.float32(scene.ao_radius)
+        out.tmax[:] = np.float32(scene.ao_radius)
     else:
         far = np.array([c.far for c in scene.cameras], np.float32)
-        out.tmax[s] = np.repeat(far[cams], spp)
-    out.camera[s] = np.repeat(cams, spp)
-    out.pixel[s] = np.repeat(pix, spp)
-    return stop
+        out.tmax[:] = np.repeat(far[hit.camera], spp)
+    out.camera[:] = np.repeat(hit.camera, spp)
+    out.pixel[:] = np.repeat(hit.pixel, spp)
+    return out
 
 
 def secondary_rays(
@@ -298,10 +321,7 @@ def secondary_rays(
     over from the primary ray.
     """
     mask = _check_secondary(scene, primary, hits, kind, spp)
-    n = int(np.count_nonzero(mask)) * int(spp)
-    out = _empty_batch(n, "any" if kind == "ao" else "closest", kind)
-    _spawn_into(out, 0, scene, primary, hits, mask, kind, int(spp), seed)
-    return out
+    return _spawn(scene, _HitRays.of(primary, hits, mask), kind, int(spp), seed)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -334,8 +354,7 @@ def sort_morton6d(rays: RayBatch, *, batch: int = SORT_BATCH) -> RayBatch:
     so equal keys keep their order and the result is deterministic. This is the paper's
     coherence-restoring step for secondary rays; the input is not modified.
     """
-    if int(batch) < 1:
-        raise SimtSimError(f"sort batch must be at least 1 ray, got {batch}")
+    _check_batch(batch)
     out = RayBatch(
         rays.origin.copy(), rays.direction.copy(), rays.tmin.copy(), rays.tmax.copy(),
         rays.query, rays.ray_type, rays.camera.copy(), rays.pixel.copy(),
@@ -344,7 +363,78 @@ def sort_morton6d(rays: RayBatch, *, batch: int = SORT_BATCH) -> RayBatch:
     return out
 
 
-def paper_rays(
+@dataclass(frozen=True, eq=False)
+class RayStream:
+    """The rays of one paper experiment, made batch by batch on demand.
+
+    Holds only what every batch needs: the chosen cameras' primary rays (ray type
+    ``primary``) or the primary rays that hit with their hits (``ao``, ``diffuse``), a
+    small fraction of the secondary rays they spawn. Any run of rows can be spawned on
+    its own, so a batch costs memory proportional to the batch, not to the ray set.
+
+    Attributes
+    ----------
+    n_rays : int
+        Rays in the whole stream.
+    """
+
+    scene: Scene
+    ray_type: str
+    spp: int
+    seed: int
+    primary: RayBatch | None
+    hits: _HitRays | None
+    n_rays: int
+
+    def rows(self, start: int, stop: int) -> RayBatch:
+        """Rays ``start:stop`` of the stream before any sorting."""
+        if self.primary is not None:
+            return self.primary.slice(start, stop)
+        assert self.hits is not None
+        first, last = start // self.spp, -(-stop // self.spp)
+        spawned = _spawn(
+            self.scene, self.hits.slice(first, last), self.ray_type, self.spp, self.seed
+        )
+        skip = first * self.spp
+        if (start - skip, stop - skip) == (0, len(spawned)):
+            return spawned
+        return spawned.slice(start - skip, stop - skip)
+
+    def batch(self, index: int, size: int = SORT_BATCH) -> RayBatch:
+        """Batch ``index`` of ``size`` rays (the last may be short); secondary rays are
+        Morton-sorted within it, as the paper sorts each batch of 2^20."""
+        start = index * size
+        rays = self.rows(start, min(start + size, self.n_rays))
+        if self.primary is None:
+            _sort_inplace(rays, size)
+        return rays
+
+    def all_rays(self, batch: int = SORT_BATCH, *, sort: bool = True) -> RayBatch:
+        """Every ray at once; with ``sort``, secondary rays are Morton-sorted within
+        consecutive batches of ``batch`` (memory: the whole ray set)."""
+        _check_batch(batch)
+        rays = self.rows(0, self.n_rays)
+        if sort and self.primary is None:
+            _sort_inplace(rays, int(batch))
+        return rays
+
+    def n_batches(self, size: int = SORT_BATCH) -> int:
+        """Batches of ``size`` rays in the stream."""
+        return -(-self.n_rays // size)
+
+    def batches(self, size: int = SORT_BATCH) -> Iterator[RayBatch]:
+        """The stream in consecutive batches of ``size`` rays (see :meth:`batch`)."""
+        _check_batch(size)
+        for k in range(self.n_batches(size)):
+            yield self.batch(k, size)
+
+
+def _check_batch(size: int) -> None:
+    if int(size) < 1:
+        raise SimtSimError(f"sort batch must be at least 1 ray, got {size}")
+
+
+def ray_stream(
     scene: Scene,
     ray_type: str,
     *,
@@ -353,21 +443,12 @@ def paper_rays(
     height: int = 768,
     spp: int = 32,
     seed: int = 0,
-    sort: bool = True,
     tracer: Callable[[RayBatch], Hits] | None = None,
-) -> RayBatch:
-    """The rays of one paper experiment: all chosen cameras of ``scene``, one ray type.
+) -> RayStream:
+    """The stream of one paper experiment (see :func:`paper_rays`), no secondary ray made.
 
-    ``primary``: the cameras' primary rays, concatenated. ``ao`` / ``diffuse``: each
-    camera's primary rays are traced with ``tracer`` and every hit spawns ``spp``
-    secondary rays; the cameras' rays are concatenated and, with ``sort``, Morton-sorted
-    in batches of 2^20 as in the paper. The output is allocated once and filled camera by
-    camera, so peak memory stays near the size of the result.
-
-    Parameters
-    ----------
-    cameras : indices into ``scene.cameras``; ``None`` means all of them.
-    tracer : ``tracer(rays) -> Hits`` for the primary rays (needed for ao and diffuse).
+    Traces the cameras' primary rays with ``tracer`` (``ao`` and ``diffuse``) and keeps
+    the hits; the secondary rays are spawned batch by batch by the stream's methods.
     """
     if ray_type not in PAPER_RAY_TYPES:
         raise SimtSimError(
@@ -387,27 +468,81 @@ def paper_rays(
             f"camera index {bad[0]} out of range; scene {scene.name!r} has cameras "
             f"0..{len(scene.cameras) - 1}"
         )
-    primaries = [primary_rays(scene.cameras[c], width, height, camera_index=c) for c in chosen]
-    if ray_type == "primary":
-        out = _empty_batch(sum(len(p) for p in primaries), "closest", "primary")
-        start = 0
-        for p in primaries:
-            s = slice(start, start + len(p))
-            for name in ("origin", "direction", "tmin", "tmax", "camera", "pixel"):
-                getattr(out, name)[s] = getattr(p, name)
-            start += len(p)
-        return out
-    if tracer is None:
+    if ray_type != "primary" and tracer is None:
         raise SimtSimError(f"{ray_type} rays need a tracer for the primary hits; pass tracer=")
-    traced = []
-    for p in primaries:
-        hits = tracer(p)
-        traced.append((p, hits, _check_secondary(scene, p, hits, ray_type, spp)))
-    total = sum(int(np.count_nonzero(m)) for _, _, m in traced) * int(spp)
-    out = _empty_batch(total, "any" if ray_type == "ao" else "closest", ray_type)
-    start = 0
-    for p, hits, mask in traced:
-        start = _spawn_into(out, start, scene, p, hits, mask, ray_type, int(spp), seed)
-    if sort:
-        _sort_inplace(out, SORT_BATCH)
-    return out
+    parts = []
+    for c in chosen:
+        p = primary_rays(scene.cameras[c], width, height, camera_index=c)
+        if ray_type == "primary":
+            parts.append(p)
+        else:
+            hits = tracer(p)
+            parts.append(_HitRays.of(p, hits, _check_secondary(scene, p, hits, ray_type, spp)))
+    if ray_type == "primary":
+        primary = RayBatch(
+            *(np.concatenate([getattr(p, f) for p in parts]) for f in _RAY_FIELDS[:4]),
+            "closest", "primary",
+            *(np.concatenate([getattr(p, f) for p in parts]) for f in _RAY_FIELDS[4:]),
+        )  # fmt: skip
+        return RayStream(scene, ray_type, int(spp), seed, primary, None, len(primary))
+    hit = _HitRays.concat(parts)
+    return RayStream(scene, ray_type, int(spp), seed, None, hit, len(hit) * int(spp))
+
+
+_RAY_FIELDS = ("origin", "direction", "tmin", "tmax", "camera", "pixel")
+
+
+def paper_ray_batches(
+    scene: Scene,
+    ray_type: str,
+    *,
+    cameras: Sequence[int] | None = None,
+    width: int = 1024,
+    height: int = 768,
+    spp: int = 32,
+    seed: int = 0,
+    tracer: Callable[[RayBatch], Hits] | None = None,
+    batch: int = SORT_BATCH,
+) -> Iterator[RayBatch]:
+    """:func:`paper_rays` (sorted in batches of ``batch``) as consecutive batches of
+    ``batch`` rays, bit for bit, with memory flat in the number of rays."""
+    _check_batch(batch)
+    stream = ray_stream(
+        scene, ray_type, cameras=cameras, width=width, height=height, spp=spp, seed=seed,
+        tracer=tracer,
+    )  # fmt: skip
+    return stream.batches(int(batch))
+
+
+def paper_rays(
+    scene: Scene,
+    ray_type: str,
+    *,
+    cameras: Sequence[int] | None = None,
+    width: int = 1024,
+    height: int = 768,
+    spp: int = 32,
+    seed: int = 0,
+    sort: bool = True,
+    tracer: Callable[[RayBatch], Hits] | None = None,
+    batch: int = SORT_BATCH,
+) -> RayBatch:
+    """The rays of one paper experiment: all chosen cameras of ``scene``, one ray type.
+
+    ``primary``: the cameras' primary rays, concatenated. ``ao`` / ``diffuse``: each
+    camera's primary rays are traced with ``tracer`` and every hit spawns ``spp``
+    secondary rays; the cameras' rays are concatenated and, with ``sort``, Morton-sorted
+    in batches of ``batch`` (2^20 as in the paper). For ray sets too large to hold, use
+    :func:`paper_ray_batches` or :func:`ray_stream`.
+
+    Parameters
+    ----------
+    cameras : indices into ``scene.cameras``; ``None`` means all of them.
+    tracer : ``tracer(rays) -> Hits`` for the primary rays (needed for ao and diffuse).
+    """
+    _check_batch(batch)
+    stream = ray_stream(
+        scene, ray_type, cameras=cameras, width=width, height=height, spp=spp, seed=seed,
+        tracer=tracer,
+    )  # fmt: skip
+    return stream.all_rays(batch, sort=sort)

@@ -1,26 +1,43 @@
 """A study: scenes x ray types x schemes x GPUs, simulated on the same recorded rays.
 
-Rays are recorded once per ray type, launch by launch (2^20 rays, as the paper traced
-secondary rays), and every launch is replayed under every scheme and GPU before the next
-is recorded, so memory stays bounded by one launch's trace whatever the ray count.
+Rays stream launch by launch (2^20 rays, as the paper traced secondary rays): each
+launch batch is generated, recorded once and replayed under every scheme and GPU
+(:func:`simulate_batch`) before the next, so memory stays bounded by one launch whatever
+the ray count. Batches are independent, so they may also run on a Dask cluster
+(``simt_sim.cluster``); their results are merged in batch order either way, so the
+table is the same bit for bit. With ``sample < 1`` each batch replays a stratified
+sample of its warps in random groups (``simt_sim.sampling``) and the table gets 95%
+confidence intervals.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import pandas as pd
 from tqdm import tqdm
 
 import kernels_ir
+from kernels_ir.kernel_ir import KernelIR
+from simt_sim.bvh.layout import BVH
 from simt_sim.errors import SimtSimError
-from simt_sim.record import record
+from simt_sim.raybatch import RayBatch
+from simt_sim.record import record_all
+from simt_sim.sampling import GROUPS, check_fraction, half_width, sample_warps
 from simt_sim.simt.gpus import GpuConfig, get_gpu
+from simt_sim.simt.memory import MODES as MEMORY_MODES
+from simt_sim.simt.memory import (
+    MemoryCounts,
+    decide,
+    footprint_bytes,
+    memory_columns,
+    memory_counts,
+)
 from simt_sim.simt.replay import simulate
 from simt_sim.simt.result import SimResult, merge
 from simt_sim.simt.schemes import SCHEMES
-from simt_sim.workload import make_workload
+from simt_sim.workload import Workload, make_workload
 
 RAY_TYPES = ("primary", "ao", "diffuse", "path")
 PATH_SCHEMES = ("megakernel", "wavefront")
@@ -43,6 +60,8 @@ class StudySpec:
     max_bounces: int = 8
     launch_size: int = LAUNCH_SIZE
     actual: bool = False
+    sample: float = 1.0
+    memory: str = "auto"
 
 
 def parse_list(text: str, known: Sequence[str], what: str) -> tuple[str, ...]:
@@ -106,52 +125,263 @@ def actual_columns(
     }
 
 
-def run_study(spec: StudySpec, *, progress: bool = True) -> tuple[list[SimResult], pd.DataFrame]:
+@dataclass(frozen=True, eq=False)
+class BatchSetup:
+    """What the per-batch step needs besides the rays: built once per ray type (and once
+    per worker process on a cluster)."""
+
+    bvh: BVH
+    scene: str
+    ray_type: str
+    schemes: tuple[str, ...]
+    gpus: tuple[GpuConfig, ...]
+    irs: dict[tuple[str, str], KernelIR]
+    sample: float
+    seed: int
+    launch_size: int
+    memory: dict[str, tuple[bool, str]]
+
+
+@dataclass(frozen=True, eq=False)
+class BatchResults:
+    """What one launch batch contributes to the table.
+
+    Attributes
+    ----------
+    index : int
+        The batch's position in its ray type's stream.
+    rays : int
+        Rays in the batch (all of them, sampled or not).
+    results : dict
+        ``(scheme, gpu id)`` -> one SimResult per random group (one in all when not
+        sampling); None for a group that drew no warp of this batch.
+    """
+
+    index: int
+    rays: int
+    results: dict[tuple[str, str], tuple[SimResult | None, ...]]
+    memory: dict[str, MemoryCounts]
+
+
+def study_irs(spec: StudySpec, gpus: Sequence[GpuConfig]) -> dict[tuple[str, str], KernelIR]:
+    """The KernelIRs of every kernel the study's schemes run, per IR architecture."""
+    from simt_sim.simt.schemes import wavefront
+
+    kernels = (
+        [s for s in spec.schemes if s not in PATH_SCHEMES]
+        + (["megakernel"] if "megakernel" in spec.schemes else [])
+        + (list(wavefront.KERNELS) if "wavefront" in spec.schemes else [])
+    )
+    return {(k, g.ir_arch): kernels_ir.load(k, g.ir_arch) for g in gpus for k in kernels}
+
+
+def batch_setup(spec: StudySpec, wl: Workload, ray_type: str) -> BatchSetup:
+    """The per-batch step's setup for one ray type of ``spec`` on workload ``wl``."""
+    gpus = tuple(get_gpu(g) for g in spec.gpus)
+    return BatchSetup(
+        bvh=wl.bvh,
+        scene=wl.scene.name,
+        ray_type=ray_type,
+        schemes=tuple(s for s in spec.schemes if s not in PATH_SCHEMES),
+        gpus=gpus,
+        irs=study_irs(spec, gpus),
+        sample=spec.sample,
+        seed=spec.seed,
+        launch_size=spec.launch_size,
+        memory=memory_decisions(spec.memory, wl.bvh, gpus),
+    )
+
+
+def memory_decisions(mode: str, bvh: BVH, gpus: Sequence[GpuConfig]) -> dict[str, tuple[bool, str]]:
+    """Per GPU id: whether the memory model runs for this scene, and why."""
+    footprint = footprint_bytes(bvh.nodes.shape[0], bvh.woop.shape[0])
+    return {g.id: decide(mode, footprint, g) for g in gpus}
+
+
+def simulate_batch(setup: BatchSetup, rays: RayBatch, index: int) -> BatchResults:
+    """The per-batch step: record batch ``index`` of a ray type (or its sampled warps)
+    once, then replay it under every scheme x GPU of ``setup``.
+
+    Sampled, each random group is replayed as a launch of its own; persistent schemes
+    then keep the full launch's rays per resident warp (their resident warps scale with
+    the group's share of the batch), so a pool drains as it would in the full launch.
+    """
+    sampled = setup.sample < 1.0
+    if sampled:
+        picked = sample_warps(
+            rays,
+            setup.sample,
+            setup.gpus[0].warp_size,
+            (setup.seed, RAY_TYPES.index(setup.ray_type), index),
+            by_camera=setup.ray_type == "primary",
+        )
+        traced, bounds = picked.rays, [int(b) for b in picked.bounds]
+    else:
+        traced, bounds = rays, [0, len(rays)]
+    trace = record_all(setup.bvh, traced, batch_size=setup.launch_size)
+    memory = {
+        g.id: memory_counts(trace, g.warp_size, g) for g in setup.gpus if setup.memory[g.id][0]
+    }
+    results: dict[tuple[str, str], list[SimResult | None]] = {}
+    for start, stop in zip(bounds[:-1], bounds[1:], strict=True):
+        piece = trace.slice(start, stop) if sampled else trace
+        for g in setup.gpus:
+            resident = None
+            if sampled:
+                resident = max(1, round(g.resident_warps * (stop - start) / len(rays)))
+            for s in setup.schemes:
+                r = None
+                if stop > start:
+                    ir = setup.irs[(s, g.ir_arch)]
+                    r = simulate([piece], s, ir, g, scene=setup.scene, resident_warps=resident)
+                results.setdefault((s, g.id), []).append(r)
+    return BatchResults(index, len(rays), {k: tuple(v) for k, v in results.items()}, memory)
+
+
+def _sampled_row(
+    batches: Sequence[BatchResults], key: tuple[str, str], population: int, fraction: float
+) -> tuple[SimResult, dict]:
+    """Point estimate and table row of a sampled scheme x GPU: all groups merged, the CI
+    from the spread of the groups' own estimates."""
+    runs = [r for b in batches for r in b.results[key] if r is not None]
+    point = merge(runs)
+    groups = [
+        merge(members)
+        for j in range(GROUPS)
+        if (members := [b.results[key][j] for b in batches if b.results[key][j] is not None])
+    ]
+    card = dict(point.model_card)
+    card["sampling"] = (
+        f"{fraction:g} of each stratum's warps (strata: launch batches, and cameras for "
+        f"primary rays) in {GROUPS} random groups, each replayed as its own launch; "
+        "rays and warp_instructions are scaled to the whole ray set"
+    )
+    point = replace(point, model_card=card)
+    row = {**point.to_row(), "note": ""}
+    mrays = [g.mrays_upper for g in groups]
+    efficiency = [g.simd_efficiency for g in groups]
+    row.update(
+        rays=population,
+        warp_instructions=round(point.warp_instructions * population / point.rays),
+        makespan=None,
+        **_sample_columns(point, mrays, efficiency, fraction),
+    )
+    return point, row
+
+
+def _sample_columns(
+    point: SimResult, mrays: Sequence[float], efficiency: Sequence[float], fraction: float
+) -> dict:
+    """The columns a sampled table adds: rays replayed, fraction and the two 95% CIs."""
+    hm, he = half_width(mrays), half_width(efficiency)
+    return {
+        "rays_simulated": point.rays,
+        "sample_fraction": fraction,
+        "mrays_upper_ci_low": point.mrays_upper - hm,
+        "mrays_upper_ci_high": point.mrays_upper + hm,
+        "simd_efficiency_ci_low": point.simd_efficiency - he,
+        "simd_efficiency_ci_high": point.simd_efficiency + he,
+    }
+
+
+def _with_memory(
+    r: SimResult, batches: Sequence[BatchResults], gpu: GpuConfig, decision: tuple[bool, str]
+) -> tuple[SimResult, dict]:
+    """The result with the memory model's decision in its model card, and the memory
+    columns of its row (summed over the ray type's batches; NaN where the model is off)."""
+    on, why = decision
+    counts = sum((b.memory[gpu.id] for b in batches), MemoryCounts()) if on else MemoryCounts()
+    card = {**r.model_card, "memory_model": why}
+    return replace(r, model_card=card), memory_columns(counts, gpu, on)
+
+
+def _check_spec(spec: StudySpec) -> None:
+    for rt in spec.ray_types:
+        if rt not in RAY_TYPES:
+            raise SimtSimError(f"unknown ray type {rt!r}; use any of {', '.join(RAY_TYPES)}")
+    check_fraction(spec.sample)
+    if spec.memory not in MEMORY_MODES:
+        raise SimtSimError(
+            f"memory model mode {spec.memory!r} is unknown; use one of {', '.join(MEMORY_MODES)}"
+        )
+    if spec.sample < 1.0:
+        sizes = {get_gpu(g).warp_size: g for g in spec.gpus}
+        if len(sizes) > 1:
+            listed = ", ".join(f"{g} ({w} lanes)" for w, g in sorted(sizes.items()))
+            raise SimtSimError(
+                f"--sample draws whole warps, so the GPUs must share one warp size; got "
+                f"{listed}: run them in separate tables"
+            )
+
+
+def run_study(
+    spec: StudySpec, *, progress: bool = True, client=None
+) -> tuple[list[SimResult], pd.DataFrame]:
     """Simulate ``spec``; the results and one table row per scene x ray type x scheme x GPU.
 
     Rows of megakernel and wavefront for primary, AO and diffuse rays say "n/a" rather
-    than invent a number: those schemes describe path tracing.
+    than invent a number: those schemes describe path tracing. With a Dask ``client``
+    the launch batches run on its workers (path traces stay in this process); the table
+    is identical to the one made here.
     """
     from simt_sim.paths import trace_paths
     from simt_sim.simt.schemes import megakernel, wavefront
     from simt_sim.simt.schemes.wavefront import simulate_queues
 
-    for rt in spec.ray_types:
-        if rt not in RAY_TYPES:
-            raise SimtSimError(f"unknown ray type {rt!r}; use any of {', '.join(RAY_TYPES)}")
+    _check_spec(spec)
     gpus = [get_gpu(g) for g in spec.gpus]
-    irs = {
-        (k, g.ir_arch): kernels_ir.load(k, g.ir_arch)
-        for g in gpus
-        for k in (
-            [s for s in spec.schemes if s not in PATH_SCHEMES]
-            + (["megakernel"] if "megakernel" in spec.schemes else [])
-            + (list(wavefront.KERNELS) if "wavefront" in spec.schemes else [])
-        )
-    }
+    irs = study_irs(spec, gpus)
     trace_schemes = [s for s in spec.schemes if s not in PATH_SCHEMES]
+    sampled = spec.sample < 1.0
     measured: dict[tuple[str, str], float] = {}
     device = None
     results: list[SimResult] = []
     rows: list[dict] = []
-    wl = None
     bar = tqdm(total=0, unit="ray", disable=not progress, dynamic_ncols=True, leave=False)
     try:
+        workloads: dict[str, Workload] = {}
+        wl = None
         for rt in spec.ray_types:
-            kind = "primary" if rt == "path" else rt
             wl = make_workload(
                 wl.scene if wl else spec.scene,
-                kind,
+                "primary" if rt == "path" else rt,
                 cameras=spec.cameras,
                 resolution=spec.resolution,
                 spp=spec.spp,
                 seed=spec.seed,
                 bvh=wl.bvh if wl else None,
             )
+            workloads[rt] = wl
+            if rt != "path":
+                bar.total += wl.stream.n_rays
+        batched = [rt for rt in spec.ray_types if rt != "path"]
+        done: dict[str, list[BatchResults]] = {rt: [] for rt in batched}
+        if client is not None:
+            from simt_sim.cluster import run_batches
+
+            units = [
+                (rt, k)
+                for rt in batched
+                for k in range(workloads[rt].stream.n_batches(spec.launch_size))
+            ]
+            for (rt, _), out in run_batches(client, spec, units):
+                done[rt].append(out)
+                bar.update(out.rays)
+            for rt in batched:
+                done[rt].sort(key=lambda b: b.index)
+        else:
+            for rt in batched:
+                setup = batch_setup(spec, workloads[rt], rt)
+                bar.set_description(f"{setup.scene} {rt}")
+                for k, rays in enumerate(workloads[rt].stream.batches(spec.launch_size)):
+                    done[rt].append(simulate_batch(setup, rays, k))
+                    bar.update(len(rays))
+        for rt in spec.ray_types:
+            wl = workloads[rt]
             name = wl.scene.name
-            bar.set_description(f"{name} {rt}")
             per_combo: dict[tuple[str, str], list[SimResult]] = {}
             if rt == "path":
+                bar.set_description(f"{name} {rt}")
                 pt = trace_paths(
                     wl.scene,
                     wl.bvh,
@@ -178,30 +408,41 @@ def run_study(spec: StudySpec, *, progress: bool = True) -> tuple[list[SimResult
                         ]
                 bar.update(pt.n_rays)
             else:
-                bar.total += len(wl.rays)
                 if spec.actual:
                     device = measure_actual(wl, trace_schemes, rt, measured)
-                for batch in record(wl.bvh, wl.rays, batch_size=spec.launch_size):
+                for s in trace_schemes:
                     for g in gpus:
-                        for s in trace_schemes:
-                            r = simulate([batch], s, irs[(s, g.ir_arch)], g, scene=name)
-                            per_combo.setdefault((s, g.id), []).append(r)
-                    bar.update(batch.n_rays)
+                        if not sampled:
+                            per_combo[(s, g.id)] = [b.results[(s, g.id)][0] for b in done[rt]]
+            decisions = memory_decisions(spec.memory, wl.bvh, gpus)
             for s in spec.schemes:
                 for g in gpus:
-                    if (s, g.id) in per_combo:
+                    if sampled and rt != "path" and s in trace_schemes:
+                        merged, row = _sampled_row(
+                            done[rt], (s, g.id), wl.stream.n_rays, spec.sample
+                        )
+                    elif (s, g.id) in per_combo:
                         merged = merge(per_combo[(s, g.id)])
-                        results.append(merged)
                         row = {**merged.to_row(), "note": ""}
-                        if spec.actual:
-                            row.update(actual_columns(measured, device, rt, s, g, merged))
-                        rows.append(row)
+                        if sampled:
+                            row.update(_sample_columns(
+                                merged, [merged.mrays_upper] * 2,
+                                [merged.simd_efficiency] * 2, 1.0,
+                            ))  # fmt: skip
                     else:
                         rows.append(_not_applicable(name, rt, s, g))
+                        continue
+                    if rt != "path" and s in trace_schemes:
+                        merged, mem = _with_memory(merged, done[rt], g, decisions[g.id])
+                        row.update(mem)
+                    results.append(merged)
+                    if spec.actual:
+                        row.update(actual_columns(measured, device, rt, s, g, merged))
+                    rows.append(row)
     finally:
         bar.close()
     df = pd.DataFrame(rows)
-    for col in ("rays", "warp_instructions", "makespan"):
+    for col in ("rays", "warp_instructions", "makespan", "rays_simulated"):
         if col in df:
             df[col] = df[col].astype("Int64")
     return results, df

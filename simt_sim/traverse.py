@@ -10,6 +10,9 @@ boxes; both hit -> go to the nearer (smaller ``tnear``, tie -> child 0) and push
 farther; one hit -> go there; none -> pop. A leaf tests all its triangles; a closest-hit
 query shrinks ``tmax`` on every accepted hit, an any-hit query ends at the first one.
 Popped nodes are not re-tested against the shrunken ``tmax`` (as in the kernel).
+
+The child-box test is :func:`~simt_sim.simd_box.node_child_intervals_simd`, the vector
+form of :func:`~simt_sim.geometry.node_child_intervals` with bit-identical results.
 """
 
 from __future__ import annotations
@@ -19,14 +22,9 @@ from numba import njit, prange
 
 from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
 from simt_sim.errors import SimtSimError
-from simt_sim.geometry import (
-    SENTINEL_I32,
-    near_columns,
-    node_child_intervals,
-    safe_inverse,
-    woop_hit_t,
-)
+from simt_sim.geometry import SENTINEL_I32, inverse_direction, woop_hit_t
 from simt_sim.optrace import LEAF, TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS
+from simt_sim.simd_box import node_child_intervals_simd
 
 DEFAULT_STACK = 64
 """Per-ray stack entries, as in the kernels; grown for BVHs deeper than this."""
@@ -56,6 +54,8 @@ def check_bvh(bvh: BVH) -> None:
     """Refuse a BVH whose arrays the traversal cannot read as the layout promises."""
     if bvh.nodes.dtype != np.float32 or bvh.nodes.ndim != 2 or bvh.nodes.shape[1] != 16:
         raise SimtSimError("BVH nodes must be float32 (n, 16); rebuild it with build_bvh")
+    if not bvh.nodes.flags.c_contiguous:
+        raise SimtSimError("BVH nodes must be C-contiguous; rebuild it with build_bvh")
     if bvh.woop.dtype != np.float32 or bvh.woop.ndim != 2 or bvh.woop.shape[1] != 4:
         raise SimtSimError("BVH woop must be float32 (s, 4); rebuild it with build_bvh")
     if bvh.root >= 0 and bvh.nodes.shape[0] == 0:
@@ -96,7 +96,7 @@ def traverse_ray(
     Parameters
     ----------
     nodes, nodes_i : float32 / int32 (n, 16)
-        The BVH nodes and the same bytes viewed as int32 (child indices).
+        The BVH nodes (C-contiguous) and the same bytes viewed as int32 (child indices).
     woop, woop_i : float32 / int32 (s, 4)
         Woop triangles and the same bytes as int32 (leaf sentinel test).
     stack : int32 (>= depth + 1,)
@@ -115,10 +115,7 @@ def traverse_ray(
         False if the stack overflowed (the BVH is deeper than ``stack`` allows); the ray's
         result is then incomplete.
     """
-    idx = safe_inverse(dx)
-    idy = safe_inverse(dy)
-    idz = safe_inverse(dz)
-    nx, ny, nz = near_columns(idx, idy, idz)
+    idx, idy, idz = inverse_direction(dx, dy, dz)
     cap = stack.shape[0]
     sp = 0
     node = root
@@ -126,8 +123,8 @@ def traverse_ray(
     while True:
         # Traversal: walk interior nodes until a leaf is reached or the stack runs dry.
         while node >= 0:
-            n0, f0, n1, f1 = node_child_intervals(
-                nodes, node, ox, oy, oz, idx, idy, idz, nx, ny, nz, tmin, tmax
+            n0, f0, n1, f1 = node_child_intervals_simd(
+                nodes, node, ox, oy, oz, idx, idy, idz, tmin, tmax
             )
             h0 = n0 <= f0
             h1 = n1 <= f1

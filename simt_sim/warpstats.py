@@ -3,11 +3,11 @@
 A SimResult sums the counters of all warps; the per-pixel and timeline plots need them
 warp by warp. Both views run the scheme's own code, so they agree with ``simulate``:
 
-- :func:`warp_counts` calls the numba per-warp body of the scheme (the same function
-  its ``replay`` runs) once per warp with fresh counters, so the per-warp warp and lane
-  instructions are exact and sum to the SimResult's totals;
-- :func:`warp_timeline` runs the plain-Python reference replay (``simt.reference``) of
-  one warp with a counter that also logs every issue in order.
+- :func:`warp_counts` calls the scheme module's ``warp_counts`` (its own replay kernel,
+  recording each warp's totals), so the per-warp warp and lane instructions are exact
+  and sum to the SimResult's totals;
+- :func:`warp_timeline` runs the plain-Python reference replay of one warp
+  (``simt.reference.replay_warp``) with a counter that also logs every issue in order.
 
 Only schemes where a warp (or a persistent scheme's fetched group) is a fixed set of 32
 consecutive rays have per-warp figures: dynamic fetch refills lanes from the pool, so a
@@ -22,27 +22,16 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
 
 from simt_sim.errors import SimtSimError
 from simt_sim.optrace import OpTrace
 from simt_sim.simt import reference
-from simt_sim.simt.engine import N_BLOCKS, N_CHUNKS, chunk_bounds
-from simt_sim.simt.schemes import if_if, packet
-from simt_sim.simt.schemes import persistent_speculative_while_while as spec
-from simt_sim.simt.schemes import persistent_while_while as pww
-from simt_sim.simt.schemes.while_while import WINDOW, warp_body
+from simt_sim.simt.schemes import SCHEMES
 
-#: schemes with per-warp counts, in the id order of the numba dispatcher
-WARP_SCHEMES = (
-    "while_while",
-    "if_if",
-    "persistent_while_while",
-    "persistent_speculative_while_while",
-    "packet",
-)
+#: schemes with per-warp counts: those whose module has ``warp_counts``
+WARP_SCHEMES = tuple(name for name, module in SCHEMES.items() if hasattr(module, "warp_counts"))
 #: schemes with an issue-ordered reference replay of one warp
-TIMELINE_SCHEMES = WARP_SCHEMES[:4]
+TIMELINE_SCHEMES = tuple(s for s in WARP_SCHEMES if s in reference.WARP_REPLAYS)
 
 
 @dataclass(frozen=True)
@@ -68,45 +57,6 @@ class WarpCounts:
         issued = self.warp_instructions * self.warp_size
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(issued > 0, self.lane_instructions / np.maximum(issued, 1), np.nan)
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _warp_counts(offsets, op, addr, costs, warp_size, scheme):
-    n_rays = offsets.shape[0] - 1
-    n_warps = (n_rays + warp_size - 1) // warp_size
-    nc = min(N_CHUNKS, max(n_warps, 1))
-    bounds = chunk_bounds(n_warps, nc)
-    out = np.zeros((n_warps, 2), np.int64)
-    for c in prange(nc):
-        cur = np.empty(warp_size, np.int64)
-        end = np.empty(warp_size, np.int64)
-        park = np.empty(warp_size, np.int64)
-        park_end = np.empty(warp_size, np.int64)
-        pcur = np.empty(warp_size, np.int64)
-        acc = np.zeros(WINDOW, np.int64)
-        cnt = np.zeros((2, N_BLOCKS), np.int64)
-        hist = np.zeros((N_BLOCKS, warp_size + 1), np.int64)
-        table, used = packet.node_table(offsets, warp_size, bounds[c], bounds[c + 1])
-        for w in range(bounds[c], bounds[c + 1]):
-            r0 = w * warp_size
-            n = min(warp_size, n_rays - r0)
-            cnt[:] = 0
-            if scheme == 0:
-                warp_body(offsets, op, r0, n, cur, end, acc, costs, cnt, hist)
-            elif scheme == 1:
-                if_if._warp(offsets, op, r0, n, cur, end, costs, cnt, hist)
-            elif scheme == 2:
-                pww._group(offsets, op, r0, n, cur, end, acc, costs, cnt, hist)
-            elif scheme == 3:
-                spec._group(
-                    offsets, op, r0, n, cur, end, park, park_end, pcur, acc, costs, cnt, hist
-                )
-            else:
-                packet._warp(offsets, op, addr, r0, n, table, used, costs, cnt, hist)
-            for b in range(N_BLOCKS):
-                out[w, 0] += cnt[0, b] * costs[b]
-                out[w, 1] += cnt[1, b] * costs[b]
-    return out
 
 
 def _check_scheme(scheme: str, known: Sequence[str], what: str) -> None:
@@ -139,10 +89,9 @@ def warp_counts(trace: OpTrace, scheme: str, costs: np.ndarray, warp_size: int) 
     addr = np.ascontiguousarray(trace.addr, np.int32)
     if op.shape[0] == 0:  # the per-warp bodies read op[0] as a dummy for lanes without ops
         op, addr = np.zeros(1, np.uint8), np.zeros(1, np.int32)
-    out = _warp_counts(
-        offsets, op, addr, np.ascontiguousarray(costs, np.int64), warp_size,
-        WARP_SCHEMES.index(scheme),
-    )  # fmt: skip
+    out = SCHEMES[scheme].warp_counts(
+        offsets, op, addr, np.ascontiguousarray(costs, np.int64), warp_size
+    )
     return WarpCounts(out[:, 0].copy(), out[:, 1].copy(), warp_size)
 
 
@@ -175,13 +124,5 @@ def warp_timeline(
     off = trace.offsets
     streams = [trace.op[off[r] : off[r + 1]].tolist() for r in range(r0, r1)]
     log = _Log(warp_size, costs)
-    if scheme == "while_while":
-        reference._while_while_warp(streams, log)
-    elif scheme == "if_if":
-        reference._if_if_warp(streams, log)
-    elif scheme == "persistent_while_while":
-        log.charge("pool_fetch", list(range(len(streams))))
-        reference._while_while_warp(streams, log)
-    else:
-        reference._speculative_group(streams, log)
+    reference.replay_warp(streams, scheme, log)
     return log.events

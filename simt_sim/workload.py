@@ -2,19 +2,22 @@
 
 The commands (bench, trace, table, plot) differ in what they do with rays, not in how
 they get them; keeping that here means the simulated and measured columns of a table
-always describe the same rays.
+always describe the same rays. The rays come as a stream (``Workload.stream``) that a
+study consumes batch by batch; ``Workload.rays`` holds them all at once, for commands
+that need every ray at moderate sizes.
 """
 
 from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from functools import cached_property
 
 from simt_sim.bvh.build import build_bvh
 from simt_sim.bvh.layout import BVH
 from simt_sim.errors import SimtSimError
 from simt_sim.raybatch import RayBatch
-from simt_sim.rays import paper_rays
+from simt_sim.rays import RayStream, ray_stream
 from simt_sim.scene import load_scene
 from simt_sim.scene_types import Scene
 from simt_sim.tracers.numba_tracer import trace
@@ -24,15 +27,21 @@ TRACE_RAY_TYPES = ("primary", "ao", "diffuse")
 
 @dataclass(frozen=True)
 class Workload:
-    """A scene, its BVH and a ray set in warp order."""
+    """A scene, its BVH and a ray set in warp order, streamed or whole."""
 
     scene: Scene
     bvh: BVH
-    rays: RayBatch
+    stream: RayStream
     cameras: tuple[int, ...]
     resolution: tuple[int, int]
     spp: int
     seed: int
+
+    @cached_property
+    def rays(self) -> RayBatch:
+        """Every ray at once, secondary rays Morton-sorted in batches of 2^20 (made on
+        first use; prefer ``stream.batches()`` for large ray sets)."""
+        return self.stream.all_rays()
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -102,7 +111,7 @@ def make_workload(
     sc = load_scene(scene) if isinstance(scene, str) else scene
     cams = parse_cameras(cameras, sc)
     tree = bvh if bvh is not None else build_bvh(sc.vertices, sc.triangles)
-    rays = paper_rays(
+    stream = ray_stream(
         sc,
         ray_type,
         cameras=list(cams),
@@ -112,4 +121,4 @@ def make_workload(
         seed=seed,
         tracer=lambda r: trace(tree, r),
     )
-    return Workload(sc, tree, rays, cams, resolution, spp, seed)
+    return Workload(sc, tree, stream, cams, resolution, spp, seed)

@@ -11,7 +11,7 @@ import trimesh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from simt_sim.bvh.build import _binned_best, _sweep_best, build_bvh
+from simt_sim.bvh.build import _binned_best, _sweep_best, build_bvh, widened
 from simt_sim.bvh.layout import BVH, NODE_BYTES, SENTINEL_BITS
 from simt_sim.bvh.woop import woop_transform
 from simt_sim.errors import SimtSimError
@@ -91,20 +91,21 @@ def check_bvh(bvh: BVH, vertices: np.ndarray, triangles: np.ndarray, max_leaf: i
     assert (left[left >= 0] == np.flatnonzero(left >= 0) + 1).all()
     if len(bvh.nodes):
         assert bvh.root == 0
-    # Boxes: a parent's box for a child contains what the child stores, or its triangles.
+    # Boxes: each stored child box is its triangles' exact bounds, widened.
     v = vertices.astype(np.float32)
-    for i, node in enumerate(bvh.nodes):
+    exact: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # node or ~leaf -> (lo, hi)
+    for i in range(len(bvh.nodes) - 1, -1, -1):  # children are numbered after their parent
         for side in (0, 1):
-            lo, hi = child_box(node, side)
-            assert (lo <= hi).all()
             c = int(ch[i, side])
-            if c >= 0:
-                for s2 in (0, 1):
-                    clo, chi = child_box(bvh.nodes[c], s2)
-                    assert (lo <= clo).all() and (chi <= hi).all()
-            else:
+            if c < 0:
                 p = v[triangles[leaf_triangles(bvh, ~c)]].reshape(-1, 3)
-                assert (lo <= p.min(0)).all() and (p.max(0) <= hi).all()
+                exact[c] = (p.min(0), p.max(0))
+            lo, hi = child_box(bvh.nodes[i], side)
+            wlo, whi = widened(exact[c][0][None], exact[c][1][None])
+            assert (lo == wlo[0]).all() and (hi == whi[0]).all()
+            assert (lo < exact[c][0]).all() and (exact[c][1] < hi).all()
+        (lo0, hi0), (lo1, hi1) = exact[int(ch[i, 0])], exact[int(ch[i, 1])]
+        exact[i] = (np.minimum(lo0, lo1), np.maximum(hi0, hi1))
     # Statistics agree with the tree.
     s = bvh.stats
     assert s.nodes == len(bvh.nodes) and s.leaves == len(sizes)
@@ -113,7 +114,11 @@ def check_bvh(bvh: BVH, vertices: np.ndarray, triangles: np.ndarray, max_leaf: i
     if len(bvh.nodes):
         p = v[triangles].reshape(-1, 3)
         root_area = box_area(p.min(0), p.max(0))
-        sah = sum(a for _, a in w["interior"][1:]) + sum(a * len(t) for _, a, t in w["leaves"])
+        sah = sum(
+            box_area(*b) * (1 if c > 0 else len(leaf_triangles(bvh, ~c)))
+            for c, b in exact.items()
+            if c != 0
+        )
         if root_area > 0:
             assert s.sah_cost == pytest.approx(1 + sah / root_area, rel=1e-9)
         else:  # every box is the root's zero-area box: each node and triangle counts once

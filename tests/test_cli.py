@@ -188,3 +188,89 @@ def test_unknown_gpu_and_scheme():
     assert_clean_error(run_cli("table", *SMALL, "--gpu", "voodoo2"), "voodoo2")
     assert_clean_error(run_cli("table", *SMALL, "--schemes", "magic"), "magic")
     assert_clean_error(run_cli("ir", "show", "nope", "--arch", "sm_90"), "nope")
+
+
+# --- progress bars: drawn on a terminal, never into a pipe, silenced by --quiet
+
+#: text every tqdm bar prints (rate units and the bar's left edge)
+BAR_MARKS = ("ray/s", "step/s", "it/s", "%|")
+
+
+def run_cli_on_terminal(*args: str) -> tuple[subprocess.CompletedProcess[str], str]:
+    """Run the CLI with stderr on a pseudo-terminal (120x40); the process and its stderr."""
+    import fcntl
+    import pty
+    import struct
+    import termios
+    import threading
+
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0))
+    chunks: list[bytes] = []
+
+    def drain() -> None:  # read while the command runs, so a full pty never blocks it
+        while True:
+            try:
+                data = os.read(master, 4096)
+            except OSError:  # EIO: the terminal's last writer has gone
+                return
+            if not data:
+                return
+            chunks.append(data)
+
+    reader = threading.Thread(target=drain)
+    reader.start()
+    env = dict(os.environ)
+    env.setdefault("NUMBA_NUM_THREADS", "2")
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "simt_sim", *args],
+            stdout=subprocess.PIPE,
+            stderr=slave,
+            text=True,
+            env=env,
+        )
+    finally:
+        os.close(slave)
+        reader.join()
+        os.close(master)
+    return proc, b"".join(chunks).decode(errors="replace")
+
+
+@pytest.fixture(scope="module")
+def small_mesh(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A closed icosphere OBJ (320 triangles): loads in no time, so runs stay short."""
+    import trimesh
+
+    path = tmp_path_factory.mktemp("mesh") / "sphere.obj"
+    trimesh.creation.icosphere(subdivisions=2).export(path)
+    return path
+
+
+def long_commands(mesh: Path, out: Path) -> dict[str, list[str]]:
+    """Each long-running command on a tiny workload."""
+    tiny = ["--scene", str(mesh), "--resolution", "16x12", "--camera", "0", "--spp", "2"]
+    return {
+        "trace": ["trace", *tiny, "--out", str(out / "t.trace")],
+        "bench": ["bench", *tiny, "--repeats", "1"],
+        "table": ["table", *tiny, "--rays", "primary", "--schemes", "while_while"],
+        # dynamic_fetch has no per-warp figures: two figures keep the run short
+        "plot": ["plot", *tiny, "--rays", "primary", "--schemes", "dynamic_fetch",
+                 "--out", str(out / "figs")],
+    }  # fmt: skip
+
+
+@pytest.mark.parametrize("command", ["trace", "bench", "table", "plot"])
+def test_progress_bar_only_on_a_terminal(command: str, small_mesh: Path, tmp_path: Path) -> None:
+    args = long_commands(small_mesh, tmp_path)[command]
+    piped = run_cli(*args)
+    assert piped.returncode == 0, piped.stderr
+    assert not any(m in piped.stderr for m in BAR_MARKS), piped.stderr
+    terminal, shown = run_cli_on_terminal(*args)
+    assert terminal.returncode == 0, shown
+    assert "ray/s" in shown or "step/s" in shown, shown
+    quiet, silent = run_cli_on_terminal(*args, "--quiet")
+    assert quiet.returncode == 0, silent
+    assert not any(m in silent for m in BAR_MARKS), silent
+    if command != "bench":  # bench reports timings; the others print the same table
+        assert quiet.stdout == piped.stdout

@@ -8,7 +8,9 @@ from hypothesis import strategies as st
 
 from simt_sim.bvh.woop import woop_transform
 from simt_sim.geometry import (
+    BOX_ROUNDING,
     OOEPS,
+    inverse_direction,
     near_columns,
     node_child_intervals,
     safe_inverse,
@@ -34,12 +36,20 @@ def box_interval(lo, hi, o, d, tmin=ZERO, tmax=INF):
     row[0, 0:8] = (*x, *y, *x, *y)  # c0.x, c0.y | c1.x, c1.y
     row[0, 8:12] = (*z, *z)  # c0.z, c1.z
     o = np.asarray(o, F32)
-    idx, idy, idz = (safe_inverse(F32(v)) for v in np.asarray(d, F32))
+    idx, idy, idz = inverse_direction(*np.asarray(d, F32))
     nx, ny, nz = near_columns(idx, idy, idz)
     n0, f0, n1, f1 = node_child_intervals(row, 0, o[0], o[1], o[2], idx, idy, idz, nx, ny, nz,
                                           F32(tmin), F32(tmax))  # fmt: skip
     assert (n0, f0) == (n1, f1)
     return n0, f0
+
+
+def test_inverse_direction_clamps_relative_to_the_largest_component():
+    assert inverse_direction(F32(1.0), F32(0.0), F32(-0.0)) == (1, 2.0**80, -(2.0**80))
+    assert inverse_direction(F32(4.0), F32(1e-30), F32(-2.0)) == (0.25, 2.0**78, -0.5)
+    tiny = F32(2.0**-66)  # a 1e-20-long direction: its zero component is clamped to 2^-126
+    assert inverse_direction(tiny, F32(0.0), tiny) == (2.0**66, 2.0**126, 2.0**66)
+    assert all(np.isfinite(inverse_direction(F32(2.0**-100), F32(0.0), F32(-0.0))))
 
 
 def test_safe_inverse_clamps_tiny_and_zero_components():
@@ -53,11 +63,11 @@ def test_safe_inverse_clamps_tiny_and_zero_components():
 
 def test_box_interval_simple_cases():
     lo, hi = (-1, -1, -1), (1, 1, 1)
-    assert box_interval(lo, hi, (-3, 0, 0), (1, 0, 0)) == (F32(2), F32(4))
+    assert box_interval(lo, hi, (-3, 0, 0), (1, 0, 0)) == (F32(2), F32(4) * BOX_ROUNDING)
     n, f = box_interval(lo, hi, (-3, 2, 0), (1, 0, 0))  # parallel to x, above the box
     assert n > f
     n, f = box_interval(lo, hi, (0, 0, 0), (0, 0, 1))  # starts inside: tnear = tmin
-    assert (n, f) == (F32(0), F32(1))
+    assert (n, f) == (F32(0), F32(1) * BOX_ROUNDING)
     n, f = box_interval(lo, hi, (-3, 0, 0), (1, 0, 0), tmax=F32(1.5))  # too short
     assert n > f
 

@@ -22,6 +22,7 @@ warp_size = 32
 resident_warps_per_sm = 16
 l1_kib = 64
 l2_kib = 1024
+dram_gbps = 100.0
 ir_arch = "sm_80"
 source = "made up for a test"
 """
@@ -65,6 +66,8 @@ def test_unknown_id_lists_known_ids() -> None:
         (USER_GPU.format(id="x").replace("sms = 10\n", ""), "missing field.*sms"),
         (USER_GPU.format(id="x").replace("sms = 10", 'sms = "10"'), "wrong type"),
         (USER_GPU.format(id="x").replace("sms = 10", "sms = 0"), "must be positive"),
+        (USER_GPU.format(id="x").replace("dram_gbps = 100.0", "dram_gbps = nan"), "positive"),
+        (USER_GPU.format(id="x").replace("dram_gbps = 100.0\n", ""), "missing.*dram_gbps"),
         (USER_GPU.format(id="x") + "colour = 'green'\n", "unknown field.*colour"),
         (USER_GPU.format(id="x") * 2, "appears twice"),
         ("[[gpu]\n", "not valid TOML"),

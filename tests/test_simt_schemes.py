@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
+from simt_sim.errors import SimtSimError
 from simt_sim.optrace import LEAF, TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS, OpTrace
+from simt_sim.simt import schemes
 from simt_sim.simt.gpus import GpuConfig
 from simt_sim.simt.reference import reference_replay
 from simt_sim.simt.replay import simulate
 from simt_sim.simt.result import SimResult
-from simt_sim.simt.schemes import SCHEMES
+from simt_sim.simt.schemes import DESCRIPTIONS, PATH_SCHEMES, SCHEMES
 from simt_sim.simt.synth import synthetic_trace, trace_from_lists
 
 COSTS = {b: i + 1 for i, b in enumerate(BLOCKS)}  # small distinct costs per block
@@ -230,6 +234,76 @@ def test_numba_replay_matches_reference(scheme: str, warp_size: int, any_hit: bo
     else:
         assert r.warp_totals.tolist() == ref.warp_totals
         assert r.makespan == ref.makespan
+
+
+@pytest.mark.parametrize(
+    ("warp_size", "resident", "threshold", "scale"),
+    [(8, 3, 5, 1), (8, 40, 20, 1), (4, 2, 9, 1), (8, 5, 3, 0), (1, 7, 1, 1)],
+)
+def test_dynamic_fetch_matches_reference(
+    warp_size: int, resident: int, threshold: int, scale: int
+) -> None:
+    """The parallel event replay is the one-event-at-a-time simulation: few and many
+    resident warps (more than the rays fill), thresholds above the warp size, zero costs
+    (every bound on a refill point is then its own time)."""
+    rng = np.random.default_rng(warp_size * 100 + resident)
+    ops, addrs = random_streams(rng, 90 * warp_size + 3)
+    costs = {b: c * scale for b, c in COSTS.items()}
+    ir = KernelIR("dynamic_fetch", "sm_75", {b: {"int": c} for b, c in costs.items()})
+    r = simulate(
+        [trace_from_lists(ops, addrs)],
+        "dynamic_fetch",
+        ir,
+        gpu_for(warp_size, resident),
+        threshold=threshold,
+    )
+    ref = reference_replay(
+        ops, addrs, "dynamic_fetch", costs, warp_size, resident_warps=resident,
+        threshold=threshold,
+    )  # fmt: skip
+    assert counters(r) == {b: (ref.executions[b], ref.active[b], ref.hist[b]) for b in BLOCKS}
+    assert r.warp_totals.tolist() == ref.warp_totals
+    assert r.makespan == ref.makespan
+
+
+@pytest.mark.parametrize("scheme", [s for s in SCHEMES if hasattr(SCHEMES[s], "warp_counts")])
+def test_warp_counts_are_the_replay_warp_by_warp(scheme: str) -> None:
+    """Each warp's instructions from ``warp_counts`` equal a replay of that warp alone."""
+    rng = np.random.default_rng(5)
+    ops, addrs = random_streams(rng, 32 * 12 + 7)
+    trace = trace_from_lists(ops, addrs)
+    costs = np.array([COSTS[b] for b in BLOCKS], np.int64)
+    per_warp = SCHEMES[scheme].warp_counts(trace.offsets, trace.op, trace.addr, costs, 32)
+    assert per_warp.shape == (13, 2)
+    for w in range(13):
+        alone = run(
+            trace_from_lists(ops[32 * w : 32 * w + 32], addrs[32 * w : 32 * w + 32]), scheme, 32
+        )
+        lanes = int(np.dot(alone.counts.active, alone.costs))
+        assert per_warp[w].tolist() == [alone.warp_instructions, lanes]
+
+
+# ---- the registry ----------------------------------------------------------------------------
+def test_every_scheme_module_is_registered_with_a_description() -> None:
+    package = Path(schemes.__file__).parent
+    modules = {p.stem for p in package.glob("*.py") if p.stem != "__init__"}
+    assert set(SCHEMES) | set(PATH_SCHEMES) == modules
+    assert not set(SCHEMES) & set(PATH_SCHEMES)
+    for name, module in {**SCHEMES, **PATH_SCHEMES}.items():
+        assert module.NAME == name
+        assert module.APPROXIMATIONS is not None
+        assert DESCRIPTIONS[name] and "\n" not in DESCRIPTIONS[name]
+    assert set(DESCRIPTIONS) == modules
+    assert all(hasattr(m, "replay") for m in SCHEMES.values())
+    assert all(hasattr(m, "simulate") for m in PATH_SCHEMES.values())
+
+
+def test_simulate_points_path_schemes_to_their_own_simulate() -> None:
+    trace = synthetic_trace(64, seed=1)
+    with pytest.raises(SimtSimError, match=r"path scheme.*schemes\.wavefront\.simulate"):
+        simulate([trace], "wavefront", ir_for("wavefront"), gpu_for(32))
+    with pytest.raises(SimtSimError, match="known schemes: while_while, if_if"):
+        simulate([trace], "nonsense", ir_for("while_while"), gpu_for(32))
 
 
 # ---- properties ------------------------------------------------------------------------------

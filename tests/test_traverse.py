@@ -9,7 +9,7 @@ from simt_sim.bvh.build import build_bvh
 from simt_sim.bvh.layout import BVH, SENTINEL_BITS, BuildStats
 from simt_sim.bvh.woop import woop_transform
 from simt_sim.errors import SimtSimError
-from simt_sim.geometry import near_columns, node_child_intervals, safe_inverse, woop_hit_t
+from simt_sim.geometry import inverse_direction, near_columns, node_child_intervals, woop_hit_t
 from simt_sim.hits import MISS
 from simt_sim.optrace import LEAF, TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS
 from simt_sim.raybatch import RayBatch
@@ -57,22 +57,60 @@ def rays_at(seed: int, n: int, query: str, radius: float = 3.0, inside: bool = F
     return make_rays(o, d, query)
 
 
-def assert_matches_bruteforce(v, t, bvh, rays):
+NEAR_EDGE = 1e-3
+"""Barycentric margin of the grown brute force: the conservative triangle test's rounding
+bound (simt_sim.geometry) stays far below it on these scenes."""
+INSIDE_EDGE = 1e-9
+"""Barycentric margin of the shrunk brute force: closer to an edge, float64 rounding alone
+may decide a ray that misses by less (a direction component of 1e-30, say)."""
+
+
+def hit_grown(v, t, rays, idx: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Whether ray ``idx[k]`` hits triangle ``tri[k]`` grown by NEAR_EDGE, alone (float64
+    Moller-Trumbore, as in simt_sim.tracers.bruteforce)."""
+    a, b, c = (v[t[tri, k]].astype(np.float64) for k in range(3))
+    o = rays.origin[idx].astype(np.float64)
+    d = rays.direction[idx].astype(np.float64)
+    e1, e2 = b - a, c - a
+    p = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, p)
+    s = o - a
+    q = np.cross(s, e1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.einsum("ij,ij->i", s, p) / det
+        w = np.einsum("ij,ij->i", d, q) / det
+        tt = np.einsum("ij,ij->i", e2, q) / det
+    inside = (u >= -NEAR_EDGE) & (w >= -NEAR_EDGE) & (u + w <= 1 + NEAR_EDGE)
+    return inside & (tt > rays.tmin[idx]) & (tt < rays.tmax[idx])
+
+
+def assert_matches_bruteforce(v, t, bvh, rays, rare: float = 1e-3):
+    """The tracer lies between brute force on shrunk and on grown triangles: it hits every
+    ray the shrunk ones catch, reports only triangles the ray hits when grown, is never
+    farther than the exact closest hit, and differs from the exact brute force on at most a
+    ``rare`` share of the rays."""
     hits = trace(bvh, rays)
     ref = trace_bruteforce(v, t, rays)
-    np.testing.assert_array_equal(hits.hit_mask, ref.hit_mask)
+    shrunk = trace_bruteforce(v, t, rays, margin=-INSIDE_EDGE)
+    grown = trace_bruteforce(v, t, rays, margin=NEAR_EDGE)
+    assert not (shrunk.hit_mask & ~hits.hit_mask).any(), "a ray fell through"
+    assert not (hits.hit_mask & ~grown.hit_mask).any()
     both = hits.hit_mask
     assert not np.isnan(hits.t[both]).any()
     assert np.isinf(hits.t[~both]).all()
     if rays.query == "closest":
         with np.errstate(invalid="ignore"):  # inf - inf where both miss
             close = np.abs(hits.t - ref.t) <= 1e-5 * np.abs(ref.t)
-        assert ((hits.tri == ref.tri) | close)[both].all()
+            not_farther = hits.t <= shrunk.t + 1e-5 * np.abs(shrunk.t)
+        assert ((hits.tri == shrunk.tri) | not_farther)[both].all()
+        other = np.flatnonzero(both & (hits.tri != ref.tri) & ~close)
+        assert len(other) <= rare * len(rays)
+        assert hit_grown(v, t, rays, other, hits.tri[other]).all()
     else:
+        assert (hits.hit_mask != ref.hit_mask).sum() <= rare * len(rays)
         # The reported triangle must really be hit by the ray (alone).
-        for i in np.flatnonzero(both)[:200]:
-            one = trace_bruteforce(v, t[hits.tri[i] : hits.tri[i] + 1], rays.slice(i, i + 1))
-            assert one.tri[0] == 0
+        hit = np.flatnonzero(both)
+        assert hit_grown(v, t, rays, hit, hits.tri[hit]).all()
     return hits
 
 
@@ -189,7 +227,7 @@ def check_stream(bvh: BVH, rays: RayBatch, r: int, ops: np.ndarray, addrs: np.nd
     o = rays.origin[r]
     d = rays.direction[r]
     tmin, tmax = rays.tmin[r], rays.tmax[r]
-    inv = [safe_inverse(x) for x in d]
+    inv = inverse_direction(*d)
     near = near_columns(*inv)
     children = bvh.children
     sentinel = np.int32(SENTINEL_BITS - (1 << 32))

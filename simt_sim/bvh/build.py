@@ -29,11 +29,17 @@ from simt_sim.bvh.woop import woop_transform
 from simt_sim.errors import SimtSimError
 
 METHODS = ("binned", "sweep")
+WIDEN = np.float32(2.0**-38)
+"""Relative growth of the stored boxes (see :func:`widened`)."""
+WOOP_CHUNK = 1 << 20
+"""Triangles whose Woop rows are computed at once (their float64 temporaries take about
+250 bytes a triangle)."""
 
 # Stack / task columns (int64): start, end, parent node, child slot in parent, depth.
 _T_START, _T_END, _T_PARENT, _T_SLOT, _T_DEPTH = 0, 1, 2, 3, 4
 _F32_HALF = np.float32(0.5)
 _F32_INF = np.float32(np.inf)
+_F32_NEG_INF = np.float32(-np.inf)
 
 
 @njit(cache=True, nogil=True)
@@ -378,6 +384,25 @@ def _build(tlo, thi, cen, sweep, max_leaf, bins):
     return idx, child[:n_int], nbox[:n_int], leaf_start[:n_leaf], root, depth, sah, hist
 
 
+def widened(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes grown on every side by :data:`WIDEN` times their largest coordinate magnitude,
+    then rounded outward (so by at least one float32 step).
+
+    A point on a box's face (a vertex; a ray running in the face's plane with a zero
+    direction component, whose clamped inverse 2^80 turns a zero slab distance into
+    ``0 * 2^80 = 0``) then lies strictly inside, ``2^42`` times the box's coordinates
+    from leaving it along such a ray (:mod:`simt_sim.geometry`). Scaling by a power of
+    two scales the result exactly.
+
+    Parameters
+    ----------
+    lo, hi : float32 (k, 3)
+        Exact bounds.
+    """
+    pad = np.maximum(np.abs(lo), np.abs(hi)).max(axis=1, keepdims=True) * WIDEN
+    return np.nextafter(lo - pad, _F32_NEG_INF), np.nextafter(hi + pad, _F32_INF)
+
+
 def _check_inputs(vertices, triangles, method: str, max_leaf: int, bins: int):
     """Validate and convert; raise SimtSimError with a one-line fix otherwise."""
     if method not in METHODS:
@@ -436,7 +461,9 @@ def build_bvh(
     -------
     BVH
         Nodes in depth-first order (left child right after its parent), child 0 the lower
-        side of the split; leaves' triangles as Woop float4 triples plus a sentinel.
+        side of the split, child boxes a little wider than their triangles' bounds (see
+        :func:`widened`; the SAH statistics use the exact bounds); leaves' triangles as
+        Woop float4 triples plus a sentinel.
     """
     v, tri = _check_inputs(vertices, triangles, method, max_leaf, bins)
     t0 = time.perf_counter()
@@ -449,11 +476,14 @@ def build_bvh(
     idx, child, nbox, leaf_start, root, depth, sah, hist = _build(
         tlo, thi, cen, method == "sweep", int(max_leaf), int(bins)
     )
+    del tlo, thi, cen  # only the split search needs them: free them before the Woop rows
     m = tri.shape[0]
     n_int = child.shape[0]
     n_leaf = leaf_start.shape[0]
     nodes = np.zeros((n_int, NODE_FLOATS), dtype=np.float32)
-    nodes[:, :COL_CHILD0] = nbox
+    for lo_cols in ([0, 2, 8], [4, 6, 10]):  # layout columns of child 0's, 1's lo x, y, z
+        hi_cols = [c + 1 for c in lo_cols]
+        nodes[:, lo_cols], nodes[:, hi_cols] = widened(nbox[:, lo_cols], nbox[:, hi_cols])
     nodes[:, COL_CHILD0 : COL_CHILD0 + 2] = child.view(np.float32)
 
     # Leaves cover idx in increasing ranges, so the triangle at idx position p sits at
@@ -461,12 +491,14 @@ def build_bvh(
     # sentinel follows its last triangle.
     leaf_of_pos = np.repeat(np.arange(n_leaf, dtype=np.int64), np.diff(leaf_start, append=m))
     base = WOOP_FLOAT4_PER_TRI * np.arange(m, dtype=np.int64) + leaf_of_pos
-    w0, w1, w2 = woop_transform(p0[idx], p1[idx], p2[idx])
     n_f4 = WOOP_FLOAT4_PER_TRI * m + n_leaf
     woop = np.zeros((n_f4, 4), dtype=np.float32)
-    woop[base] = w0
-    woop[base + 1] = w1
-    woop[base + 2] = w2
+    for s in range(0, m, WOOP_CHUNK):  # float64 temporaries for one chunk at a time
+        k, b = idx[s : s + WOOP_CHUNK], base[s : s + WOOP_CHUNK]
+        w0, w1, w2 = woop_transform(p0[k], p1[k], p2[k])
+        woop[b] = w0
+        woop[b + 1] = w1
+        woop[b + 2] = w2
     tri_index = np.full(n_f4, -1, dtype=np.int32)
     tri_index[base] = idx
     is_last = np.ones(m, dtype=bool)

@@ -28,7 +28,8 @@ def woop_transform(
     w0, w1, w2 : float32 (m, 4)
         ``w0 = (z row, -translation)``, ``w1 = u row``, ``w2 = v row``, the layout's order.
         A zero-area triangle has no inverse; its rows are all zero, so the kernels'
-        test yields ``t = 0/0`` (NaN) and never reports a hit on it. Every ``-0.0`` is
+        test yields ``t = 0/0`` (NaN) and never reports a hit on it; so are the rows of
+        a sliver too thin for its rows to fit in float32. Every ``-0.0`` is
         stored as ``+0.0`` so that no real triangle's ``w0.x`` carries the leaf sentinel's
         bit pattern.
     """
@@ -58,9 +59,15 @@ def woop_transform(
         r = r * scale[:, None]
         t = -np.einsum("ij,ij->i", r, c)  # translation: M^-1 maps v2 to the origin
         w = np.empty((r.shape[0], 4), dtype=np.float32)
-        w[:, :3] = r
-        w[:, 3] = -t if negate else t
+        with np.errstate(over="ignore"):  # overflow to inf is handled below
+            w[:, :3] = r
+            w[:, 3] = -t if negate else t
         w += np.float32(0.0)  # -0.0 + 0.0 == +0.0: keep the sentinel bits unique
         out.append(w)
+    # A sliver whose u or v row leaves float32 (height below ~1e-38 of its length) would
+    # compute inf - inf: store it like a zero-area triangle, which is never hit.
+    beyond = ~np.isfinite(np.concatenate(out, axis=1)).all(axis=1)
+    for w in out:
+        w[beyond] = 0.0
     w1, w2, w0 = out
     return w0, w1, w2

@@ -42,13 +42,35 @@ N_CHUNKS = 256
 
 #: op code a lane sees once its stream has ended (op codes are 0..5, validated)
 NO_OP = 7
-# lookup tables by op code (0..7): branch-free lane filters, since outcomes are random
-IS_TRAV = np.array([1, 1, 1, 0, 0, 0, 0, 0], np.int64)
-IS_LEAF = np.array([0, 0, 0, 1, 0, 0, 0, 0], np.int64)
-IS_TRI = np.array([0, 0, 0, 0, 1, 1, 0, 0], np.int64)
-IS_HIT = np.array([0, 0, 0, 0, 0, 1, 0, 0], np.int64)
 #: lanes per mask: a warp's lanes are bits of an int64 (lane l is bit l)
 MAX_MASK_LANES = 64
+
+
+# Lane filters by op code (0..5 or NO_OP), as int64 0/1 so they shift into lane masks and
+# add into counters without branches (outcomes are random). Comparisons rather than lookup
+# tables: a table load would lengthen each lane's chain of dependent loads.
+@njit(cache=True, nogil=True, inline="always")
+def is_trav(o):
+    """1 if ``o`` is a TRAV op (TRAV_NONE, TRAV_ONE, TRAV_BOTH), else 0."""
+    return np.int64(o <= TRAV_BOTH)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def is_leaf(o):
+    """1 if ``o`` is a LEAF op, else 0."""
+    return np.int64(o == LEAF)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def is_tri(o):
+    """1 if ``o`` is a triangle test (TRI_MISS or TRI_HIT), else 0."""
+    return np.int64(np.uint8(o - TRI_MISS) <= TRI_HIT - TRI_MISS)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def is_hit(o):
+    """1 if ``o`` is TRI_HIT, else 0."""
+    return np.int64(o == TRI_HIT)
 
 
 @intrinsic
@@ -132,6 +154,35 @@ def chunk_counts(cnt: np.ndarray, hist: np.ndarray) -> Counts:
     return Counts(cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0))
 
 
+def no_per_warp() -> np.ndarray:
+    """The ``per_warp`` argument of a replay kernel that records no per-warp totals."""
+    return np.zeros((0, 2), np.int64)
+
+
+@njit(cache=True, nogil=True)
+def lane_instructions(cnt, costs):
+    """Lane instructions counted so far in ``cnt``: active lanes x cost, over the blocks."""
+    total = np.int64(0)
+    for b in range(N_BLOCKS):
+        total += cnt[1, b] * costs[b]
+    return total
+
+
+@njit(cache=True, nogil=True, inline="always")
+def lanes_so_far(per_warp, cnt, costs):
+    """:func:`lane_instructions` if ``per_warp`` records per-warp totals, else 0 (no sum)."""
+    return lane_instructions(cnt, costs) if per_warp.shape[0] else np.int64(0)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def record_warp(per_warp, w, issued, lanes_before, cnt, costs):
+    """Store warp ``w``'s instructions and its lane instructions (those counted in ``cnt``
+    since ``lanes_before``) in row ``w`` of ``per_warp``, if it records per-warp totals."""
+    if per_warp.shape[0]:
+        per_warp[w, 0] = issued
+        per_warp[w, 1] = lane_instructions(cnt, costs) - lanes_before
+
+
 @njit(cache=True, nogil=True, inline="always")
 def charge(cnt, hist, costs, block, n):
     """Charge one execution of ``block`` with ``n`` active lanes; return its cost (0 if n=0)."""
@@ -144,9 +195,12 @@ def charge(cnt, hist, costs, block, n):
 
 @njit(cache=True, nogil=True, inline="always")
 def op_at(op, c, e):
-    """The op at cursor ``c`` of a stream ending at ``e``, or NO_OP past it (branch-free)."""
+    """The op at cursor ``c`` of a stream ending at ``e``, or NO_OP past it (branch-free).
+
+    Cursors are never negative: the unsigned index spares numba's wraparound code.
+    """
     ok = c < e
-    o = op[c if ok else 0]
+    o = op[np.uint64(c if ok else 0)]
     return o if ok else np.uint8(NO_OP)
 
 
@@ -191,7 +245,7 @@ def _first_bad(offsets, op, r0, r1):
         prev = 0
         for k in range(offsets[r], offsets[r + 1]):
             o = op[k]
-            if o > 5 or (IS_TRI[o] and not (IS_LEAF[prev] or IS_TRI[prev])):
+            if o > TRI_HIT or (is_tri(o) and not (is_leaf(prev) or is_tri(prev))):
                 return np.int64(k)
             prev = o
     return np.int64(-1)

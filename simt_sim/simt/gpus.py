@@ -7,6 +7,7 @@ the same id), so a study can cost a GPU the package does not know.
 
 from __future__ import annotations
 
+import math
 import tomllib
 from dataclasses import dataclass
 from importlib import resources
@@ -25,9 +26,12 @@ _FIELDS: dict[str, type | tuple[type, ...]] = {
     "resident_warps_per_sm": int,
     "l1_kib": int,
     "l2_kib": int,
+    "dram_gbps": (int, float),
     "ir_arch": str,
     "source": str,
 }
+
+_FLOAT_FIELDS = ("clock_mhz", "issue_rate", "dram_gbps")
 
 
 @dataclass(frozen=True)
@@ -50,6 +54,9 @@ class GpuConfig:
         Warps a persistent launch keeps resident per SM.
     l1_kib, l2_kib : int
         Data cache sizes (per SM, per GPU) for the optional memory model.
+    dram_gbps : float
+        DRAM bandwidth in GB/s (10^9 bytes/s), the optional memory model's bandwidth
+        bound; NaN (unknown) for a config built in code without it.
     ir_arch : str
         Architecture of the KernelIR the GPU is costed with.
     source : str
@@ -67,6 +74,7 @@ class GpuConfig:
     l2_kib: int
     ir_arch: str
     source: str
+    dram_gbps: float = float("nan")
 
     @property
     def clock_hz(self) -> float:
@@ -99,15 +107,20 @@ def _parse(entry: Any, where: str) -> GpuConfig:
         value = entry[key]
         if isinstance(value, bool) or not isinstance(value, kind):
             raise SimtSimError(f"{label}: field {key} has the wrong type ({value!r}); fix it")
-    for key in ("sms", "clock_mhz", "issue_rate", "warp_size", "resident_warps_per_sm"):
-        if entry[key] <= 0:
+    for key in (
+        "sms",
+        "clock_mhz",
+        "issue_rate",
+        "warp_size",
+        "resident_warps_per_sm",
+        "dram_gbps",
+    ):
+        if not 0 < entry[key] < math.inf:
             raise SimtSimError(f"{label}: field {key} must be positive, got {entry[key]!r}")
     for key in ("l1_kib", "l2_kib"):
         if entry[key] < 0:
             raise SimtSimError(f"{label}: field {key} must be >= 0, got {entry[key]!r}")
-    return GpuConfig(
-        **{k: float(entry[k]) if k in ("clock_mhz", "issue_rate") else entry[k] for k in _FIELDS}
-    )
+    return GpuConfig(**{k: float(entry[k]) if k in _FLOAT_FIELDS else entry[k] for k in _FIELDS})
 
 
 def _read(text: str, where: str) -> dict[str, GpuConfig]:

@@ -59,9 +59,9 @@ from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
 from simt_sim.errors import SimtSimError
 from simt_sim.geometry import (
     SENTINEL_I32,
+    inverse_direction,
     near_columns,
     node_child_intervals,
-    safe_inverse,
     woop_hit_t,
 )
 from simt_sim.hits import Hits
@@ -169,9 +169,7 @@ def _init_lane(li, lf, lane, r, origin, direction, tmin, tmax, root):
     lf[lane, _DX] = direction[r, 0]
     lf[lane, _DY] = direction[r, 1]
     lf[lane, _DZ] = direction[r, 2]
-    idx = safe_inverse(direction[r, 0])
-    idy = safe_inverse(direction[r, 1])
-    idz = safe_inverse(direction[r, 2])
+    idx, idy, idz = inverse_direction(direction[r, 0], direction[r, 1], direction[r, 2])
     lf[lane, _IX] = idx
     lf[lane, _IY] = idy
     lf[lane, _IZ] = idz

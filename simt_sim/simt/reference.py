@@ -185,6 +185,27 @@ def _speculative_group(streams: list[list[int]], rec: RefCounts) -> int:
     return issued + rec.charge("finish", everyone)
 
 
+def _persistent_group(streams: list[list[int]], rec: RefCounts) -> int:
+    issued = rec.charge("pool_fetch", list(range(len(streams))))
+    return issued + _while_while_warp(streams, rec)
+
+
+#: replays of one warp (persistent schemes: one fetched group) that charge in issue order
+WARP_REPLAYS = {
+    "while_while": _while_while_warp,
+    "if_if": _if_if_warp,
+    "persistent_while_while": _persistent_group,
+    "persistent_speculative_while_while": _speculative_group,
+}
+
+
+def replay_warp(streams: list[list[int]], scheme: str, rec: RefCounts) -> int:
+    """One warp of ``scheme`` (a fetched group for the persistent ones; a scheme of
+    ``WARP_REPLAYS``), charged to ``rec`` block by block in issue order; returns its
+    instructions."""
+    return WARP_REPLAYS[scheme](streams, rec)
+
+
 def _packet_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> None:
     nodes: dict[int, set[int]] = {}
     outcome: dict[int, int] = {}
@@ -280,12 +301,10 @@ def reference_replay(
     if scheme in ("while_while", "if_if", "packet"):
         for r0 in range(0, n, warp_size):
             warp = streams[r0 : r0 + warp_size]
-            if scheme == "while_while":
-                _while_while_warp(warp, rec)
-            elif scheme == "if_if":
-                _if_if_warp(warp, rec)
-            else:
+            if scheme == "packet":
                 _packet_warp(warp, addrs[r0 : r0 + warp_size], rec)
+            else:
+                replay_warp(warp, scheme, rec)
         return rec
     size = launch_size or max(n, 1)
     rec.warp_totals = [0] * resident_warps
@@ -297,11 +316,7 @@ def reference_replay(
             heap = [(0, wid) for wid in range(resident_warps)]
             for g0 in range(0, len(launch), warp_size):
                 group = launch[g0 : g0 + warp_size]
-                if scheme == "persistent_while_while":
-                    cost = rec.charge("pool_fetch", list(range(len(group))))
-                    cost += _while_while_warp(group, rec)
-                else:
-                    cost = _speculative_group(group, rec)
+                cost = replay_warp(group, scheme, rec)
                 load, wid = heapq.heappop(heap)
                 heapq.heappush(heap, (load + cost, wid))
             totals = [0] * resident_warps

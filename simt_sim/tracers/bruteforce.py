@@ -15,7 +15,7 @@ from simt_sim.raybatch import RayBatch
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _bruteforce(v0, e1, e2, origin, direction, tmin, tmax, any_hit, out_tri, out_t):
+def _bruteforce(v0, e1, e2, origin, direction, tmin, tmax, any_hit, margin, out_tri, out_t):
     n = origin.shape[0]
     m = v0.shape[0]
     for i in prange(n):
@@ -36,13 +36,13 @@ def _bruteforce(v0, e1, e2, origin, direction, tmin, tmax, any_hit, out_tri, out
             sy = o[1] - v0[k, 1]
             sz = o[2] - v0[k, 2]
             u = (sx * px + sy * py + sz * pz) * inv
-            if u < 0.0 or u > 1.0:
+            if u < -margin or u > 1.0 + margin:
                 continue
             qx = sy * e1[k, 2] - sz * e1[k, 1]
             qy = sz * e1[k, 0] - sx * e1[k, 2]
             qz = sx * e1[k, 1] - sy * e1[k, 0]
             v = (d[0] * qx + d[1] * qy + d[2] * qz) * inv
-            if v < 0.0 or u + v > 1.0:
+            if v < -margin or u + v > 1.0 + margin:
                 continue
             t = (e2[k, 0] * qx + e2[k, 1] * qy + e2[k, 2] * qz) * inv
             if t > tmin[i] and t < best_t:
@@ -54,11 +54,17 @@ def _bruteforce(v0, e1, e2, origin, direction, tmin, tmax, any_hit, out_tri, out
         out_t[i] = best_t if best >= 0 else np.inf
 
 
-def trace_bruteforce(vertices: np.ndarray, triangles: np.ndarray, rays: RayBatch) -> Hits:
+def trace_bruteforce(
+    vertices: np.ndarray, triangles: np.ndarray, rays: RayBatch, *, margin: float = 0.0
+) -> Hits:
     """Hits of ``rays`` against every triangle (closest or any, per ``rays.query``).
 
     Zero-area triangles never hit (their determinant is 0). For any-hit queries the
-    reported triangle is the first in scene order that the ray hits.
+    reported triangle is the first in scene order that the ray hits. ``margin > 0``
+    grows every triangle by that much in barycentric units (``u, v >= -margin``,
+    ``u + v <= 1 + margin``), ``margin < 0`` shrinks it: the BVH tracers' conservative
+    triangle test must hit every ray a slightly shrunk test hits and no ray a grown one
+    misses.
     """
     if rays.query not in ("closest", "any"):
         raise SimtSimError(f"unknown ray query {rays.query!r}; use 'closest' or 'any'")
@@ -76,7 +82,7 @@ def trace_bruteforce(vertices: np.ndarray, triangles: np.ndarray, rays: RayBatch
         np.ascontiguousarray(rays.direction, dtype=np.float64),
         np.asarray(rays.tmin, dtype=np.float64),
         np.asarray(rays.tmax, dtype=np.float64),
-        rays.query == "any", out_tri, out_t,
+        rays.query == "any", float(margin), out_tri, out_t,
     )  # fmt: skip
     out_tri[out_tri < 0] = MISS
     return Hits(tri=out_tri, t=out_t.astype(np.float32))

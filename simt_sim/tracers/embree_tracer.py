@@ -44,14 +44,18 @@ class EmbreeTracer:
     def trace(self, rays: RayBatch) -> Hits:
         """Trace ``rays`` (closest or any hit, per ``rays.query``)."""
         origin = rays.origin.astype(np.float32, copy=True)
-        tmin = rays.tmin.astype(np.float32)
+        # Embree's interval is closed and it reports an empty one as occluded; ours is
+        # open (tmin < t < tmax), so an empty one (tmin >= tmax) is traced as a miss.
+        empty = ~(rays.tmin < rays.tmax)
+        tmin = np.where(empty, 0, rays.tmin).astype(np.float32)
         shifted = bool(np.any(tmin != 0))
         if shifted:
             origin += rays.direction * tmin[:, None]
-        dists = (rays.tmax - tmin).astype(np.float32)
+        dists = np.where(empty, -np.inf, rays.tmax - tmin).astype(np.float32)
         direction = np.ascontiguousarray(rays.direction, dtype=np.float32)
         if rays.query == "any":
             occluded = self._scene.run(origin, direction, dists=dists, query="OCCLUDED") == 0
+            occluded &= ~empty
             tri = np.where(occluded, UNKNOWN_TRI, MISS).astype(np.int32)
             t = np.where(occluded, np.float32(np.nan), np.float32(np.inf)).astype(np.float32)
             return Hits(tri=tri, t=t)

@@ -14,12 +14,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from simt_sim.optrace import TRAV_NONE, TRAV_ONE
 from simt_sim.simt.engine import (
     FINISH,
-    IS_HIT,
-    IS_LEAF,
-    IS_TRAV,
-    IS_TRI,
     LEAF_ENTRY,
     LOOP_CONTROL,
     N_BLOCKS,
@@ -34,9 +31,16 @@ from simt_sim.simt.engine import (
     charge,
     chunk_bounds,
     chunk_counts,
+    is_hit,
+    is_leaf,
+    is_trav,
+    is_tri,
+    lanes_so_far,
     lowest_lane,
+    no_per_warp,
     op_at,
     popcount,
+    record_warp,
 )
 
 NAME = "if_if"
@@ -46,7 +50,8 @@ APPROXIMATIONS: tuple[str, ...] = ()
 
 @njit(cache=True, nogil=True)
 def _warp(offsets, op, r0, n, cur, end, costs, cnt, hist):
-    """Rays ``r0 .. r0+n-1`` as one warp; each lane's iteration in one pass over its ops.
+    """Rays ``r0 .. r0+n-1`` as one warp; returns its instructions. Each lane's iteration
+    in one pass over its ops.
 
     Within an iteration a lane's traversal step, leaf entry and triangle test only depend
     on its own stream, so one pass per alive lane (a bit of the ``alive`` mask) gathers
@@ -57,9 +62,9 @@ def _warp(offsets, op, r0, n, cur, end, costs, cnt, hist):
         cur[lane] = offsets[r0 + lane]
         end[lane] = offsets[r0 + lane + 1]
         alive |= np.int64(cur[lane] < end[lane]) << lane
-    charge(cnt, hist, costs, RAY_SETUP, n)
+    issued = charge(cnt, hist, costs, RAY_SETUP, n)
     while alive:
-        charge(cnt, hist, costs, LOOP_CONTROL, popcount(alive))
+        issued += charge(cnt, hist, costs, LOOP_CONTROL, popcount(alive))
         k = 0
         c0 = 0
         c1 = 0
@@ -73,36 +78,37 @@ def _warp(offsets, op, r0, n, cur, end, costs, cnt, hist):
             m &= m - 1
             c = cur[lane]
             e = end[lane]
-            o = op[c]
-            t = IS_TRAV[o]
-            c0 += o == 0
-            c1 += o == 1
+            o = op[np.uint64(c)]
+            t = is_trav(o)
+            c0 += o == TRAV_NONE
+            c1 += o == TRAV_ONE
             k += t
             c += t
             o = op_at(op, c, e)
-            t = IS_LEAF[o]
+            t = is_leaf(o)
             nl += t
             c += t
             o = op_at(op, c, e)
-            t = IS_TRI[o]
+            t = is_tri(o)
             nt += t
-            h += IS_HIT[o]
+            h += is_hit(o)
             c += t
             cur[lane] = c
             nxt |= np.int64(c < e) << lane
-        charge(cnt, hist, costs, TRAV_STEP, k)
-        charge(cnt, hist, costs, TRAV_NONE_B, c0)
-        charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
-        charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
-        charge(cnt, hist, costs, LEAF_ENTRY, nl)
-        charge(cnt, hist, costs, TRI_TEST, nt)
-        charge(cnt, hist, costs, TRI_HIT_B, h)
+        issued += charge(cnt, hist, costs, TRAV_STEP, k)
+        issued += charge(cnt, hist, costs, TRAV_NONE_B, c0)
+        issued += charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
+        issued += charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
+        issued += charge(cnt, hist, costs, LEAF_ENTRY, nl)
+        issued += charge(cnt, hist, costs, TRI_TEST, nt)
+        issued += charge(cnt, hist, costs, TRI_HIT_B, h)
         alive = nxt
-    charge(cnt, hist, costs, FINISH, n)
+    return issued + charge(cnt, hist, costs, FINISH, n)
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _replay(offsets, op, costs, warp_size):
+def _replay(offsets, op, costs, warp_size, per_warp):
+    """Warps in parallel chunks; each warp's totals go to ``per_warp`` if it has rows."""
     n_rays = offsets.shape[0] - 1
     n_warps = (n_rays + warp_size - 1) // warp_size
     nc = min(N_CHUNKS, max(n_warps, 1))
@@ -115,7 +121,9 @@ def _replay(offsets, op, costs, warp_size):
         for w in range(bounds[c], bounds[c + 1]):
             r0 = w * warp_size
             n = min(warp_size, n_rays - r0)
-            _warp(offsets, op, r0, n, cur, end, costs, cnt[c], hist[c])
+            before = lanes_so_far(per_warp, cnt[c], costs)
+            issued = _warp(offsets, op, r0, n, cur, end, costs, cnt[c], hist[c])
+            record_warp(per_warp, w, issued, before, cnt[c], costs)
     return cnt, hist
 
 
@@ -123,4 +131,13 @@ def replay(
     offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, p: ReplayParams
 ) -> Counts:
     """Replay one batch (warps of consecutive rays, independent of each other)."""
-    return chunk_counts(*_replay(offsets, op, costs, p.warp_size))
+    return chunk_counts(*_replay(offsets, op, costs, p.warp_size, no_per_warp()))
+
+
+def warp_counts(
+    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, warp_size: int
+) -> np.ndarray:
+    """Warp and lane instructions of each warp (int64 (n_warps, 2)), as ``replay`` counts."""
+    per_warp = np.zeros((-(-(offsets.shape[0] - 1) // warp_size), 2), np.int64)
+    _replay(offsets, op, costs, warp_size, per_warp)
+    return per_warp

@@ -41,7 +41,10 @@ from simt_sim.simt.engine import (
     charge_many,
     chunk_bounds,
     chunk_counts,
+    lanes_so_far,
+    no_per_warp,
     popcount,
+    record_warp,
 )
 
 NAME = "packet"
@@ -59,7 +62,8 @@ _KEY, _LANES, _HITS, _OUT = 0, 1, 2, 3
 
 @njit(cache=True, nogil=True)
 def _warp(offsets, op, addr, r0, n, table, used, costs, cnt, hist):
-    """One warp: gather the union of its lanes' nodes in ``table``, then charge each once.
+    """One warp: gather the union of its lanes' nodes in ``table``, then charge each once;
+    returns the warp's instructions.
 
     ``table`` is an open-addressing hash table (rows of key, lane mask, hit-lane mask,
     largest outcome; key -1 marks a free row) left empty again on return; ``used`` lists
@@ -86,25 +90,25 @@ def _warp(offsets, op, addr, r0, n, table, used, costs, cnt, hist):
             table[s, _LANES] |= bit
             table[s, _HITS] |= np.int64(o == TRI_HIT) << lane
             table[s, _OUT] = max(table[s, _OUT], np.int64(o) * (kind == 0))
-    charge(cnt, hist, costs, RAY_SETUP, n)
+    issued = charge(cnt, hist, costs, RAY_SETUP, n)
     visits = 0
     for i in range(nused):
         s = used[i]
         kind = table[s, _KEY] & 3
         lanes = popcount(table[s, _LANES])
         if kind == 0:
-            charge(cnt, hist, costs, TRAV_STEP, lanes)
-            charge(cnt, hist, costs, TRAV_NONE_B + table[s, _OUT], lanes)
+            issued += charge(cnt, hist, costs, TRAV_STEP, lanes)
+            issued += charge(cnt, hist, costs, TRAV_NONE_B + table[s, _OUT], lanes)
             visits += 1
         elif kind == 1:
-            charge(cnt, hist, costs, LEAF_ENTRY, lanes)
+            issued += charge(cnt, hist, costs, LEAF_ENTRY, lanes)
             visits += 1
         else:
-            charge(cnt, hist, costs, TRI_TEST, lanes)
-            charge(cnt, hist, costs, TRI_HIT_B, popcount(table[s, _HITS]))
+            issued += charge(cnt, hist, costs, TRI_TEST, lanes)
+            issued += charge(cnt, hist, costs, TRI_HIT_B, popcount(table[s, _HITS]))
         table[s, _KEY] = -1
-    charge_many(cnt, hist, costs, LOOP_CONTROL, n, visits)
-    charge(cnt, hist, costs, FINISH, n)
+    issued += charge_many(cnt, hist, costs, LOOP_CONTROL, n, visits)
+    return issued + charge(cnt, hist, costs, FINISH, n)
 
 
 @njit(cache=True, nogil=True)
@@ -112,7 +116,9 @@ def node_table(offsets, warp_size, w0, w1):
     """The open-addressing table (and its used-slot list) for warps ``w0:w1``.
 
     Sized to a power of two above twice the most ops any of those warps holds, so every
-    distinct node or leaf of a warp finds a slot; reused across the warps of a chunk.
+    distinct node or leaf of a warp finds a slot; reused across the warps of a chunk. (One
+    table per thread sized for the whole batch was slower: a bigger table spreads the
+    probes over more cache lines.)
     """
     n_rays = offsets.shape[0] - 1
     most = 0
@@ -127,7 +133,8 @@ def node_table(offsets, warp_size, w0, w1):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _replay(offsets, op, addr, costs, warp_size):
+def _replay(offsets, op, addr, costs, warp_size, per_warp):
+    """Warps in parallel chunks; each warp's totals go to ``per_warp`` if it has rows."""
     n_rays = offsets.shape[0] - 1
     n_warps = (n_rays + warp_size - 1) // warp_size
     nc = min(N_CHUNKS, max(n_warps, 1))
@@ -139,7 +146,9 @@ def _replay(offsets, op, addr, costs, warp_size):
         for w in range(bounds[c], bounds[c + 1]):
             r0 = w * warp_size
             n = min(warp_size, n_rays - r0)
-            _warp(offsets, op, addr, r0, n, table, used, costs, cnt[c], hist[c])
+            before = lanes_so_far(per_warp, cnt[c], costs)
+            issued = _warp(offsets, op, addr, r0, n, table, used, costs, cnt[c], hist[c])
+            record_warp(per_warp, w, issued, before, cnt[c], costs)
     return cnt, hist
 
 
@@ -147,4 +156,13 @@ def replay(
     offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, p: ReplayParams
 ) -> Counts:
     """Replay one batch (warps of consecutive rays, independent of each other)."""
-    return chunk_counts(*_replay(offsets, op, addr, costs, p.warp_size))
+    return chunk_counts(*_replay(offsets, op, addr, costs, p.warp_size, no_per_warp()))
+
+
+def warp_counts(
+    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, warp_size: int
+) -> np.ndarray:
+    """Warp and lane instructions of each warp (int64 (n_warps, 2)), as ``replay`` counts."""
+    per_warp = np.zeros((-(-(offsets.shape[0] - 1) // warp_size), 2), np.int64)
+    _replay(offsets, op, addr, costs, warp_size, per_warp)
+    return per_warp

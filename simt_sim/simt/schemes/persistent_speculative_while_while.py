@@ -24,11 +24,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from simt_sim.optrace import LEAF
+from simt_sim.optrace import LEAF, TRAV_NONE, TRAV_ONE
 from simt_sim.simt.engine import (
     FINISH,
-    IS_LEAF,
-    IS_TRAV,
     LEAF_ENTRY,
     LOOP_CONTROL,
     N_BLOCKS,
@@ -43,9 +41,14 @@ from simt_sim.simt.engine import (
     charge,
     chunk_bounds,
     chunk_counts,
+    is_leaf,
+    is_trav,
+    lanes_so_far,
     lowest_lane,
     next_op,
+    no_per_warp,
     popcount,
+    record_warp,
     schedule_groups,
     step,
 )
@@ -59,6 +62,21 @@ APPROXIMATIONS: tuple[str, ...] = (
     "speculation replayed on the recorded streams: op counts per ray preserved, extra "
     "node visits with a stale tmax are not modelled",
 )
+
+
+@njit(cache=True, nogil=True)
+def _postpone(op, cur, end, park, park_end, lane):
+    """Park the leaf the lane is at (the LEAF op and its TRI ops: ``park .. park_end``),
+    move the lane past it and return its next op. A function of its own: inlined, this
+    rare path slowed the traversal loop around it by a third (measured)."""
+    c = cur[lane]
+    park[lane] = c
+    c += 1
+    while c < end[lane] and op[np.uint64(c)] > LEAF:
+        c += 1
+    park_end[lane] = c
+    cur[lane] = c
+    return next_op(op, cur, end, lane)
 
 
 @njit(cache=True, nogil=True)
@@ -83,24 +101,17 @@ def _spec_trav_loop(op, cur, end, park, park_end, trav, costs, cnt, hist):
             lane = lowest_lane(m)
             m &= m - 1
             bit = np.int64(1) << lane
-            o = op[cur[lane]]
-            c0 += o == 0
-            c1 += o == 1
+            o = op[np.uint64(cur[lane])]
+            c0 += o == TRAV_NONE
+            c1 += o == TRAV_ONE
             o = step(op, cur, end, lane)
             # only lanes that stepped may postpone (a waiting lane at a LEAF stays put)
-            if IS_LEAF[o] and not parked & bit:
-                c = cur[lane]
-                park[lane] = c
-                c += 1
-                while c < end[lane] and op[c] > LEAF:
-                    c += 1
-                park_end[lane] = c
-                cur[lane] = c
+            if is_leaf(o) and not parked & bit:
+                o = _postpone(op, cur, end, park, park_end, lane)
                 parked |= bit
                 npost += 1
-                o = next_op(op, cur, end, lane)
-            nxt |= IS_TRAV[o] << lane
-            leaf |= IS_LEAF[o] << lane
+            nxt |= is_trav(o) << lane
+            leaf |= is_leaf(o) << lane
             without |= bit & ~parked
         issued += charge(cnt, hist, costs, TRAV_STEP, k)
         issued += charge(cnt, hist, costs, TRAV_NONE_B, c0)
@@ -148,7 +159,8 @@ def _group(offsets, op, r0, n, cur, end, park, park_end, pcur, acc, costs, cnt, 
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _replay(offsets, op, costs, warp_size):
+def _replay(offsets, op, costs, warp_size, per_warp):
+    """Groups in parallel chunks; each group's totals go to ``per_warp`` if it has rows."""
     n_rays = offsets.shape[0] - 1
     n_groups = (n_rays + warp_size - 1) // warp_size
     nc = min(N_CHUNKS, max(n_groups, 1))
@@ -166,9 +178,11 @@ def _replay(offsets, op, costs, warp_size):
         for g in range(bounds[c], bounds[c + 1]):
             r0 = g * warp_size
             n = min(warp_size, n_rays - r0)
+            before = lanes_so_far(per_warp, cnt[c], costs)
             group_cost[g] = _group(
                 offsets, op, r0, n, cur, end, park, park_end, pcur, acc, costs, cnt[c], hist[c]
             )
+            record_warp(per_warp, g, group_cost[g], before, cnt[c], costs)
     return cnt, hist, group_cost
 
 
@@ -176,8 +190,18 @@ def replay(
     offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, p: ReplayParams
 ) -> Counts:
     """Replay one launch: groups in parallel, then ideal assignment to resident warps."""
-    cnt, hist, group_cost = _replay(offsets, op, costs, p.warp_size)
+    cnt, hist, group_cost = _replay(offsets, op, costs, p.warp_size, no_per_warp())
     totals = np.zeros(p.resident_warps, np.int64)
     span = schedule_groups(group_cost, p.resident_warps, totals)
     c = chunk_counts(cnt, hist)
     return Counts(c.executions, c.active, c.hist, totals, int(span))
+
+
+def warp_counts(
+    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, warp_size: int
+) -> np.ndarray:
+    """Warp and lane instructions of each fetched group of ``warp_size`` consecutive rays
+    (int64 (n_groups, 2)), as ``replay`` counts them (the scheduling aside)."""
+    per_warp = np.zeros((-(-(offsets.shape[0] - 1) // warp_size), 2), np.int64)
+    _replay(offsets, op, costs, warp_size, per_warp)
+    return per_warp

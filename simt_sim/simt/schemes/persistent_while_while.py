@@ -24,6 +24,9 @@ from simt_sim.simt.engine import (
     charge,
     chunk_bounds,
     chunk_counts,
+    lanes_so_far,
+    no_per_warp,
+    record_warp,
     schedule_groups,
 )
 from simt_sim.simt.schemes.while_while import WINDOW, warp_body
@@ -44,7 +47,8 @@ def _group(offsets, op, r0, n, cur, end, acc, costs, cnt, hist):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _replay(offsets, op, costs, warp_size):
+def _replay(offsets, op, costs, warp_size, per_warp):
+    """Groups in parallel chunks; each group's totals go to ``per_warp`` if it has rows."""
     n_rays = offsets.shape[0] - 1
     n_groups = (n_rays + warp_size - 1) // warp_size
     nc = min(N_CHUNKS, max(n_groups, 1))
@@ -59,7 +63,9 @@ def _replay(offsets, op, costs, warp_size):
         for g in range(bounds[c], bounds[c + 1]):
             r0 = g * warp_size
             n = min(warp_size, n_rays - r0)
+            before = lanes_so_far(per_warp, cnt[c], costs)
             group_cost[g] = _group(offsets, op, r0, n, cur, end, acc, costs, cnt[c], hist[c])
+            record_warp(per_warp, g, group_cost[g], before, cnt[c], costs)
     return cnt, hist, group_cost
 
 
@@ -67,8 +73,18 @@ def replay(
     offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, p: ReplayParams
 ) -> Counts:
     """Replay one launch: groups in parallel, then ideal assignment to resident warps."""
-    cnt, hist, group_cost = _replay(offsets, op, costs, p.warp_size)
+    cnt, hist, group_cost = _replay(offsets, op, costs, p.warp_size, no_per_warp())
     totals = np.zeros(p.resident_warps, np.int64)
     span = schedule_groups(group_cost, p.resident_warps, totals)
     c = chunk_counts(cnt, hist)
     return Counts(c.executions, c.active, c.hist, totals, int(span))
+
+
+def warp_counts(
+    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, warp_size: int
+) -> np.ndarray:
+    """Warp and lane instructions of each fetched group of ``warp_size`` consecutive rays
+    (int64 (n_groups, 2)), as ``replay`` counts them (the scheduling aside)."""
+    per_warp = np.zeros((-(-(offsets.shape[0] - 1) // warp_size), 2), np.int64)
+    _replay(offsets, op, costs, warp_size, per_warp)
+    return per_warp

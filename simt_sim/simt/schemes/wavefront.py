@@ -46,7 +46,6 @@ from simt_sim.simt.engine import (
     empty_counts,
 )
 from simt_sim.simt.gpus import GpuConfig
-from simt_sim.simt.replay import simulate as simulate_trace
 from simt_sim.simt.result import SimResult, check_ir, merge
 from simt_sim.simt.schemes import while_while
 from simt_sim.simt.schemes.megakernel import path_card
@@ -249,6 +248,8 @@ def simulate_queues(
     Each bounce's queue (:meth:`PathTrace.queues`, ``kind`` extend, connect or all) is one
     launch of ``simulate``; the launches are merged. ``kwargs`` go to ``simulate``.
     """
+    from simt_sim.simt.replay import simulate as simulate_trace  # replay imports the registry
+
     results = [simulate_trace([q], scheme, ir, gpu, **kwargs) for q in pt.queues(kind)]
     if not results:
         raise SimtSimError("the path trace has no queues; trace at least one path")

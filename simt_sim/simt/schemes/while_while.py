@@ -27,12 +27,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from simt_sim.optrace import TRAV_BOTH, TRI_MISS
+from simt_sim.optrace import TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS
 from simt_sim.simt.engine import (
     FINISH,
-    IS_LEAF,
-    IS_TRAV,
-    IS_TRI,
     LEAF_ENTRY,
     LOOP_CONTROL,
     MAX_MASK_LANES,
@@ -48,9 +45,15 @@ from simt_sim.simt.engine import (
     charge,
     chunk_bounds,
     chunk_counts,
+    is_leaf,
+    is_trav,
+    is_tri,
+    lanes_so_far,
     lowest_lane,
     next_op,
+    no_per_warp,
     popcount,
+    record_warp,
     step,
 )
 
@@ -61,13 +64,22 @@ APPROXIMATIONS: tuple[str, ...] = ()
 WINDOW = 64
 
 
-#: a lane's TRAV op as packed counters: 1 stepping lane, plus 1 in the TRAV_NONE field
-#: (bits 21-41) or the TRAV_ONE field (bits 42-62); TRAV_BOTH lanes are the remainder
+#: packed per-iteration counters of the run-ahead window: fields of 21 bits
 _FIELD = 21
 _LOW = (1 << _FIELD) - 1
-TRAV_PACK = np.array([1 + (1 << _FIELD), 1 + (1 << (2 * _FIELD)), 1, 0, 0, 0, 0, 0], np.int64)
-#: a lane's TRI op as packed counters: 1 testing lane, plus 1 in bits 21-41 for a TRI_HIT
-TRI_PACK = np.array([0, 0, 0, 0, 1, 1 + (1 << _FIELD), 0, 0], np.int64)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def trav_pack(o):
+    """A lane's TRAV op as packed counters: 1 stepping lane, plus 1 in the TRAV_NONE field
+    (bits 21-41) or the TRAV_ONE field (bits 42-62); TRAV_BOTH lanes are the remainder."""
+    return 1 + (np.int64(o == TRAV_NONE) << _FIELD) + (np.int64(o == TRAV_ONE) << (2 * _FIELD))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def tri_pack(o):
+    """A lane's TRI op as packed counters: 1 testing lane, plus 1 in bits 21-41 for a hit."""
+    return 1 + (np.int64(o == TRI_HIT) << _FIELD)
 
 
 @njit(cache=True, nogil=True)
@@ -93,16 +105,17 @@ def trav_loop(op, cur, end, trav, acc, costs, cnt, hist):
             m &= m - 1
             c = cur[lane]
             e = end[lane]
+            o = op[np.uint64(c)]
             j = 0
             while True:
-                acc[j] += TRAV_PACK[op[c]]
+                acc[j] += trav_pack(o)
                 c += 1
                 j += 1
                 if c == e:
                     break
-                o = op[c]
+                o = op[np.uint64(c)]
                 if o > TRAV_BOTH:
-                    leaf |= IS_LEAF[o] << lane
+                    leaf |= is_leaf(o) << lane
                     break
                 if j == window:
                     nxt |= np.int64(1) << lane
@@ -144,17 +157,18 @@ def tri_loop(op, cur, end, tri, acc, costs, cnt, hist):
             m &= m - 1
             c = cur[lane]
             e = end[lane]
+            o = op[np.uint64(c)]
             j = 0
             while True:
-                acc[j] += TRI_PACK[op[c]]
+                acc[j] += tri_pack(o)
                 c += 1
                 j += 1
                 if c == e:
                     break
-                o = op[c]
+                o = op[np.uint64(c)]
                 if o < TRI_MISS:
-                    leaf |= IS_LEAF[o] << lane
-                    trav |= IS_TRAV[o] << lane
+                    leaf |= is_leaf(o) << lane
+                    trav |= is_trav(o) << lane
                     break
                 if j == window:
                     nxt |= np.int64(1) << lane
@@ -189,9 +203,9 @@ def isect_loop(op, cur, end, leaf, acc, costs, cnt, hist):
             lane = lowest_lane(m)
             m &= m - 1
             o = step(op, cur, end, lane)
-            tri |= IS_TRI[o] << lane
-            nxt |= IS_LEAF[o] << lane
-            trav |= IS_TRAV[o] << lane
+            tri |= is_tri(o) << lane
+            nxt |= is_leaf(o) << lane
+            trav |= is_trav(o) << lane
         t_issued, t_leaf, t_trav = tri_loop(op, cur, end, tri, acc, costs, cnt, hist)
         issued += t_issued
         trav |= t_trav
@@ -216,7 +230,7 @@ def outer_step(op, cur, end, trav, leaf, acc, costs, cnt, hist):
 def classify(op, cur, end, lane, trav, leaf):
     """Add ``lane`` to the mask of its next op's kind: returns ``(trav, leaf)``."""
     o = next_op(op, cur, end, lane)
-    return trav | (IS_TRAV[o] << lane), leaf | (IS_LEAF[o] << lane)
+    return trav | (is_trav(o) << lane), leaf | (is_leaf(o) << lane)
 
 
 @njit(cache=True, nogil=True)
@@ -257,7 +271,8 @@ def warp_body(offsets, op, r0, n, cur, end, acc, costs, cnt, hist):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _replay(offsets, op, costs, warp_size):
+def _replay(offsets, op, costs, warp_size, per_warp):
+    """Warps in parallel chunks; each warp's totals go to ``per_warp`` if it has rows."""
     n_rays = offsets.shape[0] - 1
     n_warps = (n_rays + warp_size - 1) // warp_size
     nc = min(N_CHUNKS, max(n_warps, 1))
@@ -271,7 +286,9 @@ def _replay(offsets, op, costs, warp_size):
         for w in range(bounds[c], bounds[c + 1]):
             r0 = w * warp_size
             n = min(warp_size, n_rays - r0)
-            warp_body(offsets, op, r0, n, cur, end, acc, costs, cnt[c], hist[c])
+            before = lanes_so_far(per_warp, cnt[c], costs)
+            issued = warp_body(offsets, op, r0, n, cur, end, acc, costs, cnt[c], hist[c])
+            record_warp(per_warp, w, issued, before, cnt[c], costs)
     return cnt, hist
 
 
@@ -279,4 +296,13 @@ def replay(
     offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, p: ReplayParams
 ) -> Counts:
     """Replay one batch (warps of consecutive rays, independent of each other)."""
-    return chunk_counts(*_replay(offsets, op, costs, p.warp_size))
+    return chunk_counts(*_replay(offsets, op, costs, p.warp_size, no_per_warp()))
+
+
+def warp_counts(
+    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, warp_size: int
+) -> np.ndarray:
+    """Warp and lane instructions of each warp (int64 (n_warps, 2)), as ``replay`` counts."""
+    per_warp = np.zeros((-(-(offsets.shape[0] - 1) // warp_size), 2), np.int64)
+    _replay(offsets, op, costs, warp_size, per_warp)
+    return per_warp
