@@ -18,16 +18,16 @@ present, else the built-in ``room``.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 import kernels_ir
-from simt_sim.errors import SimtSimError
 from simt_sim.optrace import TRAV_BOTH, OpTrace
 from simt_sim.record import record_all
-from simt_sim.scene import load_scene
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.memory import (
     MemoryCounts,
@@ -40,16 +40,10 @@ from simt_sim.simt.replay import simulate
 from simt_sim.tables import FORMATS, emit
 from simt_sim.workload import make_workload, parse_resolution
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from approximation_error import default_scene  # noqa: E402
+
 GPUS = ("gtx285", "rtx2080ti", "h100")
-
-
-def default_scene() -> str:
-    """``conference`` if its mesh is available, else the built-in ``room``."""
-    try:
-        load_scene("conference")
-    except SimtSimError:
-        return "room"
-    return "conference"
 
 
 def kth_fetch_proxy(trace: OpTrace, exact: MemoryCounts) -> dict[str, float]:
