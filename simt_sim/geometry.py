@@ -52,8 +52,9 @@ rounding error (unit roundoff ``eps = 2^-24``):
   ray in 6,000 gets its closest hit on a triangle it passes within the bound of
   (Embree agreement 0.99992 and 0.99996; 1.0 and 0.99999 with exact comparisons).
 
-The CUDA kernels (``kernels_ir/cuda/common.cuh``) still use the exact comparisons and
-``fma(lo, idir, -o * idir)`` slabs.
+The CUDA kernels (``kernels_ir/cuda/common.cuh``) make the same tests (with the GPU's
+approximate reciprocal where this divides), so the instruction costs in ``kernels_ir``
+are those of the watertight tests the recorder records.
 """
 
 from __future__ import annotations

@@ -25,14 +25,18 @@
 #define SIMT_WARP_SIZE 32
 #define SIMT_DYNAMIC_FETCH_THRESHOLD 20 // dynamic fetch refills when fewer lanes are active
 #define SIMT_INF __int_as_float(0x7f800000)
+#define SIMT_OOEPS 0x1p-80f             // 2^-80: smallest |d_i| relative to max |d_j|
+#define SIMT_MIN_NORMAL 0x1p-126f       // 2^-126: the clamp never goes below it
+#define SIMT_BOX_ROUNDING 0x1.000008p+0f // 1 + 2^-21 >= 1 + 2 gamma_3 (Ize 2013) on tfar
+#define SIMT_TRI_ROUNDING 0x1.4p-22f    // 5 * 2^-24: factor of the Woop test's error bounds
 
-// A ray prepared for slab tests: idir = 1 / clamped direction, ood = origin * idir, so
-// each slab bound costs one FFMA (lo * idir - ood), as in Aila & Laine's kernels.
+// A ray prepared for slab tests: idir = 1 / clamped direction. Slab bounds are
+// (lo - orig) * idir, as simt_sim/geometry.py computes them: with a finite idir no
+// inf - inf or 0 * inf appears (Aila & Laine's one-FFMA lo * idir - orig * idir can).
 struct Ray {
     float3 orig;
     float3 dir;
     float3 idir;
-    float3 ood;
     float tmin;
     float tmax;
 };
@@ -68,14 +72,16 @@ __device__ __forceinline__ int simt_opaque(int x)
 
 __device__ __forceinline__ Ray simt_make_ray(float4 o, float4 d)
 {
-    const float ooeps = 5.0e-25f;  // about 2^-80: keeps 1/dir finite
+    // |d_i| clamped to 2^-80 of the largest component (and 2^-126), keeping 1/d finite
+    // and tilting a short direction no more than a long one (simt_sim.geometry).
+    const float ooeps = fmaxf(fmaxf(fmaxf(fabsf(d.x), fabsf(d.y)), fabsf(d.z)) * SIMT_OOEPS,
+                              SIMT_MIN_NORMAL);
     Ray r;
     r.orig = make_float3(o.x, o.y, o.z);
     r.dir = make_float3(d.x, d.y, d.z);
     r.idir.x = simt_rcp(fabsf(d.x) > ooeps ? d.x : copysignf(ooeps, d.x));
     r.idir.y = simt_rcp(fabsf(d.y) > ooeps ? d.y : copysignf(ooeps, d.y));
     r.idir.z = simt_rcp(fabsf(d.z) > ooeps ? d.z : copysignf(ooeps, d.z));
-    r.ood = make_float3(o.x * r.idir.x, o.y * r.idir.y, o.z * r.idir.z);
     r.tmin = o.w;
     r.tmax = d.w;
     return r;
@@ -101,27 +107,33 @@ __device__ __forceinline__ NodeHit simt_intersect_node(const float4* __restrict_
     const float4 n1 = __ldg(nodes + 4 * node + 1);
     const float4 n2 = __ldg(nodes + 4 * node + 2);
     const float4 n3 = __ldg(nodes + 4 * node + 3);
-    const float c0lox = fmaf(n0.x, r.idir.x, -r.ood.x);
-    const float c0hix = fmaf(n0.y, r.idir.x, -r.ood.x);
-    const float c0loy = fmaf(n0.z, r.idir.y, -r.ood.y);
-    const float c0hiy = fmaf(n0.w, r.idir.y, -r.ood.y);
-    const float c0loz = fmaf(n2.x, r.idir.z, -r.ood.z);
-    const float c0hiz = fmaf(n2.y, r.idir.z, -r.ood.z);
-    const float c1lox = fmaf(n1.x, r.idir.x, -r.ood.x);
-    const float c1hix = fmaf(n1.y, r.idir.x, -r.ood.x);
-    const float c1loy = fmaf(n1.z, r.idir.y, -r.ood.y);
-    const float c1hiy = fmaf(n1.w, r.idir.y, -r.ood.y);
-    const float c1loz = fmaf(n2.z, r.idir.z, -r.ood.z);
-    const float c1hiz = fmaf(n2.w, r.idir.z, -r.ood.z);
+    const float c0lox = (n0.x - r.orig.x) * r.idir.x;
+    const float c0hix = (n0.y - r.orig.x) * r.idir.x;
+    const float c0loy = (n0.z - r.orig.y) * r.idir.y;
+    const float c0hiy = (n0.w - r.orig.y) * r.idir.y;
+    const float c0loz = (n2.x - r.orig.z) * r.idir.z;
+    const float c0hiz = (n2.y - r.orig.z) * r.idir.z;
+    const float c1lox = (n1.x - r.orig.x) * r.idir.x;
+    const float c1hix = (n1.y - r.orig.x) * r.idir.x;
+    const float c1loy = (n1.z - r.orig.y) * r.idir.y;
+    const float c1hiy = (n1.w - r.orig.y) * r.idir.y;
+    const float c1loz = (n2.z - r.orig.z) * r.idir.z;
+    const float c1hiz = (n2.w - r.orig.z) * r.idir.z;
+    // tfar carries the slabs' rounding bound, so a ray touching a box never misses it
+    // (watertight, as simt_sim.geometry.node_child_intervals).
     NodeHit h;
     h.c0min = fmaxf(fmaxf(fminf(c0lox, c0hix), fminf(c0loy, c0hiy)),
                     fmaxf(fminf(c0loz, c0hiz), r.tmin));
-    const float c0max = fminf(fminf(fmaxf(c0lox, c0hix), fmaxf(c0loy, c0hiy)),
-                              fminf(fmaxf(c0loz, c0hiz), tmax));
+    const float c0max =
+        fminf(SIMT_BOX_ROUNDING * fminf(fminf(fmaxf(c0lox, c0hix), fmaxf(c0loy, c0hiy)),
+                                        fmaxf(c0loz, c0hiz)),
+              tmax);
     h.c1min = fmaxf(fmaxf(fminf(c1lox, c1hix), fminf(c1loy, c1hiy)),
                     fmaxf(fminf(c1loz, c1hiz), r.tmin));
-    const float c1max = fminf(fminf(fmaxf(c1lox, c1hix), fmaxf(c1loy, c1hiy)),
-                              fminf(fmaxf(c1loz, c1hiz), tmax));
+    const float c1max =
+        fminf(SIMT_BOX_ROUNDING * fminf(fminf(fmaxf(c1lox, c1hix), fmaxf(c1loy, c1hiy)),
+                                        fmaxf(c1loz, c1hiz)),
+              tmax);
     h.hit0 = c0max >= h.c0min;
     h.hit1 = c1max >= h.c1min;
     h.child0 = __float_as_int(n3.x);
@@ -135,7 +147,9 @@ __device__ __forceinline__ bool simt_is_tri_end(float4 w0)
 }
 
 // Woop test of the triangle at float4 `tri` whose first float4 `w0` is already loaded.
-// A hit needs tmin < t < tmax, u >= 0, v >= 0, u + v <= 1; then *t_out = t.
+// A hit needs tmin < t < tmax and (u, v) inside the triangle up to their rounding-error
+// bounds eu, ev: u >= -eu, v >= -ev, u + v <= 1 + eu + ev (watertight; the bounds and
+// their derivation are simt_sim.geometry.woop_hit_t's). Then *t_out = t.
 __device__ __forceinline__ bool simt_intersect_woop(const float4* __restrict__ woop, int tri,
                                                     float4 w0, const Ray& r, float tmax,
                                                     float* t_out)
@@ -144,16 +158,32 @@ __device__ __forceinline__ bool simt_intersect_woop(const float4* __restrict__ w
     const float dz = r.dir.x * w0.x + r.dir.y * w0.y + r.dir.z * w0.z;
     const float t = oz * simt_rcp(dz);
     if (t > r.tmin && t < tmax) {
+        // per axis |o_i| + 2 |t d_i|; slope: the error of t over |D.w0|
+        const float t2 = fabsf(t + t);
+        const float px = fabsf(r.orig.x) + t2 * fabsf(r.dir.x);
+        const float py = fabsf(r.orig.y) + t2 * fabsf(r.dir.y);
+        const float pz = fabsf(r.orig.z) + t2 * fabsf(r.dir.z);
+        const float slope =
+            (fabsf(w0.w) + px * fabsf(w0.x) + py * fabsf(w0.y) + pz * fabsf(w0.z)) *
+            simt_rcp(fabsf(dz));
         const float4 w1 = __ldg(woop + tri + 1);
         const float ox = w1.w + r.orig.x * w1.x + r.orig.y * w1.y + r.orig.z * w1.z;
         const float dx = r.dir.x * w1.x + r.dir.y * w1.y + r.dir.z * w1.z;
         const float u = ox + t * dx;
-        if (u >= 0.0f) {
+        const float eu =
+            SIMT_TRI_ROUNDING *
+            ((fabsf(w1.w) + px * fabsf(w1.x) + py * fabsf(w1.y) + pz * fabsf(w1.z)) +
+             (0.5f * fabsf(u) + slope * fabsf(dx)));
+        if (u >= -eu) {
             const float4 w2 = __ldg(woop + tri + 2);
             const float oy = w2.w + r.orig.x * w2.x + r.orig.y * w2.y + r.orig.z * w2.z;
             const float dy = r.dir.x * w2.x + r.dir.y * w2.y + r.dir.z * w2.z;
             const float v = oy + t * dy;
-            if (v >= 0.0f && u + v <= 1.0f) {
+            const float ev =
+                SIMT_TRI_ROUNDING *
+                ((fabsf(w2.w) + px * fabsf(w2.x) + py * fabsf(w2.y) + pz * fabsf(w2.z)) +
+                 (0.5f * fabsf(v) + slope * fabsf(dy)));
+            if (v >= -ev && u + v <= 1.0f + (eu + ev)) {
                 *t_out = t;
                 return true;
             }
