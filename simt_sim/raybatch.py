@@ -55,3 +55,16 @@ class RayBatch:
             self.camera[s],
             self.pixel[s],
         )
+
+    def take(self, rows: np.ndarray) -> RayBatch:
+        """Rays ``rows`` (an index array), in that order, as a new batch (copies)."""
+        return RayBatch(
+            self.origin[rows],
+            self.direction[rows],
+            self.tmin[rows],
+            self.tmax[rows],
+            self.query,
+            self.ray_type,
+            self.camera[rows],
+            self.pixel[rows],
+        )

@@ -23,7 +23,6 @@ from simt_sim.raybatch import RayBatch
 
 #: random groups the sampled warps are dealt to (the CI has GROUPS - 1 degrees of freedom)
 GROUPS = 16
-_FIELDS = ("origin", "direction", "tmin", "tmax", "camera", "pixel")
 
 
 def check_fraction(fraction: float) -> float:
@@ -96,12 +95,7 @@ def sample_warps(
     rows, row_group = rows[keep], row_group[keep]
     bounds = np.zeros(GROUPS + 1, np.int64)
     np.cumsum(np.bincount(row_group, minlength=GROUPS), out=bounds[1:])
-    picked = RayBatch(
-        *(getattr(rays, f)[rows] for f in _FIELDS[:4]),
-        rays.query, rays.ray_type,
-        *(getattr(rays, f)[rows] for f in _FIELDS[4:]),
-    )  # fmt: skip
-    return WarpSample(picked, bounds)
+    return WarpSample(rays.take(rows), bounds)
 
 
 def t_quantile_975(dof: int) -> float:

@@ -2,8 +2,9 @@
 
 Rays stream launch by launch (2^20 rays, as the paper traced secondary rays): each
 launch batch is generated, recorded once and replayed under every scheme and GPU
-(:func:`simulate_batch`) before the next, so memory stays bounded by one launch whatever
-the ray count. Batches are independent, so they may also run on a Dask cluster
+(:func:`simulate_batch`: :func:`record_batch`, then :func:`replay_batch`), and in one
+process the next batch is recorded while the current one replays (:func:`pipelined`), so
+memory stays bounded by two launches whatever the ray count. Batches are independent, so they may also run on a Dask cluster
 (``simt_sim.cluster``); their results are merged in batch order either way, so the
 table is the same bit for bit. With ``sample < 1`` each batch replays a stratified
 sample of its warps in random groups (``simt_sim.sampling``) and the table gets 95%
@@ -12,9 +13,11 @@ confidence intervals.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
+import numba
 import pandas as pd
 from tqdm import tqdm
 
@@ -22,6 +25,7 @@ import kernels_ir
 from kernels_ir.kernel_ir import KernelIR
 from simt_sim.bvh.layout import BVH
 from simt_sim.errors import SimtSimError
+from simt_sim.optrace import OpTrace
 from simt_sim.raybatch import RayBatch
 from simt_sim.record import record_all
 from simt_sim.sampling import GROUPS, check_fraction, half_width, sample_warps
@@ -198,14 +202,25 @@ def memory_decisions(mode: str, bvh: BVH, gpus: Sequence[GpuConfig]) -> dict[str
     return {g.id: decide(mode, footprint, g) for g in gpus}
 
 
+@dataclass(frozen=True, eq=False)
+class RecordedBatch:
+    """One launch batch recorded: its trace (all rays, or the sampled warps group by group)
+    and the ray offsets of the groups."""
+
+    index: int
+    rays: int
+    trace: OpTrace
+    bounds: tuple[int, ...]
+
+
 def simulate_batch(setup: BatchSetup, rays: RayBatch, index: int) -> BatchResults:
     """The per-batch step: record batch ``index`` of a ray type (or its sampled warps)
-    once, then replay it under every scheme x GPU of ``setup``.
+    once, then replay it under every scheme x GPU of ``setup``."""
+    return replay_batch(setup, record_batch(setup, rays, index))
 
-    Sampled, each random group is replayed as a launch of its own; persistent schemes
-    then keep the full launch's rays per resident warp (their resident warps scale with
-    the group's share of the batch), so a pool drains as it would in the full launch.
-    """
+
+def record_batch(setup: BatchSetup, rays: RayBatch, index: int) -> RecordedBatch:
+    """Record batch ``index`` of a ray type, or its sampled warps (``setup.sample < 1``)."""
     sampled = setup.sample < 1.0
     if sampled:
         picked = sample_warps(
@@ -219,6 +234,19 @@ def simulate_batch(setup: BatchSetup, rays: RayBatch, index: int) -> BatchResult
     else:
         traced, bounds = rays, [0, len(rays)]
     trace = record_all(setup.bvh, traced, batch_size=setup.launch_size)
+    return RecordedBatch(index, len(rays), trace, tuple(bounds))
+
+
+def replay_batch(setup: BatchSetup, recorded: RecordedBatch) -> BatchResults:
+    """Replay a recorded batch under every scheme x GPU of ``setup`` (and run the memory
+    model where it is on).
+
+    Sampled, each random group is replayed as a launch of its own; persistent schemes
+    then keep the full launch's rays per resident warp (their resident warps scale with
+    the group's share of the batch), so a pool drains as it would in the full launch.
+    """
+    sampled = setup.sample < 1.0
+    trace, bounds = recorded.trace, recorded.bounds
     memory = {
         g.id: memory_counts(trace, g.warp_size, g) for g in setup.gpus if setup.memory[g.id][0]
     }
@@ -228,14 +256,55 @@ def simulate_batch(setup: BatchSetup, rays: RayBatch, index: int) -> BatchResult
         for g in setup.gpus:
             resident = None
             if sampled:
-                resident = max(1, round(g.resident_warps * (stop - start) / len(rays)))
+                resident = max(1, round(g.resident_warps * (stop - start) / recorded.rays))
             for s in setup.schemes:
                 r = None
                 if stop > start:
                     ir = setup.irs[(s, g.ir_arch)]
                     r = simulate([piece], s, ir, g, scene=setup.scene, resident_warps=resident)
                 results.setdefault((s, g.id), []).append(r)
-    return BatchResults(index, len(rays), {k: tuple(v) for k, v in results.items()}, memory)
+    return BatchResults(
+        recorded.index, recorded.rays, {k: tuple(v) for k, v in results.items()}, memory
+    )
+
+
+def _threadsafe_layer() -> bool:
+    """Whether numba's threading layer runs parallel kernels from two threads at once."""
+    try:
+        return numba.threading_layer() != "workqueue"
+    except ValueError:  # no parallel kernel has run yet: the layer is not chosen
+        return False
+
+
+def pipelined(setup: BatchSetup, batches: Iterable[RayBatch]) -> Iterator[BatchResults]:
+    """:func:`simulate_batch` of each batch in turn, with batch k+1 generated and recorded
+    by a worker thread while batch k replays.
+
+    Ray generation and the replay's sequential parts (the memory model's caches, Python)
+    leave a core idle; overlapping them fills it, since numba's kernels release the GIL.
+    The results are the same, batch for batch. Needs a thread-safe numba threading layer
+    (omp or tbb); with ``workqueue``, which aborts on concurrent parallel kernels, batches
+    run one after the other.
+    """
+    it = enumerate(batches)
+
+    def record_next() -> RecordedBatch | None:
+        item = next(it, None)
+        return None if item is None else record_batch(setup, item[1], item[0])
+
+    recorded = record_next()  # in this thread: it selects numba's threading layer
+    if recorded is None:
+        return
+    if not _threadsafe_layer():
+        while recorded is not None:
+            yield replay_batch(setup, recorded)
+            recorded = record_next()
+        return
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="simt-record") as pool:
+        while recorded is not None:
+            upcoming = pool.submit(record_next)
+            yield replay_batch(setup, recorded)
+            recorded = upcoming.result()
 
 
 def _sampled_row(
@@ -373,9 +442,9 @@ def run_study(
             for rt in batched:
                 setup = batch_setup(spec, workloads[rt], rt)
                 bar.set_description(f"{setup.scene} {rt}")
-                for k, rays in enumerate(workloads[rt].stream.batches(spec.launch_size)):
-                    done[rt].append(simulate_batch(setup, rays, k))
-                    bar.update(len(rays))
+                for out in pipelined(setup, workloads[rt].stream.batches(spec.launch_size)):
+                    done[rt].append(out)
+                    bar.update(out.rays)
         for rt in spec.ray_types:
             wl = workloads[rt]
             name = wl.scene.name

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import kernels_ir
+from simt_sim import study
 from simt_sim.bvh.build import build_bvh
 from simt_sim.rays import paper_ray_batches, paper_rays, ray_stream
 from simt_sim.record import record
@@ -16,8 +17,9 @@ from simt_sim.scene import load_scene
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.replay import simulate
 from simt_sim.simt.result import merge
-from simt_sim.study import StudySpec, run_study
+from simt_sim.study import StudySpec, batch_setup, run_study, simulate_batch
 from simt_sim.tracers.numba_tracer import trace
+from simt_sim.workload import make_workload
 
 FIELDS = ("origin", "direction", "tmin", "tmax", "camera", "pixel")
 
@@ -100,3 +102,28 @@ def test_streamed_study_equals_the_whole_set_replay(room):
             assert got.makespan == want.makespan
             i += 1
     assert list(df["rays"][:3]) == [2 * 48 * 32] * 3
+
+
+@pytest.mark.parametrize("overlap", [True, False])
+def test_pipelined_batches_equal_one_batch_at_a_time(monkeypatch, overlap):
+    """The next batch recording in a worker thread (or, without a thread-safe numba
+    threading layer, not) changes no result of any batch."""
+    spec = StudySpec(
+        scene="room", ray_types=("ao",), schemes=("while_while", "dynamic_fetch"),
+        cameras="0", resolution=(48, 32), spp=3, launch_size=1024,
+    )  # fmt: skip
+    wl = make_workload("room", "ao", cameras="0", resolution=(48, 32), spp=3)
+    setup = batch_setup(spec, wl, "ao")
+    want = [simulate_batch(setup, rays, k) for k, rays in enumerate(wl.stream.batches(1024))]
+    assert len(want) > 2
+    if not overlap:
+        monkeypatch.setattr(study, "_threadsafe_layer", lambda: False)
+    got = list(study.pipelined(setup, wl.stream.batches(1024)))
+    assert [(b.index, b.rays) for b in got] == [(b.index, b.rays) for b in want]
+    for g, w in zip(got, want, strict=True):
+        assert g.results.keys() == w.results.keys()
+        for key, (res,) in g.results.items():
+            (ref,) = w.results[key]
+            assert res.warp_instructions == ref.warp_instructions
+            assert np.array_equal(res.counts.hist, ref.counts.hist)
+            assert res.makespan == ref.makespan

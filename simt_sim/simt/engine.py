@@ -159,6 +159,12 @@ def no_per_warp() -> np.ndarray:
     return np.zeros((0, 2), np.int64)
 
 
+def per_warp_table(offsets: np.ndarray, warp_size: int) -> np.ndarray:
+    """The ``per_warp`` argument that records a row per warp of the trace ``offsets``
+    (int64 (n_warps, 2): warp instructions, lane instructions)."""
+    return np.zeros((-(-(offsets.shape[0] - 1) // warp_size), 2), np.int64)
+
+
 @njit(cache=True, nogil=True)
 def lane_instructions(cnt, costs):
     """Lane instructions counted so far in ``cnt``: active lanes x cost, over the blocks."""
@@ -353,6 +359,17 @@ def schedule_groups(group_cost, resident_warps, warp_totals):
         warp_totals[wid[i]] += key[i]
         span = max(span, key[i])
     return span
+
+
+def persistent_counts(
+    cnt: np.ndarray, hist: np.ndarray, group_cost: np.ndarray, resident_warps: int
+) -> Counts:
+    """A persistent launch's Counts: the chunks' counters, with its fetched groups (in
+    pool order) scheduled ideally onto ``resident_warps`` warps (:func:`schedule_groups`)."""
+    totals = np.zeros(resident_warps, np.int64)
+    span = schedule_groups(group_cost, resident_warps, totals)
+    c = chunk_counts(cnt, hist)
+    return Counts(c.executions, c.active, c.hist, totals, int(span))
 
 
 @dataclass(frozen=True)

@@ -322,20 +322,20 @@ def _count_warps(offsets, op, addr, warp_size, any_hit):
 
 @njit(cache=True, nogil=True, parallel=True)
 def _emit_warps(offsets, op, addr, warp_size, any_hit, w0, w1, step_base, line_base,
-                out_lines, out_step_end):  # fmt: skip
-    """Line keys of warps ``w0 .. w1-1``, step by step, at the given CSR positions."""
+                out_lines, out_step_end, per_warp):  # fmt: skip
+    """Line keys of warps ``w0 .. w1-1``, step by step, at the given CSR positions; their
+    counters go to rows ``w0 .. w1-1`` of ``per_warp``."""
     n_rays = offsets.shape[0] - 1
     n = w1 - w0
     nc = min(N_CHUNKS, max(n, 1))
     bounds = chunk_bounds(n, nc)
     for ch in prange(nc):
         cur, end, first, ntri, lanes, buf = _scratch(warp_size)
-        row = np.empty(_N_COLS, np.int64)
         for i in range(bounds[ch], bounds[ch + 1]):
             r0 = (w0 + i) * warp_size
             _walk_warp(offsets, op, addr, r0, min(warp_size, n_rays - r0), any_hit, cur, end,
-                       first, ntri, lanes, buf, row, True, out_lines, line_base[i],
-                       out_step_end, step_base[i])  # fmt: skip
+                       first, ntri, lanes, buf, per_warp[w0 + i], True, out_lines,
+                       line_base[i], out_step_end, step_base[i])  # fmt: skip
 
 
 # ---- the caches ------------------------------------------------------------------------------
@@ -405,31 +405,40 @@ def _cache(n_caches: int, kib: int) -> tuple[np.ndarray, np.ndarray, int]:
     return np.full(shape, -1, np.int64), np.full(shape, -1, np.int64), sets
 
 
-def _cache_counts(a: tuple[np.ndarray, ...], per_warp: np.ndarray, w: int, any_hit: bool,
-                  gpu: GpuConfig) -> tuple[int, int, int, int]:  # fmt: skip
-    """Run the resident sets of the batch through the caches (see module docstring)."""
+def _cache_counts(a: tuple[np.ndarray, ...], w: int, any_hit: bool,
+                  gpu: GpuConfig) -> tuple[np.ndarray, tuple[int, int, int, int]]:  # fmt: skip
+    """Run the resident sets of the batch through the caches (see module docstring).
+
+    Returns the per-warp counters (as :func:`_count_warps`) and (resident sets, distinct
+    lines, L1 misses, L2 misses). Each set's line keys are emitted and counted in one walk,
+    into room for a bound on them: a warp takes at most one step per op of its lanes and
+    reads at most two lines per op (a triangle may straddle two; a sentinel read follows a
+    LEAF op).
+    """
     offsets, op, addr = a
-    node = op <= TRAV_BOTH
-    node_top = int(addr[node].max(initial=0))
-    woop_top = int(addr[~node].max(initial=0)) + WOOP_FLOAT4_PER_TRI  # sentinels lie beyond
-    top_key = max(int(_node_key(node_top)), int(_woop_key(woop_top * FLOAT4_BYTES + TRI_BYTES - 1)))
+    n_rays = offsets.shape[0] - 1
+    n_warps = -(-n_rays // w)
+    per_warp = np.zeros((n_warps, _N_COLS), np.int64)
+    top = int(addr.max(initial=0))  # bounds node and Woop addresses alike (one pass)
+    woop_top = top + WOOP_FLOAT4_PER_TRI  # sentinels lie beyond a leaf's triangles
+    top_key = max(int(_node_key(top)), int(_woop_key(woop_top * FLOAT4_BYTES + TRI_BYTES - 1)))
     seen = np.zeros(top_key + 1, np.int32)  # resident set that last touched each line key
     l1_tags, l1_stamps, l1_sets = _cache(gpu.sms, gpu.l1_kib)
     l2_tags, l2_stamps, l2_sets = _cache(1, gpu.l2_kib)
     size = gpu.resident_warps
-    n_warps = per_warp.shape[0]
+    warp_ops = np.diff(offsets[np.minimum(np.arange(n_warps + 1) * w, n_rays)])
+    most = max((int(warp_ops[s0 : s0 + size].sum()) for s0 in range(0, n_warps, size)), default=0)
+    out_lines = np.empty(2 * most, np.int64)
+    out_step_end = np.empty(most, np.int64)
     clock = np.int64(0)
     totals = [0, 0, 0, 0]
     for s0 in range(0, n_warps, size):
         s1 = min(n_warps, s0 + size)
-        n_steps = per_warp[s0:s1, _NODE_STEPS] + per_warp[s0:s1, _TRI_STEPS]
-        n_lines = per_warp[s0:s1, _NODE_LINES] + per_warp[s0:s1, _TRI_LINES]
-        step_base = np.concatenate(([0], np.cumsum(n_steps)[:-1])).astype(np.int64)
-        line_base = np.concatenate(([0], np.cumsum(n_lines)[:-1])).astype(np.int64)
-        out_lines = np.empty(int(n_lines.sum()), np.int64)
-        out_step_end = np.empty(int(n_steps.sum()), np.int64)
+        step_base = np.concatenate(([0], np.cumsum(warp_ops[s0:s1])[:-1])).astype(np.int64)
+        line_base = 2 * step_base
         _emit_warps(offsets, op, addr, w, any_hit, s0, s1, step_base, line_base,
-                    out_lines, out_step_end)  # fmt: skip
+                    out_lines, out_step_end, per_warp)  # fmt: skip
+        n_steps = per_warp[s0:s1, _NODE_STEPS] + per_warp[s0:s1, _TRI_STEPS]
         m1, m2, distinct, clock = _run_caches(
             n_steps, step_base, out_step_end, line_base, out_lines, gpu.sms, l1_tags,
             l1_stamps, l1_sets, l2_tags, l2_stamps, l2_sets, seen, np.int64(s0 // size + 1),
@@ -437,7 +446,14 @@ def _cache_counts(a: tuple[np.ndarray, ...], per_warp: np.ndarray, w: int, any_h
         )  # fmt: skip
         for j, v in enumerate((1, distinct, m1, m2)):
             totals[j] += int(v)
-    return totals[0], totals[1], totals[2], totals[3]
+    return per_warp, (totals[0], totals[1], totals[2], totals[3])
+
+
+def _hits_end_rays(offsets: np.ndarray, op: np.ndarray) -> bool:
+    """Whether every TRI_HIT is its ray's last op (as an any-hit trace requires)."""
+    ray_end = np.zeros(op.shape[0] + 1, np.bool_)
+    ray_end[offsets[1:]] = True
+    return bool(ray_end[np.flatnonzero(op == TRI_HIT) + 1].all())
 
 
 def memory_counts(trace: OpTrace, warp_size: int, gpu: GpuConfig | None = None) -> MemoryCounts:
@@ -470,16 +486,17 @@ def memory_counts(trace: OpTrace, warp_size: int, gpu: GpuConfig | None = None) 
             "a LEAF); re-record the trace"
         )
     any_hit = trace.query == "any"
-    if any_hit and not np.isin(np.flatnonzero(op == TRI_HIT) + 1, offsets[1:]).all():
+    if any_hit and not _hits_end_rays(offsets, op):
         raise SimtSimError(
             "any-hit OpTrace has ops after a TRI_HIT (an any-hit ray ends at its hit); "
             "re-record the trace"
         )
-    per_warp = _count_warps(offsets, op, addr, warp_size, any_hit)
-    tot = per_warp.sum(axis=0) if per_warp.shape[0] else np.zeros(_N_COLS, np.int64)
     cache = (0, 0, 0, 0)
-    if gpu is not None:
-        cache = _cache_counts((offsets, op, addr), per_warp, warp_size, any_hit, gpu)
+    if gpu is None:
+        per_warp = _count_warps(offsets, op, addr, warp_size, any_hit)
+    else:
+        per_warp, cache = _cache_counts((offsets, op, addr), warp_size, any_hit, gpu)
+    tot = per_warp.sum(axis=0) if per_warp.shape[0] else np.zeros(_N_COLS, np.int64)
     return MemoryCounts(
         rays=trace.n_rays,
         node_fetches=int(tot[_NODE_FETCH]),

@@ -39,6 +39,7 @@ from simt_sim.simt.engine import (
     lowest_lane,
     no_per_warp,
     op_at,
+    per_warp_table,
     popcount,
     record_warp,
 )
@@ -138,6 +139,6 @@ def warp_counts(
     offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, warp_size: int
 ) -> np.ndarray:
     """Warp and lane instructions of each warp (int64 (n_warps, 2)), as ``replay`` counts."""
-    per_warp = np.zeros((-(-(offsets.shape[0] - 1) // warp_size), 2), np.int64)
+    per_warp = per_warp_table(offsets, warp_size)
     _replay(offsets, op, costs, warp_size, per_warp)
     return per_warp

@@ -43,6 +43,7 @@ from simt_sim.simt.engine import (
     chunk_counts,
     lanes_so_far,
     no_per_warp,
+    per_warp_table,
     popcount,
     record_warp,
 )
@@ -163,6 +164,6 @@ def warp_counts(
     offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, warp_size: int
 ) -> np.ndarray:
     """Warp and lane instructions of each warp (int64 (n_warps, 2)), as ``replay`` counts."""
-    per_warp = np.zeros((-(-(offsets.shape[0] - 1) // warp_size), 2), np.int64)
+    per_warp = per_warp_table(offsets, warp_size)
     _replay(offsets, op, addr, costs, warp_size, per_warp)
     return per_warp

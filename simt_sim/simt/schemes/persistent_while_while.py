@@ -23,11 +23,11 @@ from simt_sim.simt.engine import (
     ReplayParams,
     charge,
     chunk_bounds,
-    chunk_counts,
     lanes_so_far,
     no_per_warp,
+    per_warp_table,
+    persistent_counts,
     record_warp,
-    schedule_groups,
 )
 from simt_sim.simt.schemes.while_while import WINDOW, warp_body
 
@@ -73,11 +73,9 @@ def replay(
     offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, p: ReplayParams
 ) -> Counts:
     """Replay one launch: groups in parallel, then ideal assignment to resident warps."""
-    cnt, hist, group_cost = _replay(offsets, op, costs, p.warp_size, no_per_warp())
-    totals = np.zeros(p.resident_warps, np.int64)
-    span = schedule_groups(group_cost, p.resident_warps, totals)
-    c = chunk_counts(cnt, hist)
-    return Counts(c.executions, c.active, c.hist, totals, int(span))
+    return persistent_counts(
+        *_replay(offsets, op, costs, p.warp_size, no_per_warp()), p.resident_warps
+    )
 
 
 def warp_counts(
@@ -85,6 +83,6 @@ def warp_counts(
 ) -> np.ndarray:
     """Warp and lane instructions of each fetched group of ``warp_size`` consecutive rays
     (int64 (n_groups, 2)), as ``replay`` counts them (the scheduling aside)."""
-    per_warp = np.zeros((-(-(offsets.shape[0] - 1) // warp_size), 2), np.int64)
+    per_warp = per_warp_table(offsets, warp_size)
     _replay(offsets, op, costs, warp_size, per_warp)
     return per_warp
