@@ -262,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     else:
         advice = "No sampled run was within 1% on every MRays/s figure (see the table)."
-    ray_counts = full.groupby("ray_type")["rays"].max().to_dict()
+    ray_counts = {k: int(v) for k, v in full.groupby("ray_type")["rays"].max().items()}
     one_32 = sampled[sampled["shortcut"] == "--sample 1/32"]
     bar = ""
     if len(one_32):

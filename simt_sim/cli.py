@@ -492,11 +492,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--sample",
-        type=float,
-        default=1.0,
+        default="1",
         metavar="F",
-        help="simulate a stratified random fraction F of the warps (0 < F <= 1) and add "
-        "95%% confidence intervals (default: %(default)s, every warp)",
+        help="simulate a stratified random fraction F of the warps (0 < F <= 1, e.g. 1/8 "
+        "or 0.125) and add 95%% confidence intervals (default: %(default)s, every warp)",
     )
     p.add_argument(
         "--memory-model",

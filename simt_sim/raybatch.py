@@ -39,6 +39,32 @@ class RayBatch:
     camera: np.ndarray
     pixel: np.ndarray
 
+    @classmethod
+    def from_arrays(
+        cls,
+        origin: np.ndarray,
+        direction: np.ndarray,
+        query: str,
+        tmin: float | np.ndarray = 0.0,
+        tmax: float | np.ndarray = np.inf,
+        ray_type: str | None = None,
+    ) -> RayBatch:
+        """Rays of your own: float32 copies of ``origin``/``direction`` (n, 3), ``tmin`` and
+        ``tmax`` scalars or per-ray arrays; camera 0, pixel = ray index. ``ray_type``
+        defaults to ``primary`` for closest-hit and ``ao`` for any-hit queries."""
+        o = np.array(origin, np.float32).reshape(-1, 3)
+        n = o.shape[0]
+        return cls(
+            o,
+            np.array(direction, np.float32).reshape(n, 3),
+            np.broadcast_to(np.asarray(tmin, np.float32), n).copy(),
+            np.broadcast_to(np.asarray(tmax, np.float32), n).copy(),
+            query,
+            ray_type or ("primary" if query == "closest" else "ao"),
+            np.zeros(n, np.int32),
+            np.arange(n, dtype=np.int32),
+        )
+
     def __len__(self) -> int:
         return int(self.origin.shape[0])
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from fractions import Fraction
 
 import numpy as np
 
@@ -25,13 +26,17 @@ from simt_sim.raybatch import RayBatch
 GROUPS = 16
 
 
-def check_fraction(fraction: float) -> float:
-    """``fraction`` as a float if ``0 < fraction <= 1``, else a SimtSimError."""
-    f = float(fraction)
+def check_fraction(fraction: float | str) -> float:
+    """``fraction`` (a number, or text such as ``"1/32"`` or ``"0.125"``) as a float if
+    ``0 < fraction <= 1``, else a SimtSimError."""
+    try:
+        f = float(Fraction(str(fraction)))
+    except (ValueError, ZeroDivisionError):
+        f = math.nan
     if not (0.0 < f <= 1.0):
         raise SimtSimError(
             f"--sample must be a fraction of warps in (0, 1], got {fraction}; "
-            "use e.g. 0.03125 for 1/32"
+            "use e.g. 1/32 or 0.03125"
         )
     return f
 

@@ -4,11 +4,11 @@ Rays stream launch by launch (2^20 rays, as the paper traced secondary rays): ea
 launch batch is generated, recorded once and replayed under every scheme and GPU
 (:func:`simulate_batch`: :func:`record_batch`, then :func:`replay_batch`), and in one
 process the next batch is recorded while the current one replays (:func:`pipelined`), so
-memory stays bounded by two launches whatever the ray count. Batches are independent, so they may also run on a Dask cluster
-(``simt_sim.cluster``); their results are merged in batch order either way, so the
-table is the same bit for bit. With ``sample < 1`` each batch replays a stratified
-sample of its warps in random groups (``simt_sim.sampling``) and the table gets 95%
-confidence intervals.
+memory stays bounded by two launches whatever the ray count. Batches are independent, so
+they may also run on a Dask cluster (``simt_sim.cluster``); their results are merged in
+batch order either way, so the table is the same bit for bit. With ``sample < 1`` each
+batch replays a stratified sample of its warps in random groups (``simt_sim.sampling``)
+and the table gets 95% confidence intervals.
 """
 
 from __future__ import annotations
@@ -307,6 +307,13 @@ def pipelined(setup: BatchSetup, batches: Iterable[RayBatch]) -> Iterator[BatchR
             recorded = upcoming.result()
 
 
+SAMPLED_NOTES = {
+    "dynamic_fetch": "sampled estimate biased low: refills draw from a pool of sampled warps "
+    "(docs/speed_accuracy.md); run this scheme unsampled",
+}
+"""Notes on sampled rows of schemes whose sampled estimate is biased beyond its interval."""
+
+
 def _sampled_row(
     batches: Sequence[BatchResults], key: tuple[str, str], population: int, fraction: float
 ) -> tuple[SimResult, dict]:
@@ -326,7 +333,7 @@ def _sampled_row(
         "rays and warp_instructions are scaled to the whole ray set"
     )
     point = replace(point, model_card=card)
-    row = {**point.to_row(), "note": ""}
+    row = {**point.to_row(), "note": SAMPLED_NOTES.get(key[0], "")}
     mrays = [g.mrays_upper for g in groups]
     efficiency = [g.simd_efficiency for g in groups]
     row.update(

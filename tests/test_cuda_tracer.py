@@ -41,18 +41,7 @@ SAME_ORDER = ("while_while", "if_if", "persistent_while_while", "dynamic_fetch")
 # ------------------------------------------------------------------------------ helpers
 
 
-def make_rays(o, d, query: str, tmin: float = 0.0, tmax: float = np.inf) -> RayBatch:
-    n = len(o)
-    return RayBatch(
-        np.ascontiguousarray(o, F32),
-        np.ascontiguousarray(d, F32),
-        np.full(n, tmin, F32),
-        np.full(n, tmax, F32),
-        query,
-        "primary" if query == "closest" else "ao",
-        np.zeros(n, np.int32),
-        np.arange(n, dtype=np.int32),
-    )
+make_rays = RayBatch.from_arrays
 
 
 def outside_rays(seed: int, n: int, query: str) -> RayBatch:

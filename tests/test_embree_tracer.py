@@ -10,17 +10,7 @@ from simt_sim.tracers.embree_tracer import EmbreeTracer
 
 
 def _rays(o, d, tmin, tmax, query):
-    n = len(o)
-    return RayBatch(
-        np.asarray(o, np.float32),
-        np.asarray(d, np.float32),
-        np.asarray(tmin, np.float32),
-        np.asarray(tmax, np.float32),
-        query,
-        "primary",
-        np.zeros(n, np.int32),
-        np.arange(n, dtype=np.int32),
-    )
+    return RayBatch.from_arrays(o, d, query, tmin, tmax, ray_type="primary")
 
 
 def _two_quads():

@@ -31,14 +31,7 @@ TINY = (0.0, -0.0, 1e-30, -1e-30, 1e-40, -1e-45, 2.0**-80, -1e-20)
 component whose inverse (1e20) is huge but kept."""
 
 
-def rays(o, d, query: str, tmin=0.0, tmax=np.inf) -> RayBatch:
-    """A RayBatch from float arrays; ``tmin``/``tmax`` scalars or per-ray arrays."""
-    o = np.asarray(o, F32)
-    n = len(o)
-    return RayBatch(o, np.asarray(d, F32), np.broadcast_to(F32(tmin), n).astype(F32),
-                    np.broadcast_to(np.asarray(tmax, F32), n).astype(F32), query,
-                    "primary" if query == "closest" else "ao",
-                    np.zeros(n, np.int32), np.arange(n, dtype=np.int32))  # fmt: skip
+rays = RayBatch.from_arrays
 
 
 BOX_CORNER = np.array([-2.0, 0.0, -0.375])

@@ -132,6 +132,10 @@ def test_sampled_table_columns_and_population_counts(runs):
     per_clock = gpu.sms * gpu.clock_hz * gpu.issue_rate / 1e6
     implied = part["rays"] * per_clock / part["warp_instructions"]  # scaled to all rays
     np.testing.assert_allclose(implied.astype(float), part["mrays_upper"], rtol=1e-6)
+    biased = part["scheme"] == "dynamic_fetch"
+    assert part.loc[biased, "note"].str.contains("biased").all()
+    assert (part.loc[~biased, "note"] == "").all()
+    assert (full["note"] == "").all()
 
 
 def test_sampled_run_is_deterministic(runs):
@@ -174,7 +178,16 @@ def test_sample_one_through_the_cli_is_the_unsampled_table(tmp_path):
     )
 
 
-@pytest.mark.parametrize("bad", ["0", "1.5", "x", "nan"])
+@pytest.mark.parametrize("text", ["1/2", "0.5"])
+def test_sample_fraction_as_a_ratio_or_a_decimal(text):
+    args = ["table", *SMALL, "--rays", "primary", "--spp", "2", "--format", "csv"]
+    proc = run_cli(*args, "--sample", text)
+    assert proc.returncode == 0, proc.stderr
+    df = pd.read_csv(io.StringIO(proc.stdout)).dropna(subset=["rays"])  # drop n/a schemes
+    assert len(df) and (df["sample_fraction"] == 0.5).all()
+
+
+@pytest.mark.parametrize("bad", ["0", "1.5", "x", "nan", "1/0", "-1/8"])
 def test_bad_sample_fraction_is_one_line_and_exit_2(tmp_path, bad):
     out = tmp_path / "t.csv"
     proc = run_cli("table", *SMALL, "--rays", "primary", "--sample", bad, "--out", str(out))

@@ -21,18 +21,7 @@ from simt_sim.traverse import stack_size
 F32 = np.float32
 
 
-def make_rays(o, d, query, tmin=0.0, tmax=np.inf) -> RayBatch:
-    n = len(o)
-    return RayBatch(
-        np.ascontiguousarray(o, F32),
-        np.ascontiguousarray(d, F32),
-        np.full(n, tmin, F32),
-        np.full(n, tmax, F32),
-        query,
-        "primary" if query == "closest" else "ao",
-        np.zeros(n, np.int32),
-        np.arange(n, dtype=np.int32),
-    )
+make_rays = RayBatch.from_arrays
 
 
 def soup(seed: int, m: int = 300) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,82 @@
+"""Where one launch's time goes: ray generation, recording, the memory model, each replay.
+
+Usage: python experiments/profile_batch.py [--scene conference] [--rays ao,diffuse]
+       [--camera 0] [--resolution 1024x768] [--spp 32] [--gpu gtx285] [--repeats 3]
+
+For each ray type, the first ``--repeats`` launch batches (2^20 rays) of one camera of
+the paper protocol are generated, recorded, run through the memory model (with the GPU's
+caches) and replayed under every traversal scheme, one stage after the other in this
+process; the table gives the median seconds of each stage over the batches (after a
+warm-up batch that pays numba's compilation). This is the per-batch step of
+``simt-sim table``, without the overlap of recording and replay it runs with.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import pandas as pd
+
+import kernels_ir
+from simt_sim.record import record_all
+from simt_sim.simt.gpus import get_gpu
+from simt_sim.simt.memory import memory_counts
+from simt_sim.simt.replay import simulate
+from simt_sim.simt.schemes import SCHEMES
+from simt_sim.workload import make_workload, parse_resolution
+
+
+def profile(scene: str, ray_type: str, camera: str, resolution: tuple[int, int], spp: int,
+            gpu_id: str, repeats: int) -> pd.DataFrame:  # fmt: skip
+    """Seconds per stage (columns) of each timed batch (rows) of one ray type."""
+    gpu = get_gpu(gpu_id)
+    wl = make_workload(scene, ray_type, cameras=camera, resolution=resolution, spp=spp)
+    irs = {s: kernels_ir.load(s, gpu.ir_arch) for s in SCHEMES}
+    batches = iter(wl.stream.batches())
+    rows = []
+    for _ in range(repeats + 1):
+        t0 = time.perf_counter()
+        rays = next(batches, None)
+        if rays is None:
+            break
+        row = {"rays": len(rays), "generate": time.perf_counter() - t0}
+        t0 = time.perf_counter()
+        trace = record_all(wl.bvh, rays)
+        row["record"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        memory_counts(trace, gpu.warp_size, gpu)
+        row["memory_model"] = time.perf_counter() - t0
+        for s in SCHEMES:
+            t0 = time.perf_counter()
+            simulate([trace], s, irs[s], gpu)
+            row[s] = time.perf_counter() - t0
+        rows.append(row)
+    return pd.DataFrame(rows[1:] or rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scene", default="conference")
+    ap.add_argument("--rays", default="ao,diffuse")
+    ap.add_argument("--camera", default="0")
+    ap.add_argument("--resolution", default="1024x768")
+    ap.add_argument("--spp", type=int, default=32)
+    ap.add_argument("--gpu", default="gtx285")
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args(argv)
+    res = parse_resolution(args.resolution)
+    out = []
+    for rt in args.rays.split(","):
+        df = profile(args.scene, rt, args.camera, res, args.spp, args.gpu, args.repeats)
+        med = df.median()
+        med["replays"] = med[list(SCHEMES)].sum()
+        out.append(med.rename(rt))
+    table = pd.DataFrame(out)
+    table.index.name = "ray_type"
+    print(table.to_markdown(floatfmt=".3g"))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
