@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from simt_sim.optrace import LEAF, TRAV_NONE, TRAV_ONE
+from simt_sim.optrace import LEAF, TRAV_BOTH
 from simt_sim.simt.engine import (
     FINISH,
     LEAF_ENTRY,
@@ -44,15 +44,21 @@ from simt_sim.simt.engine import (
     is_trav,
     lanes_so_far,
     lowest_lane,
-    next_op,
     no_per_warp,
+    op_at,
     per_warp_table,
     persistent_counts,
     popcount,
     record_warp,
-    step,
 )
-from simt_sim.simt.schemes.while_while import WINDOW, classify, isect_loop, tri_loop
+from simt_sim.simt.schemes.while_while import (
+    WINDOW,
+    classify,
+    isect_loop,
+    trav_pack,
+    trav_unpack,
+    tri_loop,
+)
 
 NAME = "persistent_speculative_while_while"
 PERSISTENT = True
@@ -65,67 +71,102 @@ APPROXIMATIONS: tuple[str, ...] = (
 
 
 @njit(cache=True, nogil=True)
-def _postpone(op, cur, end, park, park_end, lane):
-    """Park the leaf the lane is at (the LEAF op and its TRI ops: ``park .. park_end``),
-    move the lane past it and return its next op. A function of its own: inlined, this
-    rare path slowed the traversal loop around it by a third (measured)."""
-    c = cur[lane]
-    park[lane] = c
-    c += 1
-    while c < end[lane] and op[np.uint64(c)] > LEAF:
-        c += 1
-    park_end[lane] = c
-    cur[lane] = c
-    return next_op(op, cur, end, lane)
-
-
-@njit(cache=True, nogil=True)
-def _spec_trav_loop(op, cur, end, park, park_end, trav, costs, cnt, hist):
+def _spec_trav_loop(op, cur, end, park, park_end, trav, acc, post, first, costs, cnt, hist):
     """Speculative traversal loop of the lanes in mask ``trav`` (all at a TRAV op).
 
     Returns the instructions issued and the masks of lanes holding a postponed leaf,
     of lanes waiting at a LEAF, and of lanes still at a TRAV when the loop ended.
+
+    Lanes run ahead as in while-while's :func:`trav_loop`, through up to ``len(acc)``
+    iterations each: outcome counts go to ``acc[j]``, postpones to ``post[j]`` (both zero
+    on entry and on return), and ``first[lane]`` is scratch. The exit couples the lanes:
+    the loop ends after the first iteration in which every lane that stepped holds a
+    postponed leaf. A lane without one steps in a prefix of the iterations, so that
+    iteration is the end of the longest such prefix: first each lane without a postponed
+    leaf runs until it postpones one or stops, which fixes the last iteration; then the
+    lanes holding a leaf step on up to it.
     """
     issued = np.int64(0)
     parked = np.int64(0)
     leaf = np.int64(0)
+    window = acc.shape[0]
     while trav:
-        k = popcount(trav)
-        c0 = 0
-        c1 = 0
-        npost = 0
-        without = np.int64(0)
-        nxt = np.int64(0)
+        # 1. lanes holding no postponed leaf run until they postpone one or stop
+        last = 0
         m = trav
         while m:
             lane = lowest_lane(m)
             m &= m - 1
             bit = np.int64(1) << lane
-            o = op[np.uint64(cur[lane])]
-            c0 += o == TRAV_NONE
-            c1 += o == TRAV_ONE
-            o = step(op, cur, end, lane)
-            # only lanes that stepped may postpone (a waiting lane at a LEAF stays put)
-            if is_leaf(o) and not parked & bit:
-                o = _postpone(op, cur, end, park, park_end, lane)
-                parked |= bit
-                npost += 1
+            first[lane] = 0  # the iteration of the lane's next step
+            if parked & bit:
+                continue
+            c = cur[lane]
+            e = end[lane]
+            o = op[np.uint64(c)]
+            j = 0
+            while True:
+                acc[j] += trav_pack(o)
+                c += 1
+                o = op_at(op, c, e)
+                j += 1
+                if o == LEAF:  # postpone: park the leaf and its triangles, go on
+                    park[lane] = c
+                    c += 1
+                    while c < e and op[np.uint64(c)] > LEAF:
+                        c += 1
+                    park_end[lane] = c
+                    parked |= bit
+                    post[j - 1] += 1
+                    last = max(last, j - 1)
+                    break
+                if o > TRAV_BOTH or j == window:
+                    last = max(last, j)
+                    break
+            cur[lane] = c
+            first[lane] = j
+        ended = last < window
+        if not ended:
+            last = window - 1
+        # 2. lanes holding a postponed leaf step on through iteration ``last``
+        nxt = np.int64(0)
+        span = 0
+        m = trav
+        while m:
+            lane = lowest_lane(m)
+            m &= m - 1
+            c = cur[lane]
+            e = end[lane]
+            o = op_at(op, c, e)
+            j = first[lane]
+            if (parked >> lane) & 1:
+                while o <= TRAV_BOTH and j <= last:
+                    acc[j] += trav_pack(o)
+                    c += 1
+                    o = op_at(op, c, e)
+                    j += 1
+                cur[lane] = c
             nxt |= is_trav(o) << lane
             leaf |= is_leaf(o) << lane
-            without |= bit & ~parked
-        issued += charge(cnt, hist, costs, TRAV_STEP, k)
-        issued += charge(cnt, hist, costs, TRAV_NONE_B, c0)
-        issued += charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
-        issued += charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
-        issued += charge(cnt, hist, costs, POSTPONE, npost)
+            span = max(span, j)
+        for j in range(span):
+            k, c0, c1 = trav_unpack(acc[j])
+            acc[j] = 0
+            issued += charge(cnt, hist, costs, TRAV_STEP, k)
+            issued += charge(cnt, hist, costs, TRAV_NONE_B, c0)
+            issued += charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
+            issued += charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
+            issued += charge(cnt, hist, costs, POSTPONE, post[j])
+            post[j] = 0
         trav = nxt
-        if not without:
+        if ended:
             break
     return issued, parked, leaf, trav
 
 
 @njit(cache=True, nogil=True)
-def _group(offsets, op, r0, n, cur, end, park, park_end, pcur, acc, costs, cnt, hist):
+def _group(offsets, op, r0, n, cur, end, park, park_end, pcur, acc, post, first, costs, cnt,
+           hist):  # fmt: skip
     trav = np.int64(0)
     leaf = np.int64(0)
     for lane in range(n):
@@ -137,7 +178,7 @@ def _group(offsets, op, r0, n, cur, end, park, park_end, pcur, acc, costs, cnt, 
     while trav | leaf:
         issued += charge(cnt, hist, costs, LOOP_CONTROL, popcount(trav | leaf))
         t_issued, parked, t_leaf, trav = _spec_trav_loop(
-            op, cur, end, park, park_end, trav, costs, cnt, hist
+            op, cur, end, park, park_end, trav, acc, post, first, costs, cnt, hist
         )
         issued += t_issued
         if parked:
@@ -175,13 +216,16 @@ def _replay(offsets, op, costs, warp_size, per_warp):
         park_end = np.empty(warp_size, np.int64)
         pcur = np.empty(warp_size, np.int64)
         acc = np.zeros(WINDOW, np.int64)
+        post = np.zeros(WINDOW, np.int64)
+        first = np.zeros(warp_size, np.int64)
         for g in range(bounds[c], bounds[c + 1]):
             r0 = g * warp_size
             n = min(warp_size, n_rays - r0)
             before = lanes_so_far(per_warp, cnt[c], costs)
             group_cost[g] = _group(
-                offsets, op, r0, n, cur, end, park, park_end, pcur, acc, costs, cnt[c], hist[c]
-            )
+                offsets, op, r0, n, cur, end, park, park_end, pcur, acc, post, first, costs,
+                cnt[c], hist[c],
+            )  # fmt: skip
             record_warp(per_warp, g, group_cost[g], before, cnt[c], costs)
     return cnt, hist, group_cost
 

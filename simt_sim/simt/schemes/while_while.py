@@ -78,6 +78,13 @@ def trav_pack(o):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def trav_unpack(a):
+    """Packed counters of one traversal iteration (sums of :func:`trav_pack`): stepping
+    lanes, TRAV_NONE lanes, TRAV_ONE lanes."""
+    return a & _LOW, (a >> _FIELD) & _LOW, a >> (2 * _FIELD)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def tri_pack(o):
     """A lane's TRI op as packed counters: 1 testing lane, plus 1 in bits 21-41 for a hit."""
     return 1 + (np.int64(o == TRI_HIT) << _FIELD)
@@ -124,11 +131,8 @@ def trav_loop(op, cur, end, trav, acc, costs, cnt, hist):
             cur[lane] = c
             span = max(span, j)
         for j in range(span):
-            a = acc[j]
+            k, c0, c1 = trav_unpack(acc[j])
             acc[j] = 0
-            k = a & _LOW
-            c0 = (a >> _FIELD) & _LOW
-            c1 = a >> (2 * _FIELD)
             issued += charge(cnt, hist, costs, TRAV_STEP, k)
             issued += charge(cnt, hist, costs, TRAV_NONE_B, c0)
             issued += charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
