@@ -34,8 +34,6 @@ from simt_sim.simt.engine import (
     POOL_FETCH,
     POSTPONE,
     RAY_SETUP,
-    TRAV_NONE_B,
-    TRAV_STEP,
     Counts,
     ReplayParams,
     charge,
@@ -53,10 +51,10 @@ from simt_sim.simt.engine import (
 )
 from simt_sim.simt.schemes.while_while import (
     WINDOW,
+    charge_trav,
     classify,
     isect_loop,
     trav_pack,
-    trav_unpack,
     tri_loop,
 )
 
@@ -150,13 +148,9 @@ def _spec_trav_loop(op, cur, end, park, park_end, trav, acc, post, first, costs,
             leaf |= is_leaf(o) << lane
             span = max(span, j)
         for j in range(span):
-            k, c0, c1 = trav_unpack(acc[j])
-            acc[j] = 0
-            issued += charge(cnt, hist, costs, TRAV_STEP, k)
-            issued += charge(cnt, hist, costs, TRAV_NONE_B, c0)
-            issued += charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
-            issued += charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
+            issued += charge_trav(cnt, hist, costs, acc[j])
             issued += charge(cnt, hist, costs, POSTPONE, post[j])
+            acc[j] = 0
             post[j] = 0
         trav = nxt
         if ended:

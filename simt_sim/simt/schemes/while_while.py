@@ -78,10 +78,16 @@ def trav_pack(o):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def trav_unpack(a):
-    """Packed counters of one traversal iteration (sums of :func:`trav_pack`): stepping
-    lanes, TRAV_NONE lanes, TRAV_ONE lanes."""
-    return a & _LOW, (a >> _FIELD) & _LOW, a >> (2 * _FIELD)
+def charge_trav(cnt, hist, costs, a):
+    """Charge one traversal iteration from its packed counters ``a`` (the sum of its lanes'
+    :func:`trav_pack`): ``trav_step`` and each outcome block. Returns the instructions."""
+    k = a & _LOW
+    c0 = (a >> _FIELD) & _LOW
+    c1 = a >> (2 * _FIELD)
+    issued = charge(cnt, hist, costs, TRAV_STEP, k)
+    issued += charge(cnt, hist, costs, TRAV_NONE_B, c0)
+    issued += charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
+    return issued + charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -131,12 +137,8 @@ def trav_loop(op, cur, end, trav, acc, costs, cnt, hist):
             cur[lane] = c
             span = max(span, j)
         for j in range(span):
-            k, c0, c1 = trav_unpack(acc[j])
+            issued += charge_trav(cnt, hist, costs, acc[j])
             acc[j] = 0
-            issued += charge(cnt, hist, costs, TRAV_STEP, k)
-            issued += charge(cnt, hist, costs, TRAV_NONE_B, c0)
-            issued += charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
-            issued += charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
         trav = nxt
     return issued, leaf
 
