@@ -67,6 +67,16 @@ def _add_output_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None, help="write the table to this file instead of stdout")
 
 
+def _add_gpus_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--gpus",
+        metavar="FILE",
+        default=None,
+        help="a TOML file of [[gpu]] entries (the schema of 'simt-sim gpus') added to the "
+        "packaged GPUs; an entry with a packaged id replaces it",
+    )
+
+
 def _add_quiet_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--quiet",
@@ -246,7 +256,8 @@ def cmd_table(args: argparse.Namespace) -> int:
         scene=args.scene,
         ray_types=parse_list(args.rays, RAY_TYPES, "ray type"),
         schemes=parse_list(args.schemes, ALL_SCHEMES, "scheme"),
-        gpus=parse_list(args.gpu, tuple(load_gpus()), "GPU"),
+        gpus=parse_list(args.gpu, tuple(load_gpus(args.gpus)), "GPU"),
+        gpu_file=args.gpus,
         cameras=args.camera,
         resolution=parse_resolution(args.resolution),
         spp=args.spp,
@@ -308,7 +319,8 @@ def cmd_plot(args: argparse.Namespace) -> int:
         scene=args.scene,
         ray_types=parse_list(args.rays, RAY_TYPES, "ray type"),
         schemes=parse_list(args.schemes, ALL_SCHEMES, "scheme"),
-        gpus=parse_list(args.gpu, tuple(load_gpus()), "GPU"),
+        gpus=parse_list(args.gpu, tuple(load_gpus(args.gpus)), "GPU"),
+        gpu_file=args.gpus,
         cameras=args.camera.strip(),
         resolution=parse_resolution(args.resolution),
         spp=args.spp,
@@ -358,7 +370,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
         trace = record_all(wl.bvh, wl.rays)
         steps.update()
         per_ray = trace.counts()
-        gpu = get_gpu(spec.gpus[0])
+        gpu = get_gpu(spec.gpus[0], spec.gpu_file)
         for s in warp_schemes:
             ir = kernels_ir.load(s, gpu.ir_arch)
             wc = warp_counts(trace, s, cost_vector(ir), gpu.warp_size)
@@ -402,7 +414,7 @@ def cmd_gpus(args: argparse.Namespace) -> int:
     """List the GPU configurations the upper bound can be computed for."""
     from simt_sim.simt.gpus import load_gpus
 
-    rows = [g.figures() for g in load_gpus().values()]
+    rows = [g.figures() for g in load_gpus(args.gpus).values()]
     emit(pd.DataFrame(rows), args.format, args.out)
     return 0
 
@@ -483,6 +495,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="gtx285",
         help="comma list of GPU ids or 'all' (see 'simt-sim gpus'; default: %(default)s)",
     )
+    _add_gpus_arg(p)
     _add_quiet_arg(p)
     p.add_argument(
         "--actual",
@@ -543,6 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="comma list of GPU ids or 'all'; the first one costs the per-pixel and "
         "timeline figures (default: %(default)s)",
     )
+    _add_gpus_arg(p)
     p.add_argument(
         "--warp",
         type=int,
@@ -565,6 +579,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_scenes)
 
     p = sub.add_parser("gpus", help="list the GPU configurations", epilog="example: simt-sim gpus")
+    _add_gpus_arg(p)
     _add_output_args(p)
     p.set_defaults(func=cmd_gpus)
 

@@ -66,6 +66,8 @@ class StudySpec:
     actual: bool = False
     sample: float = 1.0
     memory: str = "auto"
+    gpu_file: str | None = None
+    """A TOML file of GPUs added to the packaged ones (``simt-sim table --gpus FILE``)."""
 
 
 def parse_list(text: str, known: Sequence[str], what: str) -> tuple[str, ...]:
@@ -181,7 +183,7 @@ def study_irs(spec: StudySpec, gpus: Sequence[GpuConfig]) -> dict[tuple[str, str
 
 def batch_setup(spec: StudySpec, wl: Workload, ray_type: str) -> BatchSetup:
     """The per-batch step's setup for one ray type of ``spec`` on workload ``wl``."""
-    gpus = tuple(get_gpu(g) for g in spec.gpus)
+    gpus = tuple(get_gpu(g, spec.gpu_file) for g in spec.gpus)
     return BatchSetup(
         bvh=wl.bvh,
         scene=wl.scene.name,
@@ -381,7 +383,7 @@ def _check_spec(spec: StudySpec) -> None:
             f"memory model mode {spec.memory!r} is unknown; use one of {', '.join(MEMORY_MODES)}"
         )
     if spec.sample < 1.0:
-        sizes = {get_gpu(g).warp_size: g for g in spec.gpus}
+        sizes = {get_gpu(g, spec.gpu_file).warp_size: g for g in spec.gpus}
         if len(sizes) > 1:
             listed = ", ".join(f"{g} ({w} lanes)" for w, g in sorted(sizes.items()))
             raise SimtSimError(
@@ -405,7 +407,7 @@ def run_study(
     from simt_sim.simt.schemes.wavefront import simulate_queues
 
     _check_spec(spec)
-    gpus = [get_gpu(g) for g in spec.gpus]
+    gpus = [get_gpu(g, spec.gpu_file) for g in spec.gpus]
     irs = study_irs(spec, gpus)
     trace_schemes = [s for s in spec.schemes if s not in PATH_SCHEMES]
     sampled = spec.sample < 1.0

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
+import pandas as pd
 import pytest
+from test_cli import SMALL, assert_clean_error, run_cli
 
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.gpus import get_gpu, load_gpus
@@ -84,3 +87,33 @@ def test_bad_user_files_say_what_is_wrong(tmp_path: Path, text: str, message: st
 def test_missing_user_file(tmp_path: Path) -> None:
     with pytest.raises(SimtSimError, match="cannot read GPU file"):
         load_gpus(tmp_path / "nope.toml")
+
+
+def test_cli_gpus_file_adds_a_gpu_to_table_and_gpus(tmp_path: Path) -> None:
+    """`--gpus FILE`: a user GPU with twice the SMs of a GTX 285 (same IR, warp size and
+    issue rate) gets twice its upper bound from the same replay."""
+    entry = USER_GPU.format(id="gtx285x2").replace("sms = 10", "sms = 60")
+    entry = entry.replace("clock_mhz = 1000", "clock_mhz = 1476.0")
+    entry = entry.replace("issue_rate = 1.0", "issue_rate = 0.5")
+    entry = entry.replace('ir_arch = "sm_80"', 'ir_arch = "sm_75"')
+    path = tmp_path / "mine.toml"
+    path.write_text(entry)
+    args = ["table", *SMALL, "--rays", "primary", "--schemes", "while_while", "--spp", "1"]
+    proc = run_cli(*args, "--gpus", str(path), "--gpu", "gtx285,gtx285x2", "--format", "csv")
+    assert proc.returncode == 0, proc.stderr
+    df = pd.read_csv(io.StringIO(proc.stdout)).set_index("gpu")
+    assert df.loc["gtx285x2", "warp_instructions"] == df.loc["gtx285", "warp_instructions"]
+    assert df.loc["gtx285x2", "mrays_upper"] == pytest.approx(2 * df.loc["gtx285", "mrays_upper"])
+    listed = run_cli("gpus", "--gpus", str(path), "--format", "csv")
+    assert listed.returncode == 0, listed.stderr
+    assert "gtx285x2" in set(pd.read_csv(io.StringIO(listed.stdout))["id"])
+
+
+def test_cli_bad_gpus_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[gpu]\n")
+    out = tmp_path / "t.csv"
+    for path in (bad, tmp_path / "missing.toml"):
+        proc = run_cli("table", *SMALL, "--rays", "primary", "--gpus", str(path), "--out", str(out))
+        assert_clean_error(proc, "GPU file" if path.name == "missing.toml" else "TOML")
+        assert not out.exists()
