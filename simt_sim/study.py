@@ -40,7 +40,7 @@ from simt_sim.simt.memory import (
 )
 from simt_sim.simt.replay import simulate
 from simt_sim.simt.result import SimResult, merge
-from simt_sim.simt.schemes import SCHEMES
+from simt_sim.simt.schemes import SCHEMES, get_scheme
 from simt_sim.workload import Workload, make_workload
 
 RAY_TYPES = ("primary", "ao", "diffuse", "path")
@@ -309,13 +309,6 @@ def pipelined(setup: BatchSetup, batches: Iterable[RayBatch]) -> Iterator[BatchR
             recorded = upcoming.result()
 
 
-SAMPLED_NOTES = {
-    "dynamic_fetch": "sampled estimate biased low: refills draw from a pool of sampled warps "
-    "(docs/speed_accuracy.md); run this scheme unsampled",
-}
-"""Notes on sampled rows of schemes whose sampled estimate is biased beyond its interval."""
-
-
 def _sampled_row(
     batches: Sequence[BatchResults], key: tuple[str, str], population: int, fraction: float
 ) -> tuple[SimResult, dict]:
@@ -335,7 +328,7 @@ def _sampled_row(
         "rays and warp_instructions are scaled to the whole ray set"
     )
     point = replace(point, model_card=card)
-    row = {**point.to_row(), "note": SAMPLED_NOTES.get(key[0], "")}
+    row = {**point.to_row(), "note": get_scheme(key[0]).SAMPLING_BIAS}
     mrays = [g.mrays_upper for g in groups]
     efficiency = [g.simd_efficiency for g in groups]
     row.update(

@@ -3,7 +3,9 @@
 Trace schemes (``SCHEMES``) replay any OpTrace through
 :func:`simt_sim.simt.replay.simulate`. Each module has ``NAME``, ``PERSISTENT`` (resident
 warps fed from a pool, replayed launch by launch), ``APPROXIMATIONS`` (what the model card
-must say) and ``replay(offsets, op, addr, costs, params) -> Counts``; those whose warps
+must say), ``SAMPLING_BIAS`` (a note for rows estimated from sampled warps when that
+estimate is biased beyond its interval, else empty) and
+``replay(offsets, op, addr, costs, params) -> Counts``; those whose warps
 are fixed sets of consecutive rays also have ``warp_counts(offsets, op, addr, costs,
 warp_size)``, each warp's instructions (used by :mod:`simt_sim.warpstats`).
 

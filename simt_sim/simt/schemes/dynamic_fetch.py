@@ -60,6 +60,12 @@ APPROXIMATIONS: tuple[str, ...] = (
     "ideal work distribution: the warp with the fewest instructions so far runs next, "
     "and the SMs are perfectly balanced",
 )
+#: note on rows estimated with ``--sample``: refills draw the next rays of the pool, and a
+#: sampled pool jumps to an unrelated warp every 32 rays (docs/speed_accuracy.md)
+SAMPLING_BIAS = (
+    "sampled estimate biased low: refills draw from a pool of sampled warps "
+    "(docs/speed_accuracy.md); run this scheme unsampled"
+)
 #: parallel slots a batch of pending warps is split into (fixed: the split never
 #: depends on the thread count)
 N_SLOTS = 16

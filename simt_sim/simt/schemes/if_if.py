@@ -47,6 +47,7 @@ from simt_sim.simt.engine import (
 NAME = "if_if"
 PERSISTENT = False
 APPROXIMATIONS: tuple[str, ...] = ()
+SAMPLING_BIAS = ""
 
 
 @njit(cache=True, nogil=True)

@@ -55,6 +55,7 @@ APPROXIMATIONS: tuple[str, ...] = (
     "culling of the shared packet ignored",
     "active lanes of a packet step = lanes whose own ray visits that node",
 )
+SAMPLING_BIAS = ""
 
 _HASH = np.int64(2654435761)
 # columns of the node table, one row (32 bytes, one cache line) per distinct node

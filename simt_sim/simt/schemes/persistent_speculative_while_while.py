@@ -66,6 +66,7 @@ APPROXIMATIONS: tuple[str, ...] = (
     "speculation replayed on the recorded streams: op counts per ray preserved, extra "
     "node visits with a stale tmax are not modelled",
 )
+SAMPLING_BIAS = ""
 
 
 @njit(cache=True, nogil=True)

@@ -37,6 +37,7 @@ APPROXIMATIONS: tuple[str, ...] = (
     "ideal work distribution: each fetch goes to the warp with the fewest instructions "
     "so far, and the SMs are perfectly balanced",
 )
+SAMPLING_BIAS = ""
 
 
 @njit(cache=True, nogil=True)

@@ -61,6 +61,7 @@ from simt_sim.simt.engine import (
 NAME = "while_while"
 PERSISTENT = False
 APPROXIMATIONS: tuple[str, ...] = ()
+SAMPLING_BIAS = ""
 #: loop iterations a lane runs ahead of the others (length of the ``acc`` scratch)
 WINDOW = 64
 
