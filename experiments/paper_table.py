@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+import kernels_ir
 from kernels_ir.kernel_ir import KernelIR
 from simt_sim.simt.result import INTERSECTION_BLOCKS, TRAVERSAL_BLOCKS, SimResult
 from simt_sim.study import StudySpec, run_study
@@ -70,6 +71,38 @@ def scaled_ir(ir: KernelIR, factors: np.ndarray) -> KernelIR:
         scaled = max(1, round(total * factors[g])) if total else 0
         blocks[block] = {"other": scaled}
     return replace(ir, blocks=blocks, notes={**ir.notes, "calibrated": str(factors.tolist())})
+
+
+def ratio_table(res: dict[tuple[str, str], SimResult], paper: pd.DataFrame) -> pd.DataFrame:
+    """Our ratios between schemes beside the paper's (simulated), one row per ratio x ray type."""
+    p = paper.set_index(["scheme", "ray_type"])["simulated"]
+    rows = []
+    for label, (num, den) in RATIOS.items():
+        for rt in RAY_TYPES:
+            ours = res[(num, rt)].mrays_upper / res[(den, rt)].mrays_upper
+            theirs = p[(num, rt)] / p[(den, rt)]
+            rows.append(
+                {"ratio": label, "ray_type": rt, "ours": ours, "paper": theirs,
+                 "rel_error": ours / theirs - 1}
+            )  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def arch_sensitivity(res: dict[tuple[str, str], SimResult], paper: pd.DataFrame) -> pd.DataFrame:
+    """Ratio errors with the same replays re-costed by every architecture's IR.
+
+    The replays do not depend on the costs for these schemes (:meth:`SimResult.recost`),
+    so this isolates how much of each ratio's deviation is the compiler's code for one
+    target. Rows: ratio x ray type; columns: arch; values: relative error to the paper.
+    """
+    cols = {}
+    for arch in kernels_ir.ARCHS:
+        recosted = {
+            key: r.recost(kernels_ir.load(r.model_card["ir_kernel"], arch))
+            for key, r in res.items()
+        }
+        cols[arch] = ratio_table(recosted, paper).set_index(["ratio", "ray_type"])["rel_error"]
+    return pd.DataFrame(cols)
 
 
 def fit_factors(ww: dict[str, SimResult], paper: pd.DataFrame) -> np.ndarray:
@@ -153,23 +186,9 @@ def main(argv: list[str] | None = None) -> int:
             )
     main_table = pd.DataFrame(rows)
 
-    # 2. scheme ratios
-    ratio_rows = []
-    for label, (num, den) in RATIOS.items():
-        for rt in RAY_TYPES:
-            ours = res[(num, rt)].mrays_upper / res[(den, rt)].mrays_upper
-            p = paper.set_index(["scheme", "ray_type"])["simulated"]
-            theirs = p[(num, rt)] / p[(den, rt)]
-            ratio_rows.append(
-                {
-                    "ratio": label,
-                    "ray_type": rt,
-                    "ours": ours,
-                    "paper": theirs,
-                    "rel_error": ours / theirs - 1,
-                }
-            )
-    ratios = pd.DataFrame(ratio_rows)
+    # 2. scheme ratios, and how they move with the target the costs come from
+    ratios = ratio_table(res, paper)
+    by_arch = arch_sensitivity(res, paper)
 
     # 3. calibrated profile: fit to while-while only, predict the rest
     factors = fit_factors({rt: res[("while_while", rt)] for rt in RAY_TYPES}, paper)
@@ -191,15 +210,13 @@ def main(argv: list[str] | None = None) -> int:
             )
     calibrated = pd.DataFrame(cal_rows)
 
-    doc = render(args, spec, main_table, ratios, calibrated, factors, seconds, results)
+    doc = render(args, spec, main_table, ratios, by_arch, calibrated, factors, seconds, results)
     write_atomic(args.out, doc)
     print(doc)
     return 0
 
 
 def _ir_of(r: SimResult) -> KernelIR:
-    import kernels_ir
-
     return kernels_ir.load(r.model_card["ir_kernel"], r.model_card["ir_arch"])
 
 
@@ -215,41 +232,62 @@ DEVIATIONS = """## Why our numbers differ from the paper's
 - **Persistent while-while equals while-while (as in the paper).** Under ideal scheduling
   persistence changes only the fetch cost; the paper's simulator showed identical rows.
 - **if-if versus while-while.** The paper's simulated if-if was 13-22% *slower* than
-  while-while; ours is about as fast. The mechanism both share is right: if-if raises
-  traversal SIMD efficiency (see the table) and lowers intersection efficiency. The
-  difference is in the costs: today's if-if loop is no heavier than while-while's (its
-  loop control is {ii_loop} instructions on {arch}, its traversal step and triangle test
-  {ii_trav} and {ii_tri}), whereas in 2009 every if-if iteration carried enough extra
-  work to outweigh the efficiency gain. The calibrated profile shows it: fitted to
+  while-while; ours is {ii_ratio} of while-while's speed. The mechanism both share is
+  right: if-if raises traversal SIMD efficiency (see the table) and lowers intersection
+  efficiency. The difference is in the costs: today's if-if loop is no heavier than
+  while-while's (its loop control is {ii_loop} instructions on {arch}, its traversal step
+  and triangle test {ii_trav} and {ii_tri}), whereas in 2009 every if-if iteration carried
+  enough extra work to outweigh the efficiency gain. No target's code changes that (the
+  if-if rows of the table by target). The calibrated profile shows it: fitted to
   while-while alone, it prices per-iteration overhead (loop control, setup) {other:.3g}x
   higher, and if-if then lands {ii_lo:.0%}-{ii_hi:.0%} below the paper, on the paper's side
   of while-while.
-- **Speculative versus while-while.** Speculation raises SIMD efficiency as in the paper,
-  but today's speculative traversal step costs {spec_more:.0%} more than while-while's
-  ({spec_trav} against {ww_trav} instructions on {arch}: every lane runs the postpone test and an
-  `__any_sync` vote on every step), which costs more than the efficiency gain buys. In
-  2009 the same additions were a smaller share of a heavier step. Our replay also
-  visits no nodes speculatively beyond the recorded stream; the exact lockstep executor
-  (experiments/approximation_error.py, docs/model_card.md) puts that error at 0.4-1.6%
-  of warp instructions, too small to explain the gap.
+- **Speculative versus while-while.** Speculation raises SIMD efficiency as in the paper;
+  its speed relative to while-while is {spec_ratio} against the paper's {spec_paper} (errors
+  {spec_err}). Its traversal step costs {spec_more:.0%} more than while-while's
+  ({spec_trav} against {ww_trav} instructions on {arch}: the postpone test and an
+  `__any_sync` vote on every step). On sm_75 to sm_89 the vote also has a divergent-warp
+  fallback, which runs instead of the fast path when some lanes have left
+  the loop; the model charges the fast path (docs/kernels_ir.md), so these steps are
+  priced low, not high. With sm_90's code, which inlines the vote, the errors are
+  {spec_err_90}. Our replay also visits no nodes speculatively beyond the recorded
+  stream; the exact lockstep executor (experiments/approximation_error.py,
+  docs/model_card.md) puts that error at 0.4-1.6% of warp instructions.
 - **The calibrated profile** has three factors for three equations, so it fits
   while-while exactly whatever the mechanism; its "other" group (setup, loop control,
   pool fetch, postpone, finish) absorbs most of the correction, which over-prices the
   persistent schemes' fetch and speculation's postpone: treat its predictions for those
   rows as a bound on how far per-iteration overhead explains the paper, not as a model.
-- **Packet versus while-while.** The packet replay visits the union of its lanes' nodes
-  (measured within about 3.5% of exact lockstep execution); our ratio tracks the paper's
-  for primary rays and is too optimistic for incoherent diffuse rays, where the paper's
-  packet kernel paid more per visited node than ours.
+- **Packet versus while-while.** Errors {packet_err}. The packet replay visits the union
+  of its lanes' nodes (measured within about 3.5% of exact lockstep execution); what the
+  union costs depends on how coherent a warp's rays are, so this ratio is the one most
+  sensitive to the protocol (docs/speed_accuracy.md: lowering the resolution moves the
+  packet figures most), and the paper's packet kernel (its own
+  shared-stack code on GT200) differs from ours in what a visited node costs: our
+  packet `trav_step` is {packet_trav} instructions against while-while's {ww_trav}.
 """
 
 
-def deviations(arch: str, factors: np.ndarray, calibrated: pd.DataFrame) -> str:
-    """:data:`DEVIATIONS` with the block costs of ``arch`` and the calibration's figures."""
-    import kernels_ir
+def deviations(
+    arch: str,
+    factors: np.ndarray,
+    calibrated: pd.DataFrame,
+    ratios: pd.DataFrame,
+    by_arch: pd.DataFrame,
+) -> str:
+    """:data:`DEVIATIONS` with the block costs of ``arch`` and the measured figures."""
 
     def cost(kernel: str, block: str) -> int:
         return sum(kernels_ir.load(kernel, arch).blocks[block].values())
+
+    def span(label: str, col: str = "ours") -> str:
+        v = ratios[ratios["ratio"] == label][col]
+        return f"{v.min():.2f}-{v.max():.2f}"
+
+    def errs(label: str, values: pd.Series | None = None) -> str:
+        rows = ratios[ratios["ratio"] == label]
+        v = rows["rel_error"] if values is None else values.loc[label]
+        return ", ".join(f"{rt} {e:+.0%}" for rt, e in zip(rows["ray_type"], v, strict=True))
 
     ii = calibrated[calibrated["scheme"] == "if_if"]["rel_error"].abs()
     ww_trav = cost("while_while", "trav_step")
@@ -258,11 +296,18 @@ def deviations(arch: str, factors: np.ndarray, calibrated: pd.DataFrame) -> str:
         arch=arch, ww_trav=ww_trav, ww_tri=cost("while_while", "tri_test"),
         ii_loop=cost("if_if", "loop_control"), ii_trav=cost("if_if", "trav_step"),
         ii_tri=cost("if_if", "tri_test"), other=factors[2], ii_lo=ii.min(), ii_hi=ii.max(),
+        ii_ratio=span("if_if / while_while"),
         spec_trav=spec_trav, spec_more=spec_trav / ww_trav - 1,
+        spec_ratio=span("speculative / while_while"),
+        spec_paper=span("speculative / while_while", "paper"),
+        spec_err=errs("speculative / while_while"),
+        spec_err_90=errs("speculative / while_while", by_arch["sm_90"]),
+        packet_err=errs("packet / while_while"),
+        packet_trav=cost("packet", "trav_step"),
     )  # fmt: skip
 
 
-def render(args, spec, main_table, ratios, calibrated, factors, seconds, results) -> str:
+def render(args, spec, main_table, ratios, by_arch, calibrated, factors, seconds, results) -> str:
     fmt = {"floatfmt": ".3g", "index": False}
     r0 = results[0]
     pred = calibrated[~calibrated["fitted"]]
@@ -291,6 +336,24 @@ def render(args, spec, main_table, ratios, calibrated, factors, seconds, results
         "",
         ratios.to_markdown(**fmt),
         "",
+        "## The same ratios with each target's instruction costs",
+        "",
+        "The replays above re-costed with the IR of every compiled target (relative error "
+        "to the paper's ratio; the table above uses "
+        f"`{r0.model_card['ir_arch']}`, the oldest target nvcc 13 offers). What moves "
+        "between columns is the compiler's code alone.",
+        "",
+        by_arch.reset_index().to_markdown(**fmt),
+        "",
+        "| | " + " | ".join(by_arch.columns) + " |",
+        "|---" * (len(by_arch.columns) + 1) + "|",
+        "| median \\|error\\| | "
+        + " | ".join(f"{by_arch[a].abs().median():.1%}" for a in by_arch.columns)
+        + " |",
+        "| within 10% | "
+        + " | ".join(f"{(by_arch[a].abs() <= 0.10).sum()} of {len(by_arch)}" for a in by_arch)
+        + " |",
+        "",
         "## Calibrated profile",
         "",
         "Per-block costs scaled by group (traversal, intersection, other) so that "
@@ -301,7 +364,7 @@ def render(args, spec, main_table, ratios, calibrated, factors, seconds, results
         "",
         calibrated.to_markdown(**fmt),
         "",
-        deviations(r0.model_card["ir_arch"], factors, calibrated),
+        deviations(r0.model_card["ir_arch"], factors, calibrated, ratios, by_arch),
     ]
     return "\n".join(lines)
 

@@ -74,6 +74,8 @@ def load(kernel: str, arch: str = "sm_90") -> KernelIR:
     notes = dict(doc.get("notes", {}))
     spare = {c: n for c, n in doc.get("unattributed", {}).items() if n}
     notes["unattributed_classes"] = ", ".join(f"{c}={n}" for c, n in spare.items())
+    fallback = doc.get("divergent_fallback", {})
+    notes["divergent_fallback_blocks"] = ", ".join(f"{b}={n}" for b, n in fallback.items())
     return KernelIR(
         kernel=doc["kernel"],
         arch=doc["arch"],

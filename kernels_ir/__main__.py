@@ -63,6 +63,11 @@ def main(argv: list[str] | None = None) -> int:
                 f"unattributed: {ir.notes.get('unattributed_instructions', '?')} instructions "
                 f"({ir.notes.get('unattributed_classes', '')})"
             )
+            if ir.notes.get("divergent_fallback_blocks"):
+                print(
+                    "divergent-warp fallback, not charged: "
+                    f"{ir.notes['divergent_fallback_blocks']} instructions"
+                )
             with pd.option_context("display.width", 200, "display.max_columns", 20):
                 print(format_ir_table(ir).to_string())
             return 0

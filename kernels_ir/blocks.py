@@ -12,17 +12,22 @@ chain (see :mod:`kernels_ir.sass`), so a helper inlined from ``common.cuh`` coun
 the kernel calls it. Instructions whose line is in no region, or in another file, go to
 the catch-all :data:`UNATTRIBUTED` (kernel prologue, parameter loads the compiler hoists
 to the function's first line). Counts are static: a region holding a loop or branches is
-counted once, instruction by instruction, whatever paths execute.
+counted once, instruction by instruction, whatever paths execute. Two exceptions follow the
+code that actually runs: a compiler subroutine counts in the blocks that call it, and the
+divergent-warp fallback of a ``_sync`` intrinsic (sm_75..sm_89), which replaces the fast
+path rather than adding to it, is recorded per block but not charged.
 """
 
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable
+from collections import Counter
+from collections.abc import Iterable, Sequence
 from pathlib import PurePath
+from typing import NamedTuple
 
 from kernels_ir.kernel_ir import BLOCKS, CLASSES
-from kernels_ir.sass import SassInstruction, classify
+from kernels_ir.sass import SassInstruction, base_opcode, branch_target, classify
 from simt_sim.errors import SimtSimError
 
 UNATTRIBUTED = "unattributed"
@@ -61,22 +66,117 @@ def parse_markers(source: str, name: str = "<source>") -> dict[int, str]:
     return owner
 
 
+class BlockMap(NamedTuple):
+    """What :func:`map_blocks` finds: the charged counts and the divergent fallbacks.
+
+    ``counts``: block (or :data:`UNATTRIBUTED`) -> class -> instructions charged.
+    ``fallback``: block -> instructions of its divergent-warp fallback (not charged).
+    """
+
+    counts: dict[str, dict[str, int]]
+    fallback: dict[str, int]
+
+
+def divergent_only(instructions: Sequence[SassInstruction]) -> set[int]:
+    """Indices of the instructions that run only when the warp is diverged.
+
+    On sm_75..sm_89 nvcc compiles a ``_sync`` warp intrinsic to a converged fast path plus
+    a fallback for a diverged warp: ``BRA.DIV`` jumps to an out-of-line stub (which calls a
+    ``$__internal_*_sync`` subroutine and branches back), and ``BRA.CONV`` skips an inline
+    call. The fallback runs *instead of* the fast path, so counting both would charge a
+    converged warp for code it never runs. Found here: each stub up to its unguarded
+    ``BRA`` back, the code each ``BRA.CONV`` skips, and subroutines called only from those.
+    """
+    at = {label: i for i, ins in enumerate(instructions) for label in ins.labels}
+    out: set[int] = set()
+    for i, ins in enumerate(instructions):
+        if base_opcode(ins.opcode) != "BRA":
+            continue
+        modifiers = ins.opcode.split(".")[1:]
+        target = at.get(branch_target(ins) or "")
+        if target is None:
+            continue
+        if "DIV" in modifiers:
+            for k in range(target, len(instructions)):
+                stub = instructions[k]
+                if stub.function != ins.function:
+                    break
+                out.add(k)
+                op = base_opcode(stub.opcode)
+                if op in ("EXIT", "RET") or (op == "BRA" and not stub.guarded):
+                    break
+        elif "CONV" in modifiers:
+            out.update(range(i + 1, target))
+    kinds: dict[str, set[bool]] = {}
+    for i, ins in enumerate(instructions):
+        if base_opcode(ins.opcode) == "CALL":
+            kinds.setdefault(branch_target(ins) or "", set()).add(i in out)
+    only = {name for name, k in kinds.items() if k == {True}}
+    last_ret = {
+        ins.function: i for i, ins in enumerate(instructions) if base_opcode(ins.opcode) == "RET"
+    }
+    out.update(
+        i
+        for i, ins in enumerate(instructions)
+        if ins.function in only and i <= last_ret.get(ins.function, -1)
+    )
+    return out
+
+
 def map_blocks(
     instructions: Iterable[SassInstruction], owner: dict[int, str], kernel_file: str
-) -> dict[str, dict[str, int]]:
+) -> BlockMap:
     """Count instructions per block and class; the catch-all is :data:`UNATTRIBUTED`.
 
     ``kernel_file`` is the kernel's ``.cu`` file name; line-table paths are compared by
-    file name only, so the result does not depend on where the build ran.
+    file name only, so the result does not depend on where the build ran. A compiler
+    subroutine (function name starting with ``$``) is charged, up to its last ``RET``, to
+    every block that calls it, once per call site; what follows its last ``RET`` (the
+    ``BRA`` padding loop) goes to the catch-all. Divergent-warp fallbacks
+    (:func:`divergent_only`) are not charged; their size per block is ``fallback``.
+
+    Raises
+    ------
+    SimtSimError
+        If a subroutine calls another one (not emitted by nvcc for these kernels).
     """
     want = PurePath(kernel_file).name
+    instructions = list(instructions)
+    fallback_idx = divergent_only(instructions)
     counts: dict[str, dict[str, int]] = {}
-    for ins in instructions:
-        cls = classify(ins.opcode)
-        if cls is None:
-            continue
-        block = owner.get(ins.line, UNATTRIBUTED) if PurePath(ins.file).name == want else None
-        block = block or UNATTRIBUTED
+    fallback: dict[str, int] = {}
+
+    def charge(i: int, block: str, cls: str, times: int = 1) -> None:
+        if i in fallback_idx:
+            fallback[block] = fallback.get(block, 0) + times
+            return
         row = counts.setdefault(block, dict.fromkeys(CLASSES, 0))
-        row[cls] += 1
-    return counts
+        row[cls] += times
+
+    callers: dict[str, Counter[str]] = {}
+    last_ret: dict[str, int] = {}
+    for i, ins in enumerate(instructions):
+        cls = classify(ins.opcode)
+        if ins.function.startswith("$"):
+            if base_opcode(ins.opcode) == "CALL":
+                raise SimtSimError(f"subroutine {ins.function} calls another; not supported")
+            if base_opcode(ins.opcode) == "RET":
+                last_ret[ins.function] = i
+            continue
+        block = owner.get(ins.line) if PurePath(ins.file).name == want else None
+        block = block or UNATTRIBUTED
+        if base_opcode(ins.opcode) == "CALL":
+            callers.setdefault(branch_target(ins) or "", Counter())[block] += 1
+        if cls is not None:
+            charge(i, block, cls)
+    for i, ins in enumerate(instructions):
+        cls = classify(ins.opcode)
+        if not ins.function.startswith("$") or cls is None:
+            continue
+        sites = callers.get(ins.function)
+        if not sites or i > last_ret.get(ins.function, -1):
+            charge(i, UNATTRIBUTED, cls)
+            continue
+        for block, times in sites.items():
+            charge(i, block, cls, times)
+    return BlockMap(counts, fallback)

@@ -134,14 +134,18 @@ def build_one(kernel: str, arch: str, tools: Toolchain, workdir: Path) -> dict:
         raise SimtSimError(f"{kernel} {arch}: compiler warning: {warnings[0].strip()}")
     registers, notes = _ptxas_info(log, kernel)
     listing = _run([str(tools.nvdisasm), "-c", "-g", "-gi", str(cubin)], CUDA_DIR).stdout
-    instructions = [i for i in parse_listing(listing) if i.function == kernel]
+    # the kernel and the compiler subroutines ($__internal_*) it calls
+    instructions = [
+        i for i in parse_listing(listing) if i.function == kernel or i.function.startswith("$")
+    ]
     owner = parse_markers((CUDA_DIR / f"{kernel}.cu").read_text(), f"{kernel}.cu")
-    counts = map_blocks(instructions, owner, f"{kernel}.cu")
+    counts, fallback = map_blocks(instructions, owner, f"{kernel}.cu")
     unattributed = counts.pop(UNATTRIBUTED, {})
     missing = [b for b in REQUIRED_BLOCKS[kernel] if sum(counts.get(b, {}).values()) <= 0]
     if missing:
         raise SimtSimError(f"{kernel} {arch}: no instruction mapped to {', '.join(missing)}")
     notes["unattributed_instructions"] = str(sum(unattributed.values()))
+    notes["divergent_fallback_instructions"] = str(sum(fallback.values()))
     notes["total_instructions"] = str(
         sum(sum(r.values()) for r in counts.values()) + sum(unattributed.values())
     )
@@ -150,6 +154,7 @@ def build_one(kernel: str, arch: str, tools: Toolchain, workdir: Path) -> dict:
         "arch": arch,
         "blocks": counts,
         "unattributed": unattributed,
+        "divergent_fallback": fallback,
         "compiler": tools.version,
         "flags": [f"-arch={arch}", *FLAGS],
         "registers": registers,

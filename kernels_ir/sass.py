@@ -5,6 +5,11 @@ The listing is read as a state machine: a ``//## File "f", line n [inlined at "g
 ``-gi`` an inlined instruction carries its whole inline chain; the *outermost* location
 (the last one in the chain) is the line of the kernel function that the instruction
 belongs to, which is what the block mapper needs.
+
+Compiler subroutines (``$__internal_*``: on sm_75 the divergent-warp fallbacks of
+``__shfl_sync`` and ``__any_sync``) sit after the kernel in its section. Their label starts
+a new function with no location, so they do not inherit the kernel's last source line; the
+block mapper charges them to the blocks that call them.
 """
 
 from __future__ import annotations
@@ -15,6 +20,9 @@ from dataclasses import dataclass
 from simt_sim.errors import SimtSimError
 
 _FUNC = re.compile(r"^\s*\.text\.(?P<name>[A-Za-z_][\w$.]*):\s*$")
+_SUBROUTINE = re.compile(r"^(?P<name>\$[\w$.]+):\s*$")
+_LABEL = re.compile(r"^(?P<name>\.L[\w$.]*):\s*$")
+_TARGET = re.compile(r"`\((?P<name>[\w$.]+)\)")
 _LINE = re.compile(r'^\s*//## File "(?P<file>[^"]*)", line (?P<line>\d+)(?P<rest>.*)$')
 _INLINED = re.compile(r'inlined at "(?P<file>[^"]*)", line (?P<line>\d+)')
 _INSN = re.compile(r"^\s*/\*(?P<off>[0-9a-f]{4,})\*/\s+(?P<text>[^;]*);")
@@ -61,7 +69,9 @@ class SassInstruction:
     """One SASS instruction of a listing, with the source line it is charged to.
 
     ``file``/``line`` are the outermost location of the instruction's inline chain
-    (``""``/0 when the listing has no line information for it).
+    (``""``/0 when the listing has no line information for it); ``labels`` are the local
+    labels (``.L_x_3``) that name its address; ``guarded`` is true for an instruction under
+    a predicate (``@P0 BRA``).
     """
 
     function: str
@@ -70,6 +80,8 @@ class SassInstruction:
     text: str
     file: str
     line: int
+    labels: tuple[str, ...] = ()
+    guarded: bool = False
 
 
 def base_opcode(opcode: str) -> str:
@@ -89,6 +101,14 @@ def classify(opcode: str) -> str | None:
     return _CLASS_OF.get(base, "other")
 
 
+def branch_target(ins: SassInstruction) -> str | None:
+    """The label or subroutine a ``BRA`` or ``CALL`` jumps to (``None`` for anything else)."""
+    if base_opcode(ins.opcode) not in ("BRA", "CALL"):
+        return None
+    m = _TARGET.search(ins.text)
+    return m.group("name") if m else None
+
+
 def parse_listing(text: str) -> list[SassInstruction]:
     """Parse an ``nvdisasm -c -g -gi`` listing into instructions in listing order.
 
@@ -100,10 +120,15 @@ def parse_listing(text: str) -> list[SassInstruction]:
     out: list[SassInstruction] = []
     func = ""
     loc = ("", 0)
+    labels: list[str] = []
     for raw in text.splitlines():
-        m = _FUNC.match(raw)
+        m = _FUNC.match(raw) or _SUBROUTINE.match(raw)
         if m:
             func, loc = m.group("name"), ("", 0)
+            continue
+        m = _LABEL.match(raw)
+        if m:
+            labels.append(m.group("name"))
             continue
         m = _LINE.match(raw)
         if m:
@@ -113,9 +138,14 @@ def parse_listing(text: str) -> list[SassInstruction]:
             continue
         m = _INSN.match(raw)
         if m:
-            body = _PRED.sub("", m.group("text").strip())
+            raw_text = m.group("text").strip()
+            body = _PRED.sub("", raw_text)
             opcode = body.split(None, 1)[0]
-            out.append(SassInstruction(func, int(m.group("off"), 16), opcode, body, *loc))
+            off = int(m.group("off"), 16)
+            out.append(
+                SassInstruction(func, off, opcode, body, *loc, tuple(labels), body != raw_text)
+            )
+            labels = []
     if not out:
         raise SimtSimError(
             "no SASS instruction found: pass the output of `nvdisasm -c -g -gi` on a cubin"

@@ -16,7 +16,7 @@ import pytest
 import kernels_ir
 from kernels_ir import ARCHS, KERNELS, available, format_ir_table, load, summary_table
 from kernels_ir.__main__ import main
-from kernels_ir.blocks import UNATTRIBUTED, map_blocks, parse_markers
+from kernels_ir.blocks import UNATTRIBUTED, divergent_only, map_blocks, parse_markers
 from kernels_ir.build import (
     IR_DIR,
     build_one,
@@ -37,7 +37,7 @@ NO_TOOLCHAIN = "CUDA toolchain wheels not installed (pip install -e '.[cuda-tool
 
 def _tiny(arch: str) -> dict[str, dict[str, int]]:
     listing = parse_listing((DATA / f"tiny.{arch}.sass").read_text())
-    return map_blocks(listing, parse_markers(TINY, "tiny.cu"), "tiny.cu")
+    return map_blocks(listing, parse_markers(TINY, "tiny.cu"), "tiny.cu").counts
 
 
 def _nonzero(row: dict[str, int]) -> dict[str, int]:
@@ -140,9 +140,85 @@ def test_mapper_on_blackwell_listing_knows_every_opcode() -> None:
 
 def test_mapper_sends_other_files_to_the_catch_all() -> None:
     ins = parse_listing((DATA / "tiny.sm_90.sass").read_text())
-    counts = map_blocks(ins, parse_markers(TINY), "another.cu")
+    counts, fallback = map_blocks(ins, parse_markers(TINY), "another.cu")
+    assert fallback == {}
     assert set(counts) == {UNATTRIBUTED}
     assert sum(counts[UNATTRIBUTED].values()) == 30
+
+
+def _tiny_vote() -> list:
+    return parse_listing((DATA / "tiny_vote.sm_75.sass").read_text())
+
+
+def test_parser_reads_labels_guards_and_subroutines() -> None:
+    by_offset = {i.offset: i for i in _tiny_vote()}
+    assert by_offset[0x240].labels == (".L_x_14",) and not by_offset[0x240].guarded
+    assert by_offset[0x260].guarded and by_offset[0x260].opcode == "BRA"
+    # the subroutine after the kernel starts a new function with no source line
+    sub = by_offset[0x380]
+    assert sub.function == "$__internal_0_$__cuda_sm70_votesync_any"
+    assert (sub.file, sub.line) == ("", 0)
+
+
+def test_divergent_fallback_is_the_bra_div_stub_and_its_subroutine() -> None:
+    ins = _tiny_vote()
+    found = sorted(ins[i].offset for i in divergent_only(ins))
+    # stub .L_x_4 (SEL, MOV, CALL, ISETP, BRA back) and the subroutine up to its RET;
+    # not the padding BRA after the RET
+    assert found == list(range(0x330, 0x380, 0x10)) + list(range(0x380, 0x3F0, 0x10))
+
+
+def test_mapper_charges_the_converged_path_only() -> None:
+    counts, fallback = map_blocks(
+        _tiny_vote(), parse_markers((DATA / "tiny_vote.cu").read_text()), "tiny_vote.cu"
+    )
+    assert fallback == {"trav_step": 12}
+    assert _nonzero(counts["trav_step"]) == {
+        "int": 10, "ld_global": 1, "control": 9, "vote_atomic": 4,
+    }  # fmt: skip
+    assert _nonzero(counts["finish"]) == {"int": 3, "st_global": 1}
+    # EXIT and the padding loop after the subroutine's RET
+    assert _nonzero(counts[UNATTRIBUTED]) == {"int": 1, "control": 2}
+
+
+SYNTHETIC = """
+.text.k:
+        //## File "k.cu", line 3
+        /*0000*/                   IMAD.MOV.U32 R1, RZ, RZ, c[0x0][0x28] ;
+        /*0010*/                   BRA.CONV `(.L_x_1) ;
+        /*0020*/                   MOV R2, 0x40 ;
+        /*0030*/                   CALL.REL.NOINC `($__internal_0_$sync) ;
+.L_x_1:
+        /*0040*/                   MOV R4, 0x60 ;
+        /*0050*/                   CALL.REL.NOINC `($__internal_1_$helper) ;
+        //## File "k.cu", line 5
+        /*0060*/                   CALL.REL.NOINC `($__internal_1_$helper) ;
+        /*0070*/                   EXIT ;
+$__internal_0_$sync:
+        /*0080*/                   WARPSYNC R0 ;
+        /*0090*/                   RET.REL.NODEC R2 `(k) ;
+$__internal_1_$helper:
+        /*00a0*/                   IADD3 R5, R5, 0x1, RZ ;
+        /*00b0*/                   RET.REL.NODEC R4 `(k) ;
+.L_x_2:
+        /*00c0*/                   BRA `(.L_x_2);
+"""
+
+
+def test_subroutines_count_in_their_callers_and_bra_conv_skips_are_fallback() -> None:
+    owner = parse_markers("x\n// @block trav_step\na;\n// @block finish\nb;\n", "k.cu")
+    counts, fallback = map_blocks(parse_listing(SYNTHETIC), owner, "k.cu")
+    # line 3: IMAD, BRA.CONV, MOV, CALL + helper (IADD3, RET); line 5: CALL + helper again
+    assert sum(counts["trav_step"].values()) == 6
+    assert sum(counts["finish"].values()) == 4  # CALL, EXIT, helper's IADD3 and RET
+    assert fallback == {"trav_step": 4}  # MOV, CALL skipped by BRA.CONV; $sync's 2
+    assert _nonzero(counts[UNATTRIBUTED]) == {"control": 1}  # the padding loop
+
+
+def test_a_subroutine_calling_another_is_refused() -> None:
+    text = SYNTHETIC.replace("IADD3 R5, R5, 0x1, RZ", "CALL.REL.NOINC `($__internal_0_$sync)")
+    with pytest.raises(SimtSimError, match="calls another"):
+        map_blocks(parse_listing(text), {3: "trav_step"}, "k.cu")
 
 
 # ------------------------------------------------------------------------ committed IR
