@@ -246,10 +246,10 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   its speed relative to while-while is {spec_ratio} against the paper's {spec_paper} (errors
   {spec_err}). Its traversal step costs {spec_more:.0%} more than while-while's
   ({spec_trav} against {ww_trav} instructions on {arch}: the postpone test and an
-  `__any_sync` vote on every step). On sm_75 to sm_89 the vote also has a divergent-warp
-  fallback, which runs instead of the fast path when some lanes have left
-  the loop; the model charges the fast path (docs/kernels_ir.md), so these steps are
-  priced low, not high. With sm_90's code, which inlines the vote, the errors are
+  `__any_sync` vote on every step), and on sm_75 to sm_89 a step taken while some lanes
+  have left the loop runs the vote's divergent-warp fallback, {spec_div} instructions more
+  (`trav_diverged`, docs/kernels_ir.md). sm_90 inlines the vote, and with its costs the
+  errors are
   {spec_err_90}. Our replay also visits no nodes speculatively beyond the recorded
   stream; the exact lockstep executor (experiments/approximation_error.py,
   docs/model_card.md) puts that error at 0.4-1.6% of warp instructions.
@@ -278,7 +278,7 @@ def deviations(
     """:data:`DEVIATIONS` with the block costs of ``arch`` and the measured figures."""
 
     def cost(kernel: str, block: str) -> int:
-        return sum(kernels_ir.load(kernel, arch).blocks[block].values())
+        return kernels_ir.load(kernel, arch).cost(block)
 
     def span(label: str, col: str = "ours") -> str:
         v = ratios[ratios["ratio"] == label][col]
@@ -304,6 +304,7 @@ def deviations(
         spec_err_90=errs("speculative / while_while", by_arch["sm_90"]),
         packet_err=errs("packet / while_while"),
         packet_trav=cost("packet", "trav_step"),
+        spec_div=cost("persistent_speculative_while_while", "trav_diverged"),
     )  # fmt: skip
 
 

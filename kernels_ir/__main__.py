@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
             )
             if ir.notes.get("divergent_fallback_blocks"):
                 print(
-                    "divergent-warp fallback, not charged: "
+                    "divergent-warp fallback (charged only as trav_diverged): "
                     f"{ir.notes['divergent_fallback_blocks']} instructions"
                 )
             with pd.option_context("display.width", 200, "display.max_columns", 20):

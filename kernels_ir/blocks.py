@@ -70,11 +70,11 @@ class BlockMap(NamedTuple):
     """What :func:`map_blocks` finds: the charged counts and the divergent fallbacks.
 
     ``counts``: block (or :data:`UNATTRIBUTED`) -> class -> instructions charged.
-    ``fallback``: block -> instructions of its divergent-warp fallback (not charged).
+    ``fallback``: block -> class -> instructions of its divergent-warp fallback.
     """
 
     counts: dict[str, dict[str, int]]
-    fallback: dict[str, int]
+    fallback: dict[str, dict[str, int]]
 
 
 def divergent_only(instructions: Sequence[SassInstruction]) -> set[int]:
@@ -133,7 +133,7 @@ def map_blocks(
     subroutine (function name starting with ``$``) is charged, up to its last ``RET``, to
     every block that calls it, once per call site; what follows its last ``RET`` (the
     ``BRA`` padding loop) goes to the catch-all. Divergent-warp fallbacks
-    (:func:`divergent_only`) are not charged; their size per block is ``fallback``.
+    (:func:`divergent_only`) are counted apart, in ``fallback``.
 
     Raises
     ------
@@ -144,13 +144,12 @@ def map_blocks(
     instructions = list(instructions)
     fallback_idx = divergent_only(instructions)
     counts: dict[str, dict[str, int]] = {}
-    fallback: dict[str, int] = {}
+    fallback: dict[str, dict[str, int]] = {}
 
     def charge(i: int, block: str, cls: str, times: int = 1) -> None:
-        if i in fallback_idx:
-            fallback[block] = fallback.get(block, 0) + times
-            return
-        row = counts.setdefault(block, dict.fromkeys(CLASSES, 0))
+        row = (fallback if i in fallback_idx else counts).setdefault(
+            block, dict.fromkeys(CLASSES, 0)
+        )
         row[cls] += times
 
     callers: dict[str, Counter[str]] = {}

@@ -141,11 +141,16 @@ def build_one(kernel: str, arch: str, tools: Toolchain, workdir: Path) -> dict:
     owner = parse_markers((CUDA_DIR / f"{kernel}.cu").read_text(), f"{kernel}.cu")
     counts, fallback = map_blocks(instructions, owner, f"{kernel}.cu")
     unattributed = counts.pop(UNATTRIBUTED, {})
+    # a diverged warp's traversal step runs its vote's fallback (charged as trav_diverged
+    # where the scheme sees a diverged warp: speculative); other fallbacks stay uncharged
+    if "trav_step" in fallback:
+        counts["trav_diverged"] = fallback["trav_step"]
     missing = [b for b in REQUIRED_BLOCKS[kernel] if sum(counts.get(b, {}).values()) <= 0]
     if missing:
         raise SimtSimError(f"{kernel} {arch}: no instruction mapped to {', '.join(missing)}")
     notes["unattributed_instructions"] = str(sum(unattributed.values()))
-    notes["divergent_fallback_instructions"] = str(sum(fallback.values()))
+    fallback_sizes = {b: sum(row.values()) for b, row in fallback.items()}
+    notes["divergent_fallback_instructions"] = str(sum(fallback_sizes.values()))
     notes["total_instructions"] = str(
         sum(sum(r.values()) for r in counts.values()) + sum(unattributed.values())
     )
@@ -154,7 +159,7 @@ def build_one(kernel: str, arch: str, tools: Toolchain, workdir: Path) -> dict:
         "arch": arch,
         "blocks": counts,
         "unattributed": unattributed,
-        "divergent_fallback": fallback,
+        "divergent_fallback": fallback_sizes,
         "compiler": tools.version,
         "flags": [f"-arch={arch}", *FLAGS],
         "registers": registers,

@@ -13,6 +13,8 @@ trav_step          a traversal step: node fetch and both child box tests (TRAV_*
 trav_none          ... neither child hit: pop the stack          (TRAV_NONE)
 trav_one           ... one child hit: go there                    (TRAV_ONE)
 trav_both          ... both hit: order them, push the farther     (TRAV_BOTH)
+trav_diverged      ... taken by a diverged warp: the divergent-warp fallback of the step's
+                   warp vote (sm_75..sm_89 speculative; made by the build, no marker)
 postpone           speculative: a lane parks the leaf it found and keeps traversing
 leaf_entry         a leaf is entered (LEAF)
 tri_test           one triangle test (TRI_*)
@@ -38,6 +40,7 @@ BLOCKS = (
     "trav_none",
     "trav_one",
     "trav_both",
+    "trav_diverged",
     "postpone",
     "leaf_entry",
     "tri_test",

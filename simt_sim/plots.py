@@ -40,6 +40,7 @@ BLOCK_COLOURS = {
     "trav_none": "#9ecae1",
     "trav_one": "#6baed6",
     "trav_both": "#3182bd",
+    "trav_diverged": "#c6dbef",
     "postpone": "#9467bd",
     "leaf_entry": "#d62728",
     "tri_test": "#ff7f0e",

@@ -168,11 +168,11 @@ def test_divergent_fallback_is_the_bra_div_stub_and_its_subroutine() -> None:
     assert found == list(range(0x330, 0x380, 0x10)) + list(range(0x380, 0x3F0, 0x10))
 
 
-def test_mapper_charges_the_converged_path_only() -> None:
+def test_mapper_charges_the_converged_path_and_keeps_the_fallback_apart() -> None:
     counts, fallback = map_blocks(
         _tiny_vote(), parse_markers((DATA / "tiny_vote.cu").read_text()), "tiny_vote.cu"
     )
-    assert fallback == {"trav_step": 12}
+    assert {b: sum(row.values()) for b, row in fallback.items()} == {"trav_step": 12}
     assert _nonzero(counts["trav_step"]) == {
         "int": 10, "ld_global": 1, "control": 9, "vote_atomic": 4,
     }  # fmt: skip
@@ -211,7 +211,8 @@ def test_subroutines_count_in_their_callers_and_bra_conv_skips_are_fallback() ->
     # line 3: IMAD, BRA.CONV, MOV, CALL + helper (IADD3, RET); line 5: CALL + helper again
     assert sum(counts["trav_step"].values()) == 6
     assert sum(counts["finish"].values()) == 4  # CALL, EXIT, helper's IADD3 and RET
-    assert fallback == {"trav_step": 4}  # MOV, CALL skipped by BRA.CONV; $sync's 2
+    # MOV, CALL skipped by BRA.CONV; $sync's WARPSYNC, RET
+    assert _nonzero(fallback["trav_step"]) == {"int": 1, "control": 3}
     assert _nonzero(counts[UNATTRIBUTED]) == {"control": 1}  # the padding loop
 
 
@@ -248,6 +249,17 @@ def test_committed_ir_has_required_blocks_and_is_current(kernel: str) -> None:
             ir.notes["unattributed_instructions"]
         )
         assert int(ir.notes["unattributed_instructions"]) <= max(25, total // 10)
+
+
+def test_trav_diverged_is_the_traversal_vote_fallback() -> None:
+    # sm_75: the speculative step's __any_sync has a BRA.DIV fallback; sm_90 inlines it
+    ir75 = load("persistent_speculative_while_while", "sm_75")
+    assert ir75.cost("trav_diverged") > 0
+    assert ir75.notes["divergent_fallback_blocks"].count("trav_step=") == 1
+    assert load("persistent_speculative_while_while", "sm_90").cost("trav_diverged") == 0
+    for arch in ARCHS:  # no warp vote in these traversal steps
+        for kernel in ("while_while", "if_if", "persistent_while_while"):
+            assert load(kernel, arch).cost("trav_diverged") == 0
 
 
 @pytest.mark.parametrize("kernel", KERNELS)

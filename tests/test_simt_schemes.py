@@ -164,6 +164,7 @@ def test_speculative_by_hand() -> None:
             "trav_step": (3, 5),
             "trav_one": (3, 4),
             "trav_both": (1, 1),
+            "trav_diverged": (1, 1),  # the third step has one of the two lanes
             "postpone": (2, 2),
             "leaf_entry": (2, 3),
             "tri_test": (2, 3),

@@ -23,7 +23,9 @@ an interior node to step, a leaf to enter, a triangle to test, or nothing):
   steps; a lane that lands on a leaf while holding none postpones it (``postpone``: park
   it, pop the next node) and stops searching; a lane whose node is a leaf or that ran out
   of nodes leaves the loop; after each step the loop breaks when no lane that stepped is
-  still searching (``if (!__any(searchingLeaf)) break;``). The intersection loop then
+  still searching (``if (!__any(searchingLeaf)) break;``); a step taken with fewer than
+  ``warp_size`` lanes also charges ``trav_diverged``, the vote's divergent-warp fallback
+  (sm_75..sm_89). The intersection loop then
   processes each lane's postponed leaf and, like while-while, any leaves that follow
   (``leaf_entry``, lockstep ``tri_test``). Traversal uses the lane's *current* ``tmax``,
   so a lane may step nodes its recorded stream skipped, and an any-hit lane may traverse
@@ -75,6 +77,7 @@ from simt_sim.simt.engine import (
     POOL_FETCH,
     POSTPONE,
     RAY_SETUP,
+    TRAV_DIVERGED,
     TRAV_NONE_B,
     TRAV_STEP,
     TRI_HIT_B,
@@ -417,6 +420,8 @@ def _speculative(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, op
             if c < 0:
                 return np.int64(-1)
             cost += c
+            if n < hist.shape[1] - 1:  # a diverged warp: the vote takes its fallback
+                cost += charge(cnt, hist, costs, TRAV_DIVERGED, n)
             parked = 0
             searching = False
             for k in range(n):

@@ -155,6 +155,8 @@ def _speculative_group(streams: list[list[int]], rec: RefCounts) -> int:
             issued += rec.charge("trav_step", t)
             for o, block in enumerate(_OUTCOME_BLOCK):
                 issued += rec.charge(block, [lane for lane in t if w.next(lane) == o])
+            if len(t) < rec.warp_size:
+                issued += rec.charge("trav_diverged", t)
             w.advance(t)
             post = [lane for lane in t if w.next(lane) == LEAF and lane not in parked]
             issued += rec.charge("postpone", post)

@@ -21,7 +21,7 @@ from simt_sim.errors import SimtSimError
 from simt_sim.simt.engine import Counts, cost_vector
 from simt_sim.simt.gpus import GpuConfig
 
-TRAVERSAL_BLOCKS = ("trav_step", "trav_none", "trav_one", "trav_both")
+TRAVERSAL_BLOCKS = ("trav_step", "trav_none", "trav_one", "trav_both", "trav_diverged")
 INTERSECTION_BLOCKS = ("leaf_entry", "tri_test", "tri_hit")
 
 

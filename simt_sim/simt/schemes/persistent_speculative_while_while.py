@@ -9,7 +9,9 @@ group, the outer loop body mirrors the speculative kernel of Aila & Laine:
   TRI ops after it) and continues with the op after the leaf. A lane holding a postponed
   leaf keeps traversing until it reaches another LEAF, then waits. The loop ends when no
   lane is at a TRAV op, or when every lane that stepped in an iteration now holds a
-  postponed leaf (the kernel's ``if (!__any(no leaf yet)) break``);
+  postponed leaf (the kernel's ``if (!__any(no leaf yet)) break``). A step taken by
+  fewer than ``warp_size`` lanes finds the warp diverged, and on sm_75..sm_89 that vote
+  then runs its divergent-warp fallback: ``trav_diverged`` with the same lanes;
 - intersection loop: the lanes holding a postponed leaf process it (``leaf_entry``, then
   the triangle loop in lockstep); then, as in while-while's ``while node is leaf``, lanes
   whose next op is a LEAF process it too, leaf after leaf.
@@ -34,6 +36,7 @@ from simt_sim.simt.engine import (
     POOL_FETCH,
     POSTPONE,
     RAY_SETUP,
+    TRAV_DIVERGED,
     Counts,
     ReplayParams,
     charge,
@@ -54,6 +57,7 @@ from simt_sim.simt.schemes.while_while import (
     charge_trav,
     classify,
     isect_loop,
+    trav_lanes,
     trav_pack,
     tri_loop,
 )
@@ -148,8 +152,12 @@ def _spec_trav_loop(op, cur, end, park, park_end, trav, acc, post, first, costs,
             nxt |= is_trav(o) << lane
             leaf |= is_leaf(o) << lane
             span = max(span, j)
+        warp_size = hist.shape[1] - 1
         for j in range(span):
             issued += charge_trav(cnt, hist, costs, acc[j])
+            k = trav_lanes(acc[j])
+            if k < warp_size:  # some threads are elsewhere: the vote takes its fallback
+                issued += charge(cnt, hist, costs, TRAV_DIVERGED, k)
             issued += charge(cnt, hist, costs, POSTPONE, post[j])
             acc[j] = 0
             post[j] = 0

@@ -92,6 +92,12 @@ def charge_trav(cnt, hist, costs, a):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def trav_lanes(a):
+    """Stepping lanes of one traversal iteration's packed counters ``a``."""
+    return a & _LOW
+
+
+@njit(cache=True, nogil=True, inline="always")
 def tri_pack(o):
     """A lane's TRI op as packed counters: 1 testing lane, plus 1 in bits 21-41 for a hit."""
     return 1 + (np.int64(o == TRI_HIT) << _FIELD)
