@@ -252,14 +252,14 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   errors are
   {spec_err_90}. Our replay also visits no nodes speculatively beyond the recorded
   stream; the exact lockstep executor (experiments/approximation_error.py,
-  docs/model_card.md) puts that error at 0.4-1.6% of warp instructions.
+  docs/model_card.md) puts that error at 1.6% of warp instructions or less.
 - **The calibrated profile** has three factors for three equations, so it fits
   while-while exactly whatever the mechanism; its "other" group (setup, loop control,
   pool fetch, postpone, finish) absorbs most of the correction, which over-prices the
   persistent schemes' fetch and speculation's postpone: treat its predictions for those
   rows as a bound on how far per-iteration overhead explains the paper, not as a model.
 - **Packet versus while-while.** Errors {packet_err}. The packet replay visits the union
-  of its lanes' nodes (measured within about 3.5% of exact lockstep execution); what the
+  of its lanes' nodes (measured within about 3.6% of exact lockstep execution); what the
   union costs depends on how coherent a warp's rays are, so this ratio is the one most
   sensitive to the protocol (docs/speed_accuracy.md: lowering the resolution moves the
   packet figures most), and the paper's packet kernel (its own
