@@ -77,6 +77,13 @@ class BlockMap(NamedTuple):
     fallback: dict[str, dict[str, int]]
 
 
+def _last_returns(instructions: Sequence[SassInstruction]) -> dict[str, int]:
+    """Index of each function's last ``RET`` (what follows it is padding)."""
+    return {
+        ins.function: i for i, ins in enumerate(instructions) if base_opcode(ins.opcode) == "RET"
+    }
+
+
 def divergent_only(instructions: Sequence[SassInstruction]) -> set[int]:
     """Indices of the instructions that run only when the warp is diverged.
 
@@ -112,9 +119,7 @@ def divergent_only(instructions: Sequence[SassInstruction]) -> set[int]:
         if base_opcode(ins.opcode) == "CALL":
             kinds.setdefault(branch_target(ins) or "", set()).add(i in out)
     only = {name for name, k in kinds.items() if k == {True}}
-    last_ret = {
-        ins.function: i for i, ins in enumerate(instructions) if base_opcode(ins.opcode) == "RET"
-    }
+    last_ret = _last_returns(instructions)
     out.update(
         i
         for i, ins in enumerate(instructions)
@@ -153,14 +158,12 @@ def map_blocks(
         row[cls] += times
 
     callers: dict[str, Counter[str]] = {}
-    last_ret: dict[str, int] = {}
+    last_ret = _last_returns(instructions)
     for i, ins in enumerate(instructions):
         cls = classify(ins.opcode)
         if ins.function.startswith("$"):
             if base_opcode(ins.opcode) == "CALL":
                 raise SimtSimError(f"subroutine {ins.function} calls another; not supported")
-            if base_opcode(ins.opcode) == "RET":
-                last_ret[ins.function] = i
             continue
         block = owner.get(ins.line) if PurePath(ins.file).name == want else None
         block = block or UNATTRIBUTED
