@@ -15,7 +15,8 @@ to the function's first line). Counts are static: a region holding a loop or bra
 counted once, instruction by instruction, whatever paths execute. Two exceptions follow the
 code that actually runs: a compiler subroutine counts in the blocks that call it, and the
 divergent-warp fallback of a ``_sync`` intrinsic (sm_75..sm_89), which replaces the fast
-path rather than adding to it, is recorded per block but not charged.
+path rather than adding to it, is counted apart (the build makes ``trav_step``'s into the
+block ``trav_diverged``, charged only where the model sees a diverged warp).
 """
 
 from __future__ import annotations
