@@ -248,9 +248,8 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   ({spec_trav} against {ww_trav} instructions on {arch}: the postpone test and an
   `__any_sync` vote on every step), and on sm_75 to sm_89 a step taken while some lanes
   have left the loop runs the vote's divergent-warp fallback, {spec_div} instructions more
-  (`trav_diverged`, docs/kernels_ir.md). sm_90 inlines the vote, and with its costs the
-  errors are
-  {spec_err_90}. Our replay also visits no nodes speculatively beyond the recorded
+  (`trav_diverged`, docs/kernels_ir.md). sm_90 inlines the vote; with its costs the
+  errors are {spec_err_90}. Our replay also visits no nodes speculatively beyond the recorded
   stream; the exact lockstep executor (experiments/approximation_error.py,
   docs/model_card.md) puts that error at 1.6% of warp instructions or less.
 - **The calibrated profile** has three factors for three equations, so it fits
@@ -258,13 +257,15 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   pool fetch, postpone, finish) absorbs most of the correction, which over-prices the
   persistent schemes' fetch and speculation's postpone: treat its predictions for those
   rows as a bound on how far per-iteration overhead explains the paper, not as a model.
-- **Packet versus while-while.** Errors {packet_err}. The packet replay visits the union
-  of its lanes' nodes (measured within about 3.6% of exact lockstep execution); what the
-  union costs depends on how coherent a warp's rays are, so this ratio is the one most
-  sensitive to the protocol (docs/speed_accuracy.md: lowering the resolution moves the
-  packet figures most), and the paper's packet kernel (its own
-  shared-stack code on GT200) differs from ours in what a visited node costs: our
-  packet `trav_step` is {packet_trav} instructions against while-while's {ww_trav}.
+- **Packet versus while-while.** Errors {packet_err}: where positive, our packet is too
+  fast against while-while, most for incoherent rays. The packet replay visits the union
+  of its lanes' nodes (measured within about 3.6% of exact lockstep execution), so the
+  visits are not the gap; the cost of a visit is: our packet `trav_step` is
+  {packet_trav} instructions against while-while's {ww_trav} (its ballots' divergent-warp
+  fallbacks never run, as every lane stays in the packet loop), while the paper's GT200
+  packet kernel (its own shared-stack code) paid more per node than its while-while. This
+  ratio also moves most with the protocol (docs/speed_accuracy.md: a lower resolution
+  moves the packet figures most).
 """
 
 
