@@ -1,16 +1,20 @@
 """Replay throughput of every scheme (rays per second, recording excluded).
 
 Usage: python experiments/bench_replay.py [--rays 1048576] [--repeats 3] [--threads 1,2]
-       [--traces synthetic,recorded] [--scene room] [--resolution 256x192] [--spp 8]
+       [--traces synthetic,recorded,paths] [--scene room] [--resolution 256x192] [--spp 8]
        [--schemes all|NAME,...] [--thread-cpu]
 
-Two traces:
+Three traces:
 
 - ``synthetic``: a coherent synthetic trace (warps of rays sharing a random stream, each
   ray taking 20% of its decisions alone; ~60 ops per ray), costed with a KernelIR of small
   distinct block costs;
 - ``recorded``: the real target, diffuse rays of ``--scene`` (camera 0) recorded with
-  ``record_all`` and costed with each scheme's committed sm_75 KernelIR.
+  ``record_all`` and costed with each scheme's committed sm_75 KernelIR;
+- ``paths``: one diffuse path per pixel of ``--scene`` (camera 0, up to 8 bounces, as
+  ``simt-sim table --rays path``), replayed by the path schemes ``megakernel`` (the
+  kernel's ray order) and ``wavefront`` with their sm_75 KernelIRs; rays per second
+  count every extend and shadow ray.
 
 For each trace, thread count and scheme: one replay to warm up (numba compile / cache
 load), then the median of ``--repeats`` timed replays of ``simulate`` (validation
@@ -25,6 +29,7 @@ estimates the idle-machine throughput even while other jobs load the machine.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import statistics
 import time
@@ -36,9 +41,11 @@ import numpy as np
 import kernels_ir
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
 from simt_sim.optrace import OpTrace
+from simt_sim.paths import PathTrace, trace_paths
 from simt_sim.simt.gpus import GpuConfig, get_gpu
 from simt_sim.simt.replay import simulate
-from simt_sim.simt.schemes import SCHEMES
+from simt_sim.simt.result import SimResult
+from simt_sim.simt.schemes import PATH_SCHEMES, SCHEMES, megakernel, wavefront
 from simt_sim.simt.synth import synthetic_trace
 from simt_sim.workload import make_workload, parse_resolution
 
@@ -69,47 +76,68 @@ def _thread_cpu() -> dict[str, float]:
     return out
 
 
+def _trace_replays(
+    trace: OpTrace, ir_of: Callable[[str, GpuConfig], KernelIR], gpu: GpuConfig, schemes
+) -> dict[str, Callable[[], SimResult]]:
+    return {
+        s: functools.partial(simulate, [trace], s, ir_of(s, gpu), gpu)
+        for s in schemes
+        if s in SCHEMES
+    }
+
+
+def _path_trace(scene: str, resolution: tuple[int, int]) -> PathTrace:
+    wl = make_workload(scene, "primary", cameras="0", resolution=resolution, spp=1)
+    return trace_paths(wl.scene, wl.bvh, cameras=[0], width=resolution[0], height=resolution[1])
+
+
+def _path_replays(pt: PathTrace, gpu: GpuConfig, schemes) -> dict[str, Callable[[], SimResult]]:
+    out: dict[str, Callable[[], SimResult]] = {}
+    if "megakernel" in schemes:
+        ir = kernels_ir.load("megakernel", "sm_75")
+        out["megakernel"] = functools.partial(megakernel.simulate, pt, ir, gpu, order="ray")
+    if "wavefront" in schemes:
+        irs = {k: kernels_ir.load(k, "sm_75") for k in wavefront.KERNELS}
+        out["wavefront"] = functools.partial(wavefront.simulate, pt, irs, gpu)
+    return out
+
+
 def _bench(
-    name: str,
-    trace: OpTrace,
-    ir_of: Callable[[str, GpuConfig], KernelIR],
-    gpu: GpuConfig,
-    schemes: list[str],
+    n_rays: int,
+    replays: dict[str, Callable[[], SimResult]],
     threads: list[int],
     repeats: int,
     thread_cpu: bool,
 ) -> None:
-    ops = trace.op.shape[0] / trace.n_rays
-    print(f"\n{name} trace: {trace.n_rays} rays, {ops:.1f} ops/ray, {gpu.name}")
+    """Time each replay at each thread count: one warm-up, then the median of ``repeats``."""
     extra = f" {'busiest s':>9s} {'Mrays/s idle':>12s}" if thread_cpu else ""
     print(
         f"{'scheme':36s} {'thr':>3s} {'Mrays/s':>8s} {'wall s':>7s} {'cpu s':>7s} "
         f"{'Mrays/cpu-s':>11s} {'SIMD eff':>8s} {'MRays/s upper':>13s}{extra}"
     )
-    for scheme in schemes:
-        ir = ir_of(scheme, gpu)
+    for scheme, run in replays.items():
         for nt in threads:
             numba.set_num_threads(nt)
-            simulate([trace], scheme, ir, gpu)
+            run()
             times, cpus = [], []
             before = _thread_cpu() if thread_cpu else {}
             for _ in range(repeats):
                 t0, c0 = time.perf_counter(), time.process_time()
-                res = simulate([trace], scheme, ir, gpu)
+                res = run()
                 times.append(time.perf_counter() - t0)
                 cpus.append(time.process_time() - c0)
             med, cpu = statistics.median(times), statistics.median(cpus)
             row = (
-                f"{scheme:36s} {nt:3d} {trace.n_rays / med / 1e6:8.2f} {med:7.3f} {cpu:7.3f} "
-                f"{trace.n_rays / cpu / 1e6:11.2f} {res.simd_efficiency:8.3f} "
+                f"{scheme:36s} {nt:3d} {n_rays / med / 1e6:8.2f} {med:7.3f} {cpu:7.3f} "
+                f"{n_rays / cpu / 1e6:11.2f} {res.simd_efficiency:8.3f} "
                 f"{res.mrays_upper:13.1f}"
             )
             if thread_cpu:  # mean over the repeats (the clock ticks are 10 ms)
                 after = _thread_cpu()
                 busiest = max(after[t] - before.get(t, 0.0) for t in after) / repeats
-                row += f" {busiest:9.3f} {trace.n_rays / max(busiest, 1e-9) / 1e6:12.2f}"
+                row += f" {busiest:9.3f} {n_rays / max(busiest, 1e-9) / 1e6:12.2f}"
             print(row, flush=True)
-            np.testing.assert_equal(res.rays, trace.n_rays)
+            np.testing.assert_equal(res.rays, n_rays)
 
 
 def main() -> None:
@@ -117,7 +145,7 @@ def main() -> None:
     ap.add_argument("--rays", type=int, default=1 << 20, help="synthetic trace size")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", default=f"1,{numba.config.NUMBA_NUM_THREADS}", help="e.g. 1,2")
-    ap.add_argument("--traces", default="synthetic,recorded")
+    ap.add_argument("--traces", default="synthetic,recorded,paths")
     ap.add_argument("--scene", default="room")
     ap.add_argument("--resolution", default="256x192")
     ap.add_argument("--spp", type=int, default=8)
@@ -132,24 +160,35 @@ def main() -> None:
     if args.thread_cpu:  # read by OpenMP when numba starts its threads, below
         os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
     threads = sorted({int(t) for t in args.threads.split(",")})
-    schemes = list(SCHEMES) if args.schemes == "all" else args.schemes.split(",")
-    unknown = [s for s in schemes if s not in SCHEMES]
+    known = [*SCHEMES, *PATH_SCHEMES]
+    schemes = known if args.schemes == "all" else args.schemes.split(",")
+    unknown = [s for s in schemes if s not in known]
     if unknown:
-        raise SystemExit(f"unknown scheme(s) {', '.join(unknown)}; use {', '.join(SCHEMES)}")
+        raise SystemExit(f"unknown scheme(s) {', '.join(unknown)}; use {', '.join(known)}")
     gpu = get_gpu(args.gpu)
     print(f"numba threading layer: {numba.config.THREADING_LAYER}, threads {threads}")
     for name in args.traces.split(","):
+        t0 = time.perf_counter()
         if name == "synthetic":
             trace = synthetic_trace(args.rays, seed=1, coherence=32, divergence=0.2)
-            ir_of: Callable[[str, GpuConfig], KernelIR] = _synthetic_ir
+            replays = _trace_replays(trace, _synthetic_ir, gpu, schemes)
         elif name == "recorded":
-            t0 = time.perf_counter()
             trace = _recorded_trace(args.scene, parse_resolution(args.resolution), args.spp)
-            print(f"\nrecorded {args.scene} diffuse in {time.perf_counter() - t0:.1f} s")
-            ir_of = _recorded_ir
+            replays = _trace_replays(trace, _recorded_ir, gpu, schemes)
+        elif name == "paths":
+            pt = _path_trace(args.scene, parse_resolution(args.resolution))
+            replays = _path_replays(pt, gpu, schemes)
         else:
-            raise SystemExit(f"unknown trace {name!r}; use synthetic and/or recorded")
-        _bench(name, trace, ir_of, gpu, schemes, threads, args.repeats, args.thread_cpu)
+            raise SystemExit(f"unknown trace {name!r}; use synthetic, recorded and/or paths")
+        print(f"\n{name} trace made in {time.perf_counter() - t0:.1f} s")
+        if name == "paths":
+            n_rays = pt.n_rays
+            print(f"{pt.n_paths} paths, {n_rays} rays, {gpu.name}")
+        else:
+            n_rays = trace.n_rays
+            ops = trace.op.shape[0] / n_rays
+            print(f"{n_rays} rays, {ops:.1f} ops/ray, {gpu.name}")
+        _bench(n_rays, replays, threads, args.repeats, args.thread_cpu)
 
 
 if __name__ == "__main__":

@@ -81,6 +81,13 @@ class OpTrace:
         """Per-ray op counts, int64 (n, 3): TRAV, LEAF, TRI."""
         return _kind_counts(self.offsets, self.op)
 
+    def op_totals(self) -> np.ndarray:
+        """TRAV, LEAF and TRI ops over all rays, int64 (3,): ``counts().sum(axis=0)``
+        without the per-ray table."""
+        n_trav = np.count_nonzero(self.op <= TRAV_BOTH)
+        n_leaf = np.count_nonzero(self.op == LEAF)
+        return np.array([n_trav, n_leaf, self.op.shape[0] - n_trav - n_leaf], np.int64)
+
     def slice(self, start: int, stop: int) -> OpTrace:
         """Rays ``start:stop`` as a trace of their own (offsets rebased to 0)."""
         lo, hi = int(self.offsets[start]), int(self.offsets[stop])

@@ -174,7 +174,7 @@ class PathTrace:
         """Total TRAV, LEAF, TRI ops over every extend and shadow ray (int64 (3,))."""
         total = np.zeros(3, np.int64)
         for t in self.extend + self.connect:
-            total += t.counts().sum(axis=0)
+            total += t.op_totals()
         return total
 
 

@@ -5,7 +5,7 @@ Warps hold 32 consecutive paths (path-id order, i.e. Morton order of pixels). Pe
 - ``ray_setup`` once with every lane that has a path (path start);
 - per bounce ``b``, while any lane's path is alive (the bounce loop reconverges every
   iteration): ``loop_control`` with the alive lanes; the **extend** trace of those lanes
-  under while-while's loop nest (:func:`~simt_sim.simt.schemes.while_while.outer_iteration`:
+  under while-while's loop nest (:func:`~simt_sim.simt.schemes.while_while.outer_step`:
   ``loop_control`` per outer trace iteration, then the traversal and intersection
   loops); ``shade`` with the lanes whose extend ray hit; the **connect** (shadow, any-hit)
   trace of the lanes that sent one, under the same loop nest; ``finish`` with the lanes
@@ -41,6 +41,7 @@ from simt_sim.paths import PathTrace
 from simt_sim.simt.engine import (
     FINISH,
     LOOP_CONTROL,
+    MAX_MASK_LANES,
     N_BLOCKS,
     N_CHUNKS,
     RAY_SETUP,
@@ -52,7 +53,7 @@ from simt_sim.simt.engine import (
 )
 from simt_sim.simt.gpus import GpuConfig
 from simt_sim.simt.result import SimResult, check_ir
-from simt_sim.simt.schemes.while_while import outer_iteration
+from simt_sim.simt.schemes.while_while import WINDOW, classify, outer_step
 
 NAME = "megakernel"
 SHADE = BLOCKS.index("shade")
@@ -107,29 +108,25 @@ def path_tables(pt: PathTrace) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
 
 
 @njit(cache=True, nogil=True)
-def _trace(offsets, op, rows, p0, lanes, n, cur, end, live, work, sub, costs, cnt, hist):
+def _trace(offsets, op, rows, p0, lanes, n, cur, end, acc, costs, cnt, hist):
     """While-while loop nest of ``lanes[:n]``, lane ``l`` tracing segment ``rows[p0 + l]``."""
+    trav = np.int64(0)
+    leaf = np.int64(0)
     for i in range(n):
         lane = lanes[i]
         r = rows[p0 + lane]
         cur[lane] = offsets[r]
         end[lane] = offsets[r + 1]
-    while True:
-        a = 0
-        for i in range(n):
-            lane = lanes[i]
-            if cur[lane] < end[lane]:
-                live[a] = lane
-                a += 1
-        if a == 0:
-            return
-        outer_iteration(op, cur, end, live, a, work, sub, costs, cnt, hist)
+        trav, leaf = classify(op, cur, end, lane, trav, leaf)
+    while trav | leaf:
+        trav = outer_step(op, cur, end, trav, leaf, acc, costs, cnt, hist)[1]
+        leaf = np.int64(0)
 
 
 @njit(cache=True, nogil=True)
-def _warp(offsets, op, ext_row, con_row, hit, p0, n, buf, costs, cnt, hist):
+def _warp(offsets, op, ext_row, con_row, hit, p0, n, buf, acc, costs, cnt, hist):
     """Paths ``p0 .. p0+n-1`` as one warp of the megakernel."""
-    alive, sel, cur, end, live, work, sub = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], buf[6]
+    alive, sel, cur, end = buf[0], buf[1], buf[2], buf[3]
     nb = ext_row.shape[0]
     charge(cnt, hist, costs, RAY_SETUP, n)
     for b in range(nb):
@@ -141,7 +138,7 @@ def _warp(offsets, op, ext_row, con_row, hit, p0, n, buf, costs, cnt, hist):
         if a == 0:
             return
         charge(cnt, hist, costs, LOOP_CONTROL, a)
-        _trace(offsets, op, ext_row[b], p0, alive, a, cur, end, live, work, sub, costs, cnt, hist)
+        _trace(offsets, op, ext_row[b], p0, alive, a, cur, end, acc, costs, cnt, hist)
         k = 0
         for i in range(a):
             if hit[b, p0 + alive[i]]:
@@ -152,7 +149,7 @@ def _warp(offsets, op, ext_row, con_row, hit, p0, n, buf, costs, cnt, hist):
             if con_row[b, p0 + alive[i]] >= 0:
                 sel[k] = alive[i]
                 k += 1
-        _trace(offsets, op, con_row[b], p0, sel, k, cur, end, live, work, sub, costs, cnt, hist)
+        _trace(offsets, op, con_row[b], p0, sel, k, cur, end, acc, costs, cnt, hist)
         k = 0
         for i in range(a):
             if b + 1 == nb or ext_row[b + 1, p0 + alive[i]] < 0:
@@ -161,9 +158,9 @@ def _warp(offsets, op, ext_row, con_row, hit, p0, n, buf, costs, cnt, hist):
 
 
 @njit(cache=True, nogil=True)
-def _warp_ray_order(offsets, op, seq, p0, n, buf, costs, cnt, hist):
+def _warp_ray_order(offsets, op, seq, p0, n, buf, acc, costs, cnt, hist):
     """Paths ``p0 .. p0+n-1`` as one warp of megakernel.cu: one ray per loop iteration."""
-    alive, cur, end, live, work, sub = buf[0], buf[2], buf[3], buf[4], buf[5], buf[6]
+    alive, cur, end = buf[0], buf[2], buf[3]
     for i in range(seq.shape[0]):
         a = 0
         for lane in range(n):
@@ -173,7 +170,7 @@ def _warp_ray_order(offsets, op, seq, p0, n, buf, costs, cnt, hist):
         if a == 0:
             break
         charge(cnt, hist, costs, RAY_SETUP, a)
-        _trace(offsets, op, seq[i], p0, alive, a, cur, end, live, work, sub, costs, cnt, hist)
+        _trace(offsets, op, seq[i], p0, alive, a, cur, end, acc, costs, cnt, hist)
         charge(cnt, hist, costs, SHADE, a)
         charge(cnt, hist, costs, LOOP_CONTROL, a)
     charge(cnt, hist, costs, FINISH, n)
@@ -188,15 +185,30 @@ def _replay(offsets, op, ext_row, con_row, hit, seq, ray_order, costs, warp_size
     cnt = np.zeros((nc, 2, N_BLOCKS), np.int64)
     hist = np.zeros((nc, N_BLOCKS, warp_size + 1), np.int64)
     for c in prange(nc):
-        buf = np.empty((7, warp_size), np.int64)
+        buf = np.empty((4, warp_size), np.int64)
+        acc = np.zeros(WINDOW, np.int64)
         for w in range(bounds[c], bounds[c + 1]):
             p0 = w * warp_size
             n = min(warp_size, n_paths - p0)
             if ray_order:
-                _warp_ray_order(offsets, op, seq, p0, n, buf, costs, cnt[c], hist[c])
+                _warp_ray_order(offsets, op, seq, p0, n, buf, acc, costs, cnt[c], hist[c])
             else:
-                _warp(offsets, op, ext_row, con_row, hit, p0, n, buf, costs, cnt[c], hist[c])
+                _warp(offsets, op, ext_row, con_row, hit, p0, n, buf, acc, costs, cnt[c], hist[c])
     return cnt, hist
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _compact_columns(both):
+    """Each column's non-negative entries first, in order; -1 after them."""
+    rows, n = both.shape
+    out = np.full((rows, n), -1, np.int32)
+    for p in prange(n):
+        k = 0
+        for i in range(rows):
+            if both[i, p] >= 0:
+                out[k, p] = both[i, p]
+                k += 1
+    return out
 
 
 def ray_sequences(ext_row: np.ndarray, con_row: np.ndarray) -> np.ndarray:
@@ -206,8 +218,7 @@ def ray_sequences(ext_row: np.ndarray, con_row: np.ndarray) -> np.ndarray:
     both = np.empty((2 * nb, n), np.int32)
     both[0::2] = ext_row
     both[1::2] = con_row
-    order = np.argsort(both < 0, axis=0, kind="stable")
-    return np.take_along_axis(both, order, axis=0)
+    return _compact_columns(both)
 
 
 def replay_paths(
@@ -220,6 +231,11 @@ def replay_paths(
     """
     if order not in ORDERS:
         raise SimtSimError(f"unknown megakernel order {order!r}; use one of {', '.join(ORDERS)}")
+    if warp_size > MAX_MASK_LANES:
+        raise SimtSimError(
+            f"warp_size {warp_size} is above the replay's {MAX_MASK_LANES} lanes per warp; "
+            f"use a GPU with at most {MAX_MASK_LANES} lanes"
+        )
     if pt.n_paths == 0 or pt.n_bounces == 0:
         return chunk_counts(
             np.zeros((1, 2, N_BLOCKS), np.int64), np.zeros((1, N_BLOCKS, warp_size + 1), np.int64)

@@ -154,10 +154,8 @@ def simulate_kernels(
     _check_irs(irs)
     costs = {k: cost_vector(irs[k]) for k in KERNELS}
     counts = replay_kernels(pt, costs, gpu.warp_size)
-    ext = np.zeros(3, np.int64)
-    for t in pt.extend:
-        ext += t.counts().sum(axis=0)
-    con = pt.op_counts() - ext
+    ext = sum((t.op_totals() for t in pt.extend), np.zeros(3, np.int64))
+    con = sum((t.op_totals() for t in pt.connect), np.zeros(3, np.int64))
     n_ext = sum(t.n_rays for t in pt.extend)
     sizes = {
         "wavefront_generate": (pt.n_paths, np.zeros(3, np.int64)),

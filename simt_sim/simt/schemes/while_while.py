@@ -32,7 +32,6 @@ from simt_sim.simt.engine import (
     FINISH,
     LEAF_ENTRY,
     LOOP_CONTROL,
-    MAX_MASK_LANES,
     N_BLOCKS,
     N_CHUNKS,
     RAY_SETUP,
@@ -245,25 +244,6 @@ def classify(op, cur, end, lane, trav, leaf):
     """Add ``lane`` to the mask of its next op's kind: returns ``(trav, leaf)``."""
     o = next_op(op, cur, end, lane)
     return trav | (is_trav(o) << lane), leaf | (is_leaf(o) << lane)
-
-
-@njit(cache=True, nogil=True)
-def outer_iteration(op, cur, end, lanes, n, work, sub, costs, cnt, hist):
-    """One outer-loop iteration for the alive lanes ``lanes[:n]`` (n > 0, lane ids < 64).
-
-    The list form of :func:`outer_step` for callers that keep lane lists (megakernel,
-    wavefront): ``work`` serves as the run-ahead window (zeroed here); ``sub`` is scratch
-    the mask form no longer needs, kept so the callers' signature holds.
-    """
-    trav = np.int64(0)
-    leaf = np.int64(0)
-    for i in range(n):
-        lane = lanes[i]
-        if lane >= MAX_MASK_LANES:
-            raise ValueError("warp_size above 64 lanes is not supported by the replay")
-        trav, leaf = classify(op, cur, end, lane, trav, leaf)
-    work[:] = 0
-    return outer_step(op, cur, end, trav, leaf, work, costs, cnt, hist)[0]
 
 
 @njit(cache=True, nogil=True)
