@@ -322,6 +322,7 @@ def test_counts_and_summary_agree_with_the_ops(sphere_mesh):
     ray = np.repeat(np.arange(tr.n_rays), np.diff(tr.offsets))
     for k, mask in enumerate((tr.op <= TRAV_BOTH, tr.op == LEAF, tr.op >= TRI_MISS)):
         np.testing.assert_array_equal(counts[:, k], np.bincount(ray[mask], minlength=tr.n_rays))
+    np.testing.assert_array_equal(tr.op_totals(), counts.sum(axis=0))
     s = summary(tr)
     assert s["rays"] == 500 and s["ops"] == counts.sum()
     assert s["trav_per_ray"] == pytest.approx(counts[:, 0].mean())
