@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 import kernels_ir
-from kernels_ir.kernel_ir import KernelIR
+from kernels_ir.kernel_ir import BLOCKS, KernelIR
 from simt_sim.simt.result import INTERSECTION_BLOCKS, TRAVERSAL_BLOCKS, SimResult
 from simt_sim.study import StudySpec, run_study
 from simt_sim.tables import write_atomic
@@ -47,6 +47,16 @@ RATIOS = {
     "packet / while_while": ("packet", "while_while"),
 }
 GROUPS = {"traversal": TRAVERSAL_BLOCKS, "intersection": INTERSECTION_BLOCKS}
+#: per ratio, the numerator's blocks whose cost the break-even table moves, one at a time:
+#: the work the deviation notes weigh (if-if's per-iteration overhead; a speculative
+#: step, its divergent-warp fallback and its postpone; a packet node visit, leaf entry
+#: and triangle test; the persistent pool fetch)
+BREAK_EVEN_BLOCKS = {
+    "if_if / while_while": ("loop_control",),
+    "speculative / while_while": ("trav_step", "trav_diverged", "postpone"),
+    "persistent / while_while": ("pool_fetch",),
+    "packet / while_while": ("trav_step", "leaf_entry", "tri_test"),
+}
 
 
 def reference(path: Path) -> pd.DataFrame:
@@ -103,6 +113,32 @@ def arch_sensitivity(res: dict[tuple[str, str], SimResult], paper: pd.DataFrame)
         }
         cols[arch] = ratio_table(recosted, paper).set_index(["ratio", "ray_type"])["rel_error"]
     return pd.DataFrame(cols)
+
+
+def break_even(res: dict[tuple[str, str], SimResult], paper: pd.DataFrame) -> pd.DataFrame:
+    """Instructions one block of a ratio's numerator would have to cost more (negative:
+    less) for our ratio to equal the paper's; one row per ratio x block, one column per
+    ray type.
+
+    Warp instructions are linear in the block costs and both schemes trace the same rays,
+    so with ``I`` our warp instructions, ``P`` the paper's ratio and ``e`` the block's warp
+    executions in the numerator: ``delta = (I_den * rays_num / rays_den / P - I_num) / e``.
+    A deviation that one per-execution cost explains needs about the same ``delta`` for
+    every ray type.
+    """
+    p = paper.set_index(["scheme", "ray_type"])["simulated"]
+    rows = []
+    for label, (num, den) in RATIOS.items():
+        for block in BREAK_EVEN_BLOCKS[label]:
+            row = {"ratio": label, "block": block}
+            for rt in RAY_TYPES:
+                rn, rd = res[(num, rt)], res[(den, rt)]
+                row["cost"] = int(rn.costs[BLOCKS.index(block)])
+                want = rd.warp_instructions * rn.rays / rd.rays / (p[(num, rt)] / p[(den, rt)])
+                e = rn.executions[block]
+                row[rt] = (want - rn.warp_instructions) / e if e else float("nan")
+            rows.append(row)
+    return pd.DataFrame(rows)
 
 
 def fit_factors(ww: dict[str, SimResult], paper: pd.DataFrame) -> np.ndarray:
@@ -189,6 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     # 2. scheme ratios, and how they move with the target the costs come from
     ratios = ratio_table(res, paper)
     by_arch = arch_sensitivity(res, paper)
+    even = break_even(res, paper)
 
     # 3. calibrated profile: fit to while-while only, predict the rest
     factors = fit_factors({rt: res[("while_while", rt)] for rt in RAY_TYPES}, paper)
@@ -210,7 +247,9 @@ def main(argv: list[str] | None = None) -> int:
             )
     calibrated = pd.DataFrame(cal_rows)
 
-    doc = render(args, spec, main_table, ratios, by_arch, calibrated, factors, seconds, results)
+    doc = render(
+        args, spec, main_table, ratios, by_arch, even, calibrated, factors, seconds, results
+    )
     write_atomic(args.out, doc)
     print(doc)
     return 0
@@ -237,7 +276,8 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   efficiency. The difference is in the costs: today's if-if loop is no heavier than
   while-while's (its loop control is {ii_loop} instructions on {arch}, its traversal step
   and triangle test {ii_trav} and {ii_tri}), whereas in 2009 every if-if iteration carried
-  enough extra work to outweigh the efficiency gain. No target's code changes that (the
+  enough extra work to outweigh the efficiency gain. The break-even table sizes that
+  work: an if-if iteration would have to cost {ii_even}. No target's code changes that (the
   if-if rows of the table by target). The calibrated profile shows it: fitted to
   while-while alone, it prices per-iteration overhead (loop control, setup) {other:.3g}x
   higher, and if-if then lands {ii_lo:.0%}-{ii_hi:.0%} below the paper, on the paper's side
@@ -249,7 +289,8 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   `__any_sync` vote on every step), and on sm_75 to sm_89 a step taken while some lanes
   have left the loop runs the vote's divergent-warp fallback, {spec_div} instructions more
   (`trav_diverged`, docs/kernels_ir.md). sm_90 inlines the vote; with its costs the
-  errors are {spec_err_90}. Our replay also visits no nodes speculatively beyond the recorded
+  errors are {spec_err_90}. To match the paper with {arch}'s costs, a speculative step would
+  have to cost {spec_even}. Our replay also visits no nodes speculatively beyond the recorded
   stream; the exact lockstep executor (experiments/approximation_error.py,
   docs/model_card.md) puts that error at 1.6% of warp instructions or less.
 - **The calibrated profile** has three factors for three equations, so it fits
@@ -258,15 +299,44 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   persistent schemes' fetch and speculation's postpone: treat its predictions for those
   rows as a bound on how far per-iteration overhead explains the paper, not as a model.
 - **Packet versus while-while.** Errors {packet_err}: where positive, our packet is too
-  fast against while-while, most for incoherent rays. The packet replay visits the union
-  of its lanes' nodes (measured within about 3.6% of exact lockstep execution), so the
-  visits are not the gap; the cost of a visit is: our packet `trav_step` is
+  fast against while-while. The packet replay visits the union of its lanes' nodes
+  (measured within about 3.6% of exact lockstep execution). Our packet `trav_step` is
   {packet_trav} instructions against while-while's {ww_trav} (its ballots' divergent-warp
   fallbacks never run, as every lane stays in the packet loop), while the paper's GT200
-  packet kernel (its own shared-stack code) paid more per node than its while-while. This
-  ratio also moves most with the protocol (docs/speed_accuracy.md: a lower resolution
+  packet kernel (its own shared-stack code) may have paid more per node than its
+  while-while. To match the paper, our packet node visit would have to cost
+  {packet_even}. What the union costs depends on how coherent a warp's rays are, and
+  this ratio moves most with the protocol (docs/speed_accuracy.md: a lower resolution
   moves the packet figures most).
 """
+
+
+def agreement(row: pd.Series) -> str:
+    """One break-even row in words: the change per ray type, and whether one change fits all.
+
+    The changes agree when they share a sign and their range is at most a third of their
+    mean; a change below minus the block's cost would price the block under zero.
+    """
+    deltas = row[list(RAY_TYPES)].astype(float)
+    cost = int(row["cost"])
+    parts = [f"{abs(d):.0f} {'more' if d > 0 else 'less'}" for d in deltas]
+    words = f"{', '.join(parts[:-1])} and {parts[-1]} instructions ({', '.join(RAY_TYPES)})"
+    mean = deltas.mean()
+    if (deltas > 0).all() or (deltas < 0).all():
+        spread = (deltas.max() - deltas.min()) / abs(mean)
+        if spread <= 1 / 3:
+            verdict = (
+                f"within {spread:.0%} of each other, so one change of about "
+                f"{abs(mean):.0f} instructions on our {cost} fits all three rows"
+            )
+        else:
+            verdict = f"a spread of {spread:.0%} of their mean, so no one change fits all three"
+    else:
+        verdict = "opposite signs, so no one change fits all three rows"
+    below = deltas.index[deltas < -cost]
+    if len(below):
+        verdict += f", and for {', '.join(below)} less than zero instructions"
+    return f"{words}: {verdict}"
 
 
 def deviations(
@@ -275,6 +345,7 @@ def deviations(
     calibrated: pd.DataFrame,
     ratios: pd.DataFrame,
     by_arch: pd.DataFrame,
+    even: pd.DataFrame,
 ) -> str:
     """:data:`DEVIATIONS` with the block costs of ``arch`` and the measured figures."""
 
@@ -289,6 +360,9 @@ def deviations(
         rows = ratios[ratios["ratio"] == label]
         v = rows["rel_error"] if values is None else values.loc[label]
         return ", ".join(f"{rt} {e:+.0%}" for rt, e in zip(rows["ray_type"], v, strict=True))
+
+    def even_text(label: str, block: str) -> str:
+        return agreement(even.set_index(["ratio", "block"]).loc[(label, block)])
 
     ii = calibrated[calibrated["scheme"] == "if_if"]["rel_error"].abs()
     ww_trav = cost("while_while", "trav_step")
@@ -306,10 +380,15 @@ def deviations(
         packet_err=errs("packet / while_while"),
         packet_trav=cost("packet", "trav_step"),
         spec_div=cost("persistent_speculative_while_while", "trav_diverged"),
+        ii_even=even_text("if_if / while_while", "loop_control"),
+        spec_even=even_text("speculative / while_while", "trav_step"),
+        packet_even=even_text("packet / while_while", "trav_step"),
     )  # fmt: skip
 
 
-def render(args, spec, main_table, ratios, by_arch, calibrated, factors, seconds, results) -> str:
+def render(
+    args, spec, main_table, ratios, by_arch, even, calibrated, factors, seconds, results
+) -> str:
     fmt = {"floatfmt": ".3g", "index": False}
     r0 = results[0]
     pred = calibrated[~calibrated["fitted"]]
@@ -356,6 +435,16 @@ def render(args, spec, main_table, ratios, by_arch, calibrated, factors, seconds
         + " | ".join(f"{(by_arch[a].abs() <= 0.10).sum()} of {len(by_arch)}" for a in by_arch)
         + " |",
         "",
+        "## What one block would have to cost",
+        "",
+        "Instructions one block of each ratio's numerator would have to cost more "
+        "(negative: less), per ray type, for our ratio to equal the paper's, from the "
+        "replays above (warp instructions are linear in block costs; `cost` is ours on "
+        f"`{r0.model_card['ir_arch']}`; one block moved at a time). A deviation that one "
+        "per-execution cost explains needs about the same change for every ray type.",
+        "",
+        even.to_markdown(**fmt),
+        "",
         "## Calibrated profile",
         "",
         "Per-block costs scaled by group (traversal, intersection, other) so that "
@@ -366,7 +455,7 @@ def render(args, spec, main_table, ratios, by_arch, calibrated, factors, seconds
         "",
         calibrated.to_markdown(**fmt),
         "",
-        deviations(r0.model_card["ir_arch"], factors, calibrated, ratios, by_arch),
+        deviations(r0.model_card["ir_arch"], factors, calibrated, ratios, by_arch, even),
     ]
     return "\n".join(lines)
 
