@@ -290,7 +290,8 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   have left the loop runs the vote's divergent-warp fallback, {spec_div} instructions more
   (`trav_diverged`, docs/kernels_ir.md). sm_90 inlines the vote; with its costs the
   errors are {spec_err_90}. To match the paper with {arch}'s costs, a speculative step would
-  have to cost {spec_even}. Our replay also visits no nodes speculatively beyond the recorded
+  have to cost {spec_even}; or its divergent-warp fallback {spec_div_even}. Our replay
+  also visits no nodes speculatively beyond the recorded
   stream; the exact lockstep executor (experiments/approximation_error.py,
   docs/model_card.md) puts that error at 1.6% of warp instructions or less.
 - **The calibrated profile** has three factors for three equations, so it fits
@@ -382,6 +383,7 @@ def deviations(
         spec_div=cost("persistent_speculative_while_while", "trav_diverged"),
         ii_even=even_text("if_if / while_while", "loop_control"),
         spec_even=even_text("speculative / while_while", "trav_step"),
+        spec_div_even=even_text("speculative / while_while", "trav_diverged"),
         packet_even=even_text("packet / while_while", "trav_step"),
     )  # fmt: skip
 
