@@ -252,6 +252,9 @@ def test_conservation(paths) -> None:
     assert wave["wavefront_extend"].active_sum["ray_setup"] == n_ext
     combined = wavefront.combine(wave, paths)
     assert combined.rays == mega.rays == paths.n_rays
+    ops = tuple(int(x) for x in paths.op_counts())
+    for r in (mega, ray_order, combined):
+        assert (r.n_trav, r.n_leaf, r.n_tri) == ops
     assert combined.warp_instructions == sum(r.warp_instructions for r in wave.values())
     assert combined.model_card["paths"] == mega.model_card["paths"] == paths.n_paths
 

@@ -40,11 +40,14 @@ from simt_sim.errors import SimtSimError
 from simt_sim.paths import PathTrace
 from simt_sim.simt.engine import (
     FINISH,
+    LEAF_ENTRY,
     LOOP_CONTROL,
     MAX_MASK_LANES,
     N_BLOCKS,
     N_CHUNKS,
     RAY_SETUP,
+    TRAV_STEP,
+    TRI_TEST,
     Counts,
     charge,
     chunk_bounds,
@@ -247,6 +250,13 @@ def replay_paths(
     )
 
 
+def replayed_ops(counts: Counts) -> tuple[int, int, int]:
+    """TRAV, LEAF and TRI ops replayed under the while-while loop nest: the active lanes of
+    ``trav_step``, ``leaf_entry`` and ``tri_test``, as the nest executes each op once."""
+    a = counts.active
+    return int(a[TRAV_STEP]), int(a[LEAF_ENTRY]), int(a[TRI_TEST])
+
+
 def path_card(pt: PathTrace) -> dict:
     """What a model card says about the paths replayed."""
     return {
@@ -273,7 +283,7 @@ def simulate(
     check_ir(ir, NAME)
     costs = cost_vector(ir)
     counts = replay_paths(pt, costs, gpu.warp_size, order=order)
-    n_trav, n_leaf, n_tri = (int(x) for x in pt.op_counts())
+    n_trav, n_leaf, n_tri = replayed_ops(counts)
     card = {
         "scheme": NAME,
         "approximations": list(APPROXIMATIONS[order]),

@@ -48,7 +48,7 @@ from simt_sim.simt.engine import (
 from simt_sim.simt.gpus import GpuConfig
 from simt_sim.simt.result import SimResult, check_ir, merge
 from simt_sim.simt.schemes import while_while
-from simt_sim.simt.schemes.megakernel import path_card
+from simt_sim.simt.schemes.megakernel import path_card, replayed_ops
 
 NAME = "wavefront"
 KERNELS = ("wavefront_generate", "wavefront_extend", "wavefront_shade", "wavefront_connect")
@@ -154,13 +154,13 @@ def simulate_kernels(
     _check_irs(irs)
     costs = {k: cost_vector(irs[k]) for k in KERNELS}
     counts = replay_kernels(pt, costs, gpu.warp_size)
-    ext = sum((t.op_totals() for t in pt.extend), np.zeros(3, np.int64))
-    con = sum((t.op_totals() for t in pt.connect), np.zeros(3, np.int64))
+    ext = replayed_ops(counts["wavefront_extend"])
+    con = replayed_ops(counts["wavefront_connect"])
     n_ext = sum(t.n_rays for t in pt.extend)
     sizes = {
-        "wavefront_generate": (pt.n_paths, np.zeros(3, np.int64)),
+        "wavefront_generate": (pt.n_paths, (0, 0, 0)),
         "wavefront_extend": (n_ext, ext),
-        "wavefront_shade": (n_ext, np.zeros(3, np.int64)),
+        "wavefront_shade": (n_ext, (0, 0, 0)),
         "wavefront_connect": (pt.n_rays - n_ext, con),
     }
     out = {}
