@@ -301,7 +301,9 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   rows as a bound on how far per-iteration overhead explains the paper, not as a model.
 - **Packet versus while-while.** Errors {packet_err}: where positive, our packet is too
   fast against while-while. The packet replay visits the union of its lanes' nodes
-  (measured within about 3.6% of exact lockstep execution). Our packet `trav_step` is
+  (within about 3.6% of exact lockstep execution in warp instructions, also at the
+  paper's density: docs/model_card.md), so the gap is not the replay's approximation of
+  what a packet visits. Our packet `trav_step` is
   {packet_trav} instructions against while-while's {ww_trav} (its ballots' divergent-warp
   fallbacks never run, as every lane stays in the packet loop), while the paper's GT200
   packet kernel (its own shared-stack code) may have paid more per node than its
