@@ -391,3 +391,7 @@ def test_bad_irs(paths) -> None:
         megakernel.simulate(paths, MEGA_IR, _gpu(), order="path")
     with pytest.raises(SimtSimError, match="queue kind"):
         paths.queues("shadow")
+    with pytest.raises(SimtSimError, match="at most 64 lanes"):
+        megakernel.simulate(paths, MEGA_IR, _gpu(128), order="ray")
+    with pytest.raises(SimtSimError, match="at most 64 lanes"):
+        wavefront.simulate(paths, WAVE_IRS, _gpu(128))

@@ -21,6 +21,7 @@ from numba import njit, prange, types
 from numba.extending import intrinsic
 
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
+from simt_sim.errors import SimtSimError
 from simt_sim.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS
 
 N_BLOCKS = len(BLOCKS)
@@ -45,6 +46,15 @@ N_CHUNKS = 256
 NO_OP = 7
 #: lanes per mask: a warp's lanes are bits of an int64 (lane l is bit l)
 MAX_MASK_LANES = 64
+
+
+def check_warp_size(warp_size: int) -> None:
+    """Refuse warps wider than a lane mask holds, in words that say what to do."""
+    if warp_size > MAX_MASK_LANES:
+        raise SimtSimError(
+            f"warp_size {warp_size} is above the replay's {MAX_MASK_LANES} lanes per warp; "
+            f"use a GPU with at most {MAX_MASK_LANES} lanes"
+        )
 
 
 # Lane filters by op code (0..5 or NO_OP), as int64 0/1 so they shift into lane masks and

@@ -19,9 +19,9 @@ from kernels_ir.kernel_ir import KernelIR
 from simt_sim.errors import SimtSimError
 from simt_sim.optrace import OP_NAMES, OpTrace
 from simt_sim.simt.engine import (
-    MAX_MASK_LANES,
     Counts,
     ReplayParams,
+    check_warp_size,
     cost_vector,
     empty_counts,
     scan_trace,
@@ -122,11 +122,7 @@ def simulate(
     module = get_scheme(scheme)
     check_ir(ir, scheme)
     w = gpu.warp_size
-    if w > MAX_MASK_LANES:
-        raise SimtSimError(
-            f"warp_size {w} is above the replay's {MAX_MASK_LANES} lanes per warp; "
-            f"use a GPU with at most {MAX_MASK_LANES} lanes"
-        )
+    check_warp_size(w)
     r = gpu.resident_warps if resident_warps is None else resident_warps
     if r < 1:
         raise SimtSimError(f"resident_warps must be >= 1, got {r}")

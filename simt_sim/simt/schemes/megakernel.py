@@ -42,7 +42,6 @@ from simt_sim.simt.engine import (
     FINISH,
     LEAF_ENTRY,
     LOOP_CONTROL,
-    MAX_MASK_LANES,
     N_BLOCKS,
     N_CHUNKS,
     RAY_SETUP,
@@ -50,6 +49,7 @@ from simt_sim.simt.engine import (
     TRI_TEST,
     Counts,
     charge,
+    check_warp_size,
     chunk_bounds,
     chunk_counts,
     cost_vector,
@@ -234,11 +234,7 @@ def replay_paths(
     """
     if order not in ORDERS:
         raise SimtSimError(f"unknown megakernel order {order!r}; use one of {', '.join(ORDERS)}")
-    if warp_size > MAX_MASK_LANES:
-        raise SimtSimError(
-            f"warp_size {warp_size} is above the replay's {MAX_MASK_LANES} lanes per warp; "
-            f"use a GPU with at most {MAX_MASK_LANES} lanes"
-        )
+    check_warp_size(warp_size)
     if pt.n_paths == 0 or pt.n_bounces == 0:
         return chunk_counts(
             np.zeros((1, 2, N_BLOCKS), np.int64), np.zeros((1, N_BLOCKS, warp_size + 1), np.int64)

@@ -40,6 +40,7 @@ from simt_sim.simt.engine import (
     Counts,
     ReplayParams,
     charge,
+    check_warp_size,
     chunk_bounds,
     chunk_counts,
     cost_vector,
@@ -109,6 +110,7 @@ def replay_kernels(
 
     ``costs[kernel]`` is the kernel's cost vector (``engine.cost_vector``).
     """
+    check_warp_size(warp_size)
     out = {
         "wavefront_generate": _flags(
             [np.ones(pt.n_paths, bool)] * 2, [RAY_SETUP, QUEUE_PUSH],
