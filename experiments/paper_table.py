@@ -130,10 +130,10 @@ def break_even(res: dict[tuple[str, str], SimResult], paper: pd.DataFrame) -> pd
     rows = []
     for label, (num, den) in RATIOS.items():
         for block in BREAK_EVEN_BLOCKS[label]:
-            row = {"ratio": label, "block": block}
+            cost = int(res[(num, RAY_TYPES[0])].costs[BLOCKS.index(block)])
+            row = {"ratio": label, "block": block, "cost": cost}
             for rt in RAY_TYPES:
                 rn, rd = res[(num, rt)], res[(den, rt)]
-                row["cost"] = int(rn.costs[BLOCKS.index(block)])
                 want = rd.warp_instructions * rn.rays / rd.rays / (p[(num, rt)] / p[(den, rt)])
                 e = rn.executions[block]
                 row[rt] = (want - rn.warp_instructions) / e if e else float("nan")
