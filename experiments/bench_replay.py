@@ -40,8 +40,10 @@ import numpy as np
 
 import kernels_ir
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
+from simt_sim.bvh.build import build_bvh
 from simt_sim.optrace import OpTrace
 from simt_sim.paths import PathTrace, trace_paths
+from simt_sim.scene import load_scene
 from simt_sim.simt.gpus import GpuConfig, get_gpu
 from simt_sim.simt.replay import simulate
 from simt_sim.simt.result import SimResult
@@ -87,8 +89,9 @@ def _trace_replays(
 
 
 def _path_trace(scene: str, resolution: tuple[int, int]) -> PathTrace:
-    wl = make_workload(scene, "primary", cameras="0", resolution=resolution, spp=1)
-    return trace_paths(wl.scene, wl.bvh, cameras=[0], width=resolution[0], height=resolution[1])
+    sc = load_scene(scene)
+    bvh = build_bvh(sc.vertices, sc.triangles)
+    return trace_paths(sc, bvh, cameras=[0], width=resolution[0], height=resolution[1])
 
 
 def _path_replays(pt: PathTrace, gpu: GpuConfig, schemes) -> dict[str, Callable[[], SimResult]]:
