@@ -58,6 +58,21 @@ def _add_workload_args(
         "--spp", type=int, default=32, help="secondary rays per primary hit (default: %(default)s)"
     )
     p.add_argument("--seed", type=int, default=0, help="sample seed (default: %(default)s)")
+    p.add_argument(
+        "--max-leaf",
+        type=int,
+        default=8,
+        metavar="N",
+        help="BVH builder: largest leaf, in triangles (default: %(default)s)",
+    )
+    p.add_argument(
+        "--node-cost",
+        type=float,
+        default=1.0,
+        metavar="X",
+        help="BVH builder: SAH cost of a node step relative to a triangle test; higher "
+        "makes larger leaves (default: %(default)s)",
+    )
 
 
 def _add_output_args(p: argparse.ArgumentParser) -> None:
@@ -95,6 +110,8 @@ def _workload(args: argparse.Namespace, ray_type: str):
         resolution=parse_resolution(args.resolution),
         spp=args.spp,
         seed=args.seed,
+        max_leaf=args.max_leaf,
+        node_cost=args.node_cost,
     )
 
 
@@ -262,6 +279,8 @@ def cmd_table(args: argparse.Namespace) -> int:
         resolution=parse_resolution(args.resolution),
         spp=args.spp,
         seed=args.seed,
+        max_leaf=args.max_leaf,
+        node_cost=args.node_cost,
         actual=args.actual,
         sample=check_fraction(args.sample),
         memory=args.memory_model,
@@ -325,6 +344,8 @@ def cmd_plot(args: argparse.Namespace) -> int:
         resolution=parse_resolution(args.resolution),
         spp=args.spp,
         seed=args.seed,
+        max_leaf=args.max_leaf,
+        node_cost=args.node_cost,
     )
     show = progress.wanted(args.quiet)
     results, table = run_study(spec, progress=show)
@@ -348,7 +369,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
             steps.update()
         wl = make_workload(
             spec.scene, "primary", cameras=spec.cameras, resolution=spec.resolution,
-            spp=spec.spp, seed=spec.seed,
+            spp=spec.spp, seed=spec.seed, max_leaf=spec.max_leaf, node_cost=spec.node_cost,
         )  # fmt: skip
         steps.update()
         measured = {}

@@ -77,6 +77,8 @@ def _setup(spec: StudySpec, ray_type: str) -> tuple[Workload, BatchSetup]:
             spp=spec.spp,
             seed=spec.seed,
             bvh=known[0].bvh if known else None,
+            max_leaf=spec.max_leaf,
+            node_cost=spec.node_cost,
         )
         setups[ray_type] = (wl, batch_setup(spec, wl, ray_type))
     return setups[ray_type]

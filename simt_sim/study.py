@@ -62,6 +62,8 @@ class StudySpec:
     spp: int = 32
     seed: int = 0
     max_bounces: int = 8
+    max_leaf: int = 8
+    node_cost: float = 1.0
     launch_size: int = LAUNCH_SIZE
     actual: bool = False
     sample: float = 1.0
@@ -366,6 +368,20 @@ def _with_memory(
     return replace(r, model_card=card), memory_columns(counts, gpu, on)
 
 
+def _bvh_card(bvh: BVH, spec: StudySpec) -> dict:
+    """What the model card says of the BVH the rays were recorded on."""
+    st = bvh.stats
+    return {
+        "method": st.method,
+        "max_leaf": spec.max_leaf,
+        "node_cost": spec.node_cost,
+        "interior_nodes": st.nodes,
+        "leaves": st.leaves,
+        "triangles_per_leaf": sum(k * n for k, n in enumerate(st.leaf_size_hist)) / st.leaves,
+        "sah_cost": st.sah_cost,
+    }
+
+
 def _check_spec(spec: StudySpec) -> None:
     for rt in spec.ray_types:
         if rt not in RAY_TYPES:
@@ -421,6 +437,8 @@ def run_study(
                 spp=spec.spp,
                 seed=spec.seed,
                 bvh=wl.bvh if wl else None,
+                max_leaf=spec.max_leaf,
+                node_cost=spec.node_cost,
             )
             workloads[rt] = wl
             if rt != "path":
@@ -450,6 +468,7 @@ def run_study(
         for rt in spec.ray_types:
             wl = workloads[rt]
             name = wl.scene.name
+            bvh_card = _bvh_card(wl.bvh, spec)
             per_combo: dict[tuple[str, str], list[SimResult]] = {}
             if rt == "path":
                 bar.set_description(f"{name} {rt}")
@@ -506,6 +525,7 @@ def run_study(
                     if rt != "path" and s in trace_schemes:
                         merged, mem = _with_memory(merged, done[rt], g, decisions[g.id])
                         row.update(mem)
+                    merged = replace(merged, model_card={**merged.model_card, "bvh": bvh_card})
                     results.append(merged)
                     if spec.actual:
                         row.update(actual_columns(measured, device, rt, s, g, merged))

@@ -83,6 +83,8 @@ def make_workload(
     spp: int = 32,
     seed: int = 0,
     bvh: BVH | None = None,
+    max_leaf: int = 8,
+    node_cost: float = 1.0,
 ) -> Workload:
     """Load ``scene``, build its BVH (unless given) and make the paper's rays of ``ray_type``.
 
@@ -101,6 +103,9 @@ def make_workload(
         Seed of the per-pixel sample rotation.
     bvh : BVH, optional
         A BVH already built for this scene.
+    max_leaf, node_cost
+        The builder's largest leaf and SAH node cost (:func:`~simt_sim.bvh.build.build_bvh`)
+        when ``bvh`` is not given.
     """
     if ray_type not in TRACE_RAY_TYPES:
         raise SimtSimError(
@@ -110,7 +115,9 @@ def make_workload(
         raise SimtSimError(f"--spp must be at least 1, got {spp}")
     sc = load_scene(scene) if isinstance(scene, str) else scene
     cams = parse_cameras(cameras, sc)
-    tree = bvh if bvh is not None else build_bvh(sc.vertices, sc.triangles)
+    tree = bvh
+    if tree is None:
+        tree = build_bvh(sc.vertices, sc.triangles, max_leaf=max_leaf, node_cost=node_cost)
     stream = ray_stream(
         sc,
         ray_type,

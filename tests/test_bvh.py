@@ -257,6 +257,39 @@ def test_leaf_or_split_follows_sah(method: str, shift: float, is_leaf: bool) -> 
     assert bvh.stats.sah_cost == pytest.approx(expected)
 
 
+@pytest.mark.parametrize(("shift", "node_cost", "is_leaf"), [(3.0, 2.0, True), (0.3, 0.25, False)])
+def test_node_cost_moves_the_leaf_decision(shift: float, node_cost: float, is_leaf: bool) -> None:
+    """The pair above with the node step priced ``node_cost``: split cost A c + 6 + 6.
+
+    Shift 3, c = 2: split 48 > leaf 36, a leaf now. Shift 0.3, c = 0.25: split 13.8 <
+    leaf 14.4, split now. The reported SAH cost keeps node cost 1.
+    """
+    tri = np.array([[0, 0, 0], [1, 1, 0], [0, 1, 1]], dtype=np.float32)
+    v = np.concatenate([tri, tri + np.float32([shift, 0, 0])])
+    t = np.arange(6, dtype=np.int32).reshape(2, 3)
+    bvh = build_bvh(v, t, node_cost=node_cost)
+    check_bvh(bvh, v, t, max_leaf=8)
+    assert (bvh.root < 0) == is_leaf
+    area = 18.0 if shift == 3.0 else 7.2
+    assert bvh.stats.sah_cost == pytest.approx(2.0 if is_leaf else (area + 12) / area)
+
+
+@pytest.mark.parametrize("method", ["binned", "sweep"])
+def test_higher_node_cost_only_stops_splitting_earlier(method: str) -> None:
+    """The split at a node does not depend on the node cost, so a dearer node step turns
+    subtrees into leaves and never adds one: fewer leaves, each the union of leaves of the
+    cheaper tree."""
+    v, t = random_scene(400, seed=12)
+    cheap = build_bvh(v, t, method=method)
+    dear = build_bvh(v, t, method=method, node_cost=3.0)
+    check_bvh(dear, v, t, max_leaf=8)
+    assert dear.stats.leaves < cheap.stats.leaves
+    cheap_leaves = [frozenset(leaf[2]) for leaf in walk(cheap)["leaves"]]
+    for leaf in walk(dear)["leaves"]:
+        tris = frozenset(leaf[2])
+        assert tris == frozenset().union(*[c for c in cheap_leaves if c <= tris])
+
+
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     m=st.integers(1, 60),
@@ -372,6 +405,9 @@ def test_layout_woop_rows_match_triangles() -> None:
         ({"method": "lbvh"}, "unknown BVH build method"),
         ({"max_leaf": 0}, "max_leaf"),
         ({"bins": 1}, "bins"),
+        ({"node_cost": 0.0}, "node_cost"),
+        ({"node_cost": float("nan")}, "node_cost"),
+        ({"node_cost": "2"}, "node_cost"),
     ],
 )
 def test_bad_options(kwargs: dict, message: str) -> None:

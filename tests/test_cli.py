@@ -190,6 +190,25 @@ def test_unknown_gpu_and_scheme():
     assert_clean_error(run_cli("ir", "show", "nope", "--arch", "sm_90"), "nope")
 
 
+def test_bvh_builder_flags():
+    """--max-leaf and --node-cost reach the builder: one-triangle leaves make every
+    closest-hit ray test exactly as many triangles as it enters leaves; a dearer node step
+    makes fewer node steps and more triangle tests."""
+    one = ["table", *SMALL, "--rays", "primary", "--schemes", "while_while", "--format", "json"]
+
+    def row(*flags: str) -> dict:
+        proc = run_cli(*one, *flags, "--quiet")
+        assert proc.returncode == 0, proc.stderr
+        return json.loads(proc.stdout)[0]
+
+    default, single, dear = row(), row("--max-leaf", "1"), row("--node-cost", "4")
+    assert single["mean_leaf"] == pytest.approx(single["mean_tri"], rel=1e-12)
+    assert default["mean_leaf"] < default["mean_tri"]
+    assert dear["mean_trav"] < default["mean_trav"] and dear["mean_tri"] > default["mean_tri"]
+    assert_clean_error(run_cli("table", *SMALL, "--node-cost", "0"), "node_cost")
+    assert_clean_error(run_cli("table", *SMALL, "--max-leaf", "0"), "max_leaf")
+
+
 # --- progress bars: drawn on a terminal, never into a pipe, silenced by --quiet
 
 #: text every tqdm bar prints (rate units and the bar's left edge)

@@ -100,6 +100,9 @@ def test_streamed_study_equals_the_whole_set_replay(room):
             assert got.warp_instructions == want.warp_instructions
             assert np.array_equal(got.counts.hist, want.counts.hist)
             assert got.makespan == want.makespan
+            card = got.model_card["bvh"]
+            assert (card["interior_nodes"], card["leaves"]) == (bvh.stats.nodes, bvh.stats.leaves)
+            assert (card["max_leaf"], card["node_cost"]) == (8, 1.0)
             i += 1
     assert list(df["rays"][:3]) == [2 * 48 * 32] * 3
 

@@ -259,7 +259,7 @@ def _sweep_best(idx, start, end, tlo, thi, cen, keys, order, rarea, cbox):
 
 
 @njit(cache=True, nogil=True)
-def _build(tlo, thi, cen, sweep, max_leaf, bins):
+def _build(tlo, thi, cen, sweep, max_leaf, bins, node_cost):
     """The work-stack build loop.
 
     Returns the triangle order ``idx``, the interior nodes' children (int32, leaf =
@@ -319,8 +319,8 @@ def _build(tlo, thi, cen, sweep, max_leaf, bins):
                 cost, axis, sbin, cmin, scale = _binned_best(
                     idx, start, end, tlo, thi, cen, bins, blo, bhi, bcnt, rarea, cbox
                 )
-            # Leaf cost n * A versus split cost A * 1 + A_L N_L + A_R N_R (unnormalised).
-            if n <= max_leaf and (axis < 0 or area * n <= area + cost):
+            # Leaf cost n * A versus split cost A * node_cost + A_L N_L + A_R N_R (unnormalised).
+            if n <= max_leaf and (axis < 0 or area * n <= node_cost * area + cost):
                 make_leaf = True
             elif axis >= 0:
                 if sweep:
@@ -403,7 +403,7 @@ def widened(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.nextafter(lo - pad, _F32_NEG_INF), np.nextafter(hi + pad, _F32_INF)
 
 
-def _check_inputs(vertices, triangles, method: str, max_leaf: int, bins: int):
+def _check_inputs(vertices, triangles, method: str, max_leaf: int, bins: int, node_cost: float):
     """Validate and convert; raise SimtSimError with a one-line fix otherwise."""
     if method not in METHODS:
         raise SimtSimError(f"unknown BVH build method {method!r}; use one of {', '.join(METHODS)}")
@@ -411,6 +411,12 @@ def _check_inputs(vertices, triangles, method: str, max_leaf: int, bins: int):
         raise SimtSimError(f"max_leaf must be an integer >= 1, got {max_leaf!r}")
     if not isinstance(bins, int | np.integer) or bins < 2:
         raise SimtSimError(f"bins must be an integer >= 2, got {bins!r}")
+    if (
+        not isinstance(node_cost, int | float | np.integer | np.floating)
+        or not np.isfinite(node_cost)
+        or node_cost <= 0
+    ):
+        raise SimtSimError(f"node_cost must be a finite number > 0, got {node_cost!r}")
     v = np.asarray(vertices)
     t = np.asarray(triangles)
     if v.ndim != 2 or v.shape[1] != 3 or not np.issubdtype(v.dtype, np.number):
@@ -436,8 +442,9 @@ def build_bvh(
     method: str = "binned",
     max_leaf: int = 8,
     bins: int = 32,
+    node_cost: float = 1.0,
 ) -> BVH:
-    """Build a binary SAH BVH (node and triangle cost 1) in the Aila-Laine layout.
+    """Build a binary SAH BVH in the Aila-Laine layout.
 
     Parameters
     ----------
@@ -456,6 +463,10 @@ def build_bvh(
         leaf when its cost (its triangle count) is not above the best split's cost.
     bins : int
         Bins per axis for ``"binned"``; ignored by ``"sweep"``.
+    node_cost : float
+        SAH cost of a node step relative to a triangle test (Aila & Laine's framework
+        uses 1, as here). Higher values make fewer, larger leaves; the split chosen at
+        a node does not depend on it, only where splitting stops.
 
     Returns
     -------
@@ -465,7 +476,7 @@ def build_bvh(
         :func:`widened`; the SAH statistics use the exact bounds); leaves' triangles as
         Woop float4 triples plus a sentinel.
     """
-    v, tri = _check_inputs(vertices, triangles, method, max_leaf, bins)
+    v, tri = _check_inputs(vertices, triangles, method, max_leaf, bins, node_cost)
     t0 = time.perf_counter()
     p0 = v[tri[:, 0]]
     p1 = v[tri[:, 1]]
@@ -474,7 +485,7 @@ def build_bvh(
     thi = np.maximum(np.maximum(p0, p1), p2)
     cen = (tlo + thi) * _F32_HALF
     idx, child, nbox, leaf_start, root, depth, sah, hist = _build(
-        tlo, thi, cen, method == "sweep", int(max_leaf), int(bins)
+        tlo, thi, cen, method == "sweep", int(max_leaf), int(bins), float(node_cost)
     )
     del tlo, thi, cen  # only the split search needs them: free them before the Woop rows
     m = tri.shape[0]
