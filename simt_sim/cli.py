@@ -226,6 +226,7 @@ def cmd_trace(args: argparse.Namespace) -> int:
             "resolution": list(wl.resolution),
             "spp": wl.spp,
             "seed": wl.seed,
+            "bvh": wl.bvh.stats.card(),
         }
         bar.reset(total=len(wl.rays))
         bar.set_description(f"recording {args.rays} rays")

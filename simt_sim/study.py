@@ -368,20 +368,6 @@ def _with_memory(
     return replace(r, model_card=card), memory_columns(counts, gpu, on)
 
 
-def _bvh_card(bvh: BVH, spec: StudySpec) -> dict:
-    """What the model card says of the BVH the rays were recorded on."""
-    st = bvh.stats
-    return {
-        "method": st.method,
-        "max_leaf": spec.max_leaf,
-        "node_cost": spec.node_cost,
-        "interior_nodes": st.nodes,
-        "leaves": st.leaves,
-        "triangles_per_leaf": sum(k * n for k, n in enumerate(st.leaf_size_hist)) / st.leaves,
-        "sah_cost": st.sah_cost,
-    }
-
-
 def _check_spec(spec: StudySpec) -> None:
     for rt in spec.ray_types:
         if rt not in RAY_TYPES:
@@ -468,7 +454,7 @@ def run_study(
         for rt in spec.ray_types:
             wl = workloads[rt]
             name = wl.scene.name
-            bvh_card = _bvh_card(wl.bvh, spec)
+            bvh_card = wl.bvh.stats.card()
             per_combo: dict[tuple[str, str], list[SimResult]] = {}
             if rt == "path":
                 bar.set_description(f"{name} {rt}")

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from simt_sim.tracefile import read_meta
+
 SMALL = ["--scene", "room", "--resolution", "32x24", "--camera", "0"]
 
 
@@ -95,12 +97,17 @@ def test_bench_rows_and_agreement():
 
 def test_trace_writes_file_and_summary(tmp_path):
     out = tmp_path / "cb.trace"
-    proc = run_cli("trace", *SMALL, "--rays", "primary", "--out", str(out), "--format", "json")
+    proc = run_cli(
+        "trace", *SMALL, "--rays", "primary", "--out", str(out), "--format", "json",
+        "--node-cost", "2",
+    )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     row = json.loads(proc.stdout)[0]
     assert row["rays"] == 32 * 24
     assert row["trav_per_ray"] > 0 and row["tri_per_ray"] > 0
-    assert out.exists()
+    tree = read_meta(out)["meta"]["bvh"]
+    assert (tree["max_leaf"], tree["node_cost"], tree["method"]) == (8, 2.0, "binned")
+    assert tree["leaves"] > 0
 
 
 def test_trace_bad_input_leaves_no_file(tmp_path):

@@ -525,5 +525,7 @@ def build_bvh(
         leaf_size_hist=tuple(int(h) for h in hist),
         build_seconds=seconds,
         method=method,
+        max_leaf=int(max_leaf),
+        node_cost=float(node_cost),
     )
     return BVH(nodes=nodes, woop=woop, tri_index=tri_index, root=int(root), stats=stats)

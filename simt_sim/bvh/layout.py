@@ -53,6 +53,21 @@ class BuildStats:
     leaf_size_hist: tuple[int, ...]  # leaf_size_hist[k] = leaves holding k triangles
     build_seconds: float
     method: str  # "binned" or "sweep"
+    max_leaf: int = 8  # the builder's options
+    node_cost: float = 1.0
+
+    def card(self) -> dict:
+        """The tree in a model card or a trace header: what built it and its size."""
+        return {
+            "method": self.method,
+            "max_leaf": self.max_leaf,
+            "node_cost": self.node_cost,
+            "interior_nodes": self.nodes,
+            "leaves": self.leaves,
+            "triangles_per_leaf": sum(k * n for k, n in enumerate(self.leaf_size_hist))
+            / max(self.leaves, 1),
+            "sah_cost": self.sah_cost,
+        }
 
 
 @dataclass(frozen=True)
