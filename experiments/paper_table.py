@@ -461,6 +461,7 @@ def render(
     fmt = {"floatfmt": ".3g", "index": False}
     r0 = results[0]
     pred = calibrated[~calibrated["fitted"]]
+    verdict = bvh_verdict(trees, by_bvh)
     lines = [
         "# The paper's table, reproduced",
         "",
@@ -523,7 +524,7 @@ def render(
         "",
         _error_summary(by_bvh),
         "",
-        f"Across these trees, {bvh_verdict(trees, by_bvh)}.",
+        f"Across these trees, {verdict}.",
         "",
         "## Calibrated profile",
         "",
@@ -535,15 +536,7 @@ def render(
         "",
         calibrated.to_markdown(**fmt),
         "",
-        deviations(
-            r0.model_card["ir_arch"],
-            factors,
-            calibrated,
-            ratios,
-            by_arch,
-            even,
-            bvh_verdict(trees, by_bvh),
-        ),  # fmt: skip
+        deviations(r0.model_card["ir_arch"], factors, calibrated, ratios, by_arch, even, verdict),
     ]
     return "\n".join(lines)
 
