@@ -6,8 +6,8 @@ Usage: python experiments/approximation_error.py [--scene conference] [--camera 
 
 For one camera of one scene: primary rays at ``--resolution``, and AO and diffuse rays
 spawned (``--spp`` per hit, Morton sorted as in the paper) from the primary hits at
-``--secondary-resolution``. Each ray set is recorded and replayed (``simulate``), and run
-by the exact lockstep executor (``simt_sim.simt.lockstep``), with the committed KernelIR
+``--secondary-resolution``. Each ray set is recorded and replayed (``simulate_traces``), and run
+by the exact lockstep executor (``simt_sim.oracles.lockstep``), with the committed KernelIR
 of the scheme for the GPU's architecture. The table gives, per ray type and scheme, both
 values of warp instructions, SIMD efficiency (all / traversal / intersection) and the
 upper-bound MRays/s, with the replay's relative error ``(replay - exact) / exact``.
@@ -24,13 +24,14 @@ import pandas as pd
 import kernels_ir
 from simt_sim.bvh.build import build_bvh
 from simt_sim.errors import SimtSimError
-from simt_sim.rays import paper_rays
-from simt_sim.scene import load_scene
+from simt_sim.oracles.lockstep import METRICS, approximation_error
+from simt_sim.rays.generate import paper_rays
+from simt_sim.report.tables import FORMATS, emit
+from simt_sim.scene.load import load_scene
+from simt_sim.schemes import get_scheme
 from simt_sim.simt.gpus import get_gpu
-from simt_sim.simt.lockstep import METRICS, approximation_error
-from simt_sim.tables import FORMATS, emit
+from simt_sim.study.workload import parse_resolution
 from simt_sim.tracers.numba_tracer import trace
-from simt_sim.workload import parse_resolution
 
 SCHEMES = ("persistent_speculative_while_while", "packet")
 SHORT = {
@@ -74,7 +75,7 @@ def run(
         for scheme in schemes:
             ir = kernels_ir.load(scheme, gpu.ir_arch)
             t0 = time.perf_counter()
-            err = approximation_error(bvh, rays, scheme, ir, gpu, scene=scene.name)
+            err = approximation_error(bvh, rays, get_scheme(scheme), ir, gpu, scene=scene.name)
             row = {"scene": scene.name, "ray_type": ray_type, "scheme": scheme, "rays": len(rays)}
             for m in METRICS:
                 s = SHORT[m]

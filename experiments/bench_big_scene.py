@@ -25,12 +25,13 @@ import numpy as np
 
 import kernels_ir
 from simt_sim.bvh.build import build_bvh
-from simt_sim.record import record
-from simt_sim.room import make_room
+from simt_sim.scene.room import make_room
+from simt_sim.schemes import get_scheme
 from simt_sim.simt.gpus import get_gpu
-from simt_sim.simt.replay import simulate
+from simt_sim.simt.replay import simulate_traces
+from simt_sim.study.workload import make_workload, parse_resolution
+from simt_sim.trace.record import record
 from simt_sim.tracers.numba_tracer import trace
-from simt_sim.workload import make_workload, parse_resolution
 
 TRIANGLES_AT_SIZE_1 = 102_788
 """Triangles of the room at size 1 (the count is linear in the size)."""
@@ -89,7 +90,7 @@ def run(triangles: int, resolution: tuple[int, int], spp: int) -> list[dict[str,
         )
         stage(
             f"{ray_type} record",
-            lambda r=wl: simulate(record(bvh, r), SCHEME, ir, gpu, scene="room"),
+            lambda r=wl: simulate_traces(record(bvh, r), get_scheme(SCHEME), ir, gpu, scene="room"),
             lambda s: (
                 f"{s.n_trav + s.n_leaf + s.n_tri:,} ops, {SCHEME} "
                 f"{s.mrays_upper:.1f} MRays/s upper bound"

@@ -17,7 +17,8 @@ Three traces:
   count every extend and shadow ray.
 
 For each trace, thread count and scheme: one replay to warm up (numba compile / cache
-load), then the median of ``--repeats`` timed replays of ``simulate`` (validation
+load), then the median of ``--repeats`` timed replays of ``simulate_traces`` /
+``simulate_paths`` (validation
 included). Also reports the process CPU time per replay: on a shared machine, rays per
 CPU-second x threads estimates the throughput on idle cores. ``--thread-cpu`` (Linux) makes
 idle OpenMP workers sleep instead of spin (``OMP_WAIT_POLICY=PASSIVE``) and reports the
@@ -41,15 +42,17 @@ import numpy as np
 import kernels_ir
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
 from simt_sim.bvh.build import build_bvh
-from simt_sim.optrace import OpTrace
-from simt_sim.paths import PathTrace, trace_paths
-from simt_sim.scene import load_scene
+from simt_sim.scene.load import load_scene
+from simt_sim.schemes import SCHEMES, get_scheme
 from simt_sim.simt.gpus import GpuConfig, get_gpu
-from simt_sim.simt.replay import simulate
+from simt_sim.simt.replay import simulate_paths, simulate_traces
 from simt_sim.simt.result import SimResult
-from simt_sim.simt.schemes import PATH_SCHEMES, SCHEMES, megakernel, wavefront
+from simt_sim.simt.scheme import PATH, TRACE
 from simt_sim.simt.synth import synthetic_trace
-from simt_sim.workload import make_workload, parse_resolution
+from simt_sim.study.workload import make_workload, parse_resolution
+from simt_sim.trace.paths import trace_paths
+from simt_sim.types.optrace import OpTrace
+from simt_sim.types.paths import PathTrace
 
 
 def _synthetic_ir(scheme: str, gpu: GpuConfig) -> KernelIR:
@@ -61,7 +64,7 @@ def _recorded_ir(scheme: str, gpu: GpuConfig) -> KernelIR:
 
 
 def _recorded_trace(scene: str, resolution: tuple[int, int], spp: int) -> OpTrace:
-    from simt_sim.record import record_all
+    from simt_sim.trace.record import record_all
 
     wl = make_workload(scene, "diffuse", cameras="0", resolution=resolution, spp=spp)
     return record_all(wl.bvh, wl.rays)
@@ -82,9 +85,9 @@ def _trace_replays(
     trace: OpTrace, ir_of: Callable[[str, GpuConfig], KernelIR], gpu: GpuConfig, schemes
 ) -> dict[str, Callable[[], SimResult]]:
     return {
-        s: functools.partial(simulate, [trace], s, ir_of(s, gpu), gpu)
+        s: functools.partial(simulate_traces, [trace], get_scheme(s), ir_of(s, gpu), gpu)
         for s in schemes
-        if s in SCHEMES
+        if SCHEMES[s].kind == TRACE
     }
 
 
@@ -96,12 +99,11 @@ def _path_trace(scene: str, resolution: tuple[int, int]) -> PathTrace:
 
 def _path_replays(pt: PathTrace, gpu: GpuConfig, schemes) -> dict[str, Callable[[], SimResult]]:
     out: dict[str, Callable[[], SimResult]] = {}
-    if "megakernel" in schemes:
-        ir = kernels_ir.load("megakernel", "sm_75")
-        out["megakernel"] = functools.partial(megakernel.simulate, pt, ir, gpu, order="ray")
-    if "wavefront" in schemes:
-        irs = {k: kernels_ir.load(k, "sm_75") for k in wavefront.KERNELS}
-        out["wavefront"] = functools.partial(wavefront.simulate, pt, irs, gpu)
+    for s in schemes:
+        scheme = SCHEMES[s]
+        if scheme.kind == PATH:  # each with its own parameters (the megakernel's ray order)
+            irs = {k: kernels_ir.load(k, "sm_75") for k in scheme.kernels}
+            out[s] = functools.partial(simulate_paths, pt, scheme, irs, gpu)
     return out
 
 
@@ -163,7 +165,7 @@ def main() -> None:
     if args.thread_cpu:  # read by OpenMP when numba starts its threads, below
         os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
     threads = sorted({int(t) for t in args.threads.split(",")})
-    known = [*SCHEMES, *PATH_SCHEMES]
+    known = list(SCHEMES)
     schemes = known if args.schemes == "all" else args.schemes.split(",")
     unknown = [s for s in schemes if s not in known]
     if unknown:

@@ -15,12 +15,12 @@ import numpy as np
 import pandas as pd
 
 from simt_sim.bvh.build import build_bvh
-from simt_sim.hits import agreement
-from simt_sim.record import record
-from simt_sim.scene import load_scene
+from simt_sim.scene.load import load_scene
+from simt_sim.study.workload import make_workload, parse_resolution
+from simt_sim.trace.record import record
 from simt_sim.tracers import numba_tracer
+from simt_sim.tracers.agreement import agreement
 from simt_sim.tracers.embree_tracer import EmbreeTracer
-from simt_sim.workload import make_workload, parse_resolution
 
 
 def check(scene_name: str, resolution: tuple[int, int], spp: int) -> list[dict]:

@@ -26,8 +26,8 @@ import numpy as np
 import pandas as pd
 
 import kernels_ir
-from simt_sim.optrace import TRAV_BOTH, OpTrace
-from simt_sim.record import record_all
+from simt_sim.report.tables import FORMATS, emit
+from simt_sim.schemes import get_scheme
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.memory import (
     MemoryCounts,
@@ -36,9 +36,10 @@ from simt_sim.simt.memory import (
     memory_columns,
     memory_counts,
 )
-from simt_sim.simt.replay import simulate
-from simt_sim.tables import FORMATS, emit
-from simt_sim.workload import make_workload, parse_resolution
+from simt_sim.simt.replay import simulate_traces
+from simt_sim.study.workload import make_workload, parse_resolution
+from simt_sim.trace.record import record_all
+from simt_sim.types.optrace import TRAV_BOTH, OpTrace
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from approximation_error import default_scene  # noqa: E402
@@ -87,7 +88,9 @@ def run(
         footprint = footprint_bytes(bvh.nodes.shape[0], bvh.woop.shape[0])
         proxy = kth_fetch_proxy(trace, memory_counts(trace, 32))
         for gpu in gpus:
-            sim = simulate([trace], "while_while", kernels_ir.load("while_while", gpu.ir_arch), gpu)
+            sim = simulate_traces(
+                [trace], get_scheme("while_while"), kernels_ir.load("while_while", gpu.ir_arch), gpu
+            )
             t0 = time.perf_counter()
             counts = memory_counts(trace, gpu.warp_size, gpu)
             seconds = time.perf_counter() - t0

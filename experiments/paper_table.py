@@ -25,10 +25,12 @@ import pandas as pd
 
 import kernels_ir
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
+from simt_sim.atomic import write_atomic
 from simt_sim.simt.result import INTERSECTION_BLOCKS, TRAVERSAL_BLOCKS, SimResult
-from simt_sim.study import StudySpec, run_study
-from simt_sim.tables import write_atomic
-from simt_sim.workload import parse_resolution
+from simt_sim.study.run import run_study
+from simt_sim.study.spec import StudySpec
+from simt_sim.study.workload import parse_resolution
+from simt_sim.types.raybatch import TRACE_RAY_TYPES as RAY_TYPES
 
 REPO = Path(__file__).resolve().parents[1]
 REFERENCE = REPO.parent / "shared" / "reference" / "aila-laine-2009-conference.csv"
@@ -39,7 +41,6 @@ SCHEMES = (
     "persistent_while_while",
     "persistent_speculative_while_while",
 )
-RAY_TYPES = ("primary", "ao", "diffuse")
 RATIOS = {
     "if_if / while_while": ("if_if", "while_while"),
     "speculative / while_while": ("persistent_speculative_while_while", "while_while"),

@@ -19,12 +19,14 @@ import time
 import pandas as pd
 
 import kernels_ir
-from simt_sim.record import record_all
+from simt_sim.schemes import get_scheme, names
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.memory import memory_counts
-from simt_sim.simt.replay import simulate
-from simt_sim.simt.schemes import SCHEMES
-from simt_sim.workload import make_workload, parse_resolution
+from simt_sim.simt.replay import simulate_traces
+from simt_sim.study.workload import make_workload, parse_resolution
+from simt_sim.trace.record import record_all
+
+TRACE_SCHEMES = names("trace")
 
 
 def profile(scene: str, ray_type: str, camera: str, resolution: tuple[int, int], spp: int,
@@ -32,7 +34,7 @@ def profile(scene: str, ray_type: str, camera: str, resolution: tuple[int, int],
     """Seconds per stage (columns) of each timed batch (rows) of one ray type."""
     gpu = get_gpu(gpu_id)
     wl = make_workload(scene, ray_type, cameras=camera, resolution=resolution, spp=spp)
-    irs = {s: kernels_ir.load(s, gpu.ir_arch) for s in SCHEMES}
+    irs = {s: kernels_ir.load(s, gpu.ir_arch) for s in TRACE_SCHEMES}
     batches = iter(wl.stream.batches())
     rows = []
     for _ in range(repeats + 1):
@@ -47,9 +49,9 @@ def profile(scene: str, ray_type: str, camera: str, resolution: tuple[int, int],
         t0 = time.perf_counter()
         memory_counts(trace, gpu.warp_size, gpu)
         row["memory_model"] = time.perf_counter() - t0
-        for s in SCHEMES:
+        for s in TRACE_SCHEMES:
             t0 = time.perf_counter()
-            simulate([trace], s, irs[s], gpu)
+            simulate_traces([trace], get_scheme(s), irs[s], gpu)
             row[s] = time.perf_counter() - t0
         rows.append(row)
     return pd.DataFrame(rows[1:] or rows)
@@ -70,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     for rt in args.rays.split(","):
         df = profile(args.scene, rt, args.camera, res, args.spp, args.gpu, args.repeats)
         med = df.median()
-        med["replays"] = med[list(SCHEMES)].sum()
+        med["replays"] = med[list(TRACE_SCHEMES)].sum()
         out.append(med.rename(rt))
     table = pd.DataFrame(out)
     table.index.name = "ray_type"

@@ -44,21 +44,24 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from approximation_error import run as approximation_run  # noqa: E402
 
 import kernels_ir  # noqa: E402
-from simt_sim.record import record_all  # noqa: E402
+from simt_sim.atomic import write_atomic  # noqa: E402
+from simt_sim.schemes import SCHEMES, get_scheme, names  # noqa: E402
 from simt_sim.simt.gpus import get_gpu  # noqa: E402
-from simt_sim.simt.replay import simulate  # noqa: E402
-from simt_sim.simt.schemes import SCHEMES  # noqa: E402
-from simt_sim.study import StudySpec, run_study  # noqa: E402
-from simt_sim.tables import write_atomic  # noqa: E402
-from simt_sim.workload import make_workload  # noqa: E402
+from simt_sim.simt.replay import simulate_traces  # noqa: E402
+from simt_sim.study.run import run_study  # noqa: E402
+from simt_sim.study.spec import StudySpec  # noqa: E402
+from simt_sim.study.workload import make_workload  # noqa: E402
+from simt_sim.trace.record import record_all  # noqa: E402
+from simt_sim.types.raybatch import TRACE_RAY_TYPES as RAY_TYPES  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-RAY_TYPES = ("primary", "ao", "diffuse")
 KEYS = ["ray_type", "scheme"]
 FIGURES = ("mrays_upper", "simd_efficiency")
 TOLERANCE = 0.01
 """The bar: a shortcut is 'within 1%' when every MRays/s figure is within this."""
-POOL_SCHEMES = ("persistent_while_while", "persistent_speculative_while_while", "dynamic_fetch")
+#: the schemes fed from a ray pool, whose results may depend on how a launch is cut
+POOL_SCHEMES = tuple(n for n, s in SCHEMES.items() if s.persistent)
+TRACE_SCHEMES = names("trace")
 
 
 def timed_table(spec: StudySpec, quiet: bool) -> tuple[pd.DataFrame, float]:
@@ -112,7 +115,7 @@ def pool_order(
         traces = {"ordered": record_all(wl.bvh, ordered), "shuffled": record_all(wl.bvh, shuffled)}
         for s in POOL_SCHEMES:
             ir = kernels_ir.load(s, gpu.ir_arch)
-            r = {k: simulate([t], s, ir, gpu) for k, t in traces.items()}
+            r = {k: simulate_traces([t], get_scheme(s), ir, gpu) for k, t in traces.items()}
             rows.append(
                 {
                     "ray_type": rt,
@@ -191,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     w, h = (int(v) for v in args.resolution.split("x"))
     full_spec = StudySpec(
-        scene=args.scene, ray_types=RAY_TYPES, schemes=SCHEMES, gpus=(args.gpu,),
+        scene=args.scene, ray_types=RAY_TYPES, schemes=TRACE_SCHEMES, gpus=(args.gpu,),
         cameras="all", resolution=(w, h), spp=args.spp,
     )  # fmt: skip
     # warm-up: numba compilation must not be charged to the first timed run
@@ -201,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.reference_seconds is None:
             ap.error("--reference needs --reference-seconds (the full run's wall time)")
         full = pd.read_csv(args.reference)
-        full = full[full["scheme"].isin(SCHEMES) & full["ray_type"].isin(RAY_TYPES)]
+        full = full[full["scheme"].isin(TRACE_SCHEMES) & full["ray_type"].isin(RAY_TYPES)]
         full_seconds = args.reference_seconds
         full_source = f"`{args.reference}` (given, {full_seconds:.0f} s)"
     else:
@@ -219,14 +222,14 @@ def main(argv: list[str] | None = None) -> int:
     ]
     for spp in dict.fromkeys(max(1, args.spp // k) for k in (4, 8)):
         runs.append((f"spp {spp}", "protocol", replace(full_spec, spp=spp)))
-    summary, detail, curves = [], [], {s: [] for s in SCHEMES}
+    summary, detail, curves = [], [], {s: [] for s in TRACE_SCHEMES}
     for label, family, spec in runs:
         df, sec = timed_table(spec, args.quiet)
         e = errors(df, full)
         summary.append(summarise(label, family, sec, full_seconds, e))
         detail.append(e.assign(shortcut=label))
         if family == "sample":
-            for s in SCHEMES:
+            for s in TRACE_SCHEMES:
                 worst = e.loc[e["scheme"] == s, "mrays_upper_err"].abs().max()
                 curves[s].append({"seconds": sec, "abs_err": worst})
         if not args.quiet:
@@ -298,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
     text = f"""# Speed against accuracy
 
 Made by `{cmd.strip()}` on {args.scene}, GPU `{args.gpu}`: the full protocol is every
-camera, {w}x{h}, {args.spp} AO and diffuse rays per primary hit, the {len(SCHEMES)} traversal
+camera, {w}x{h}, {args.spp} AO and diffuse rays per primary hit, the {len(TRACE_SCHEMES)} traversal
 schemes. Full run: {full_source}. Times are wall seconds of the whole study (scene, BVH,
 ray generation, recording, replay) on the machine that ran this, after a numba warm-up;
 relative errors are against the full run. Regenerate with the command above.

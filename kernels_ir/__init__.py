@@ -14,16 +14,16 @@ from importlib.resources.abc import Traversable
 import pandas as pd
 
 from kernels_ir.build import ARCHS, KERNELS
-from kernels_ir.kernel_ir import BLOCKS, CLASSES, REQUIRED_BLOCKS, KernelIR
-from simt_sim.errors import SimtSimError
+from kernels_ir.errors import KernelIRError
+from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR
 
 __all__ = [
     "ARCHS",
     "BLOCKS",
     "CLASSES",
     "KERNELS",
-    "REQUIRED_BLOCKS",
     "KernelIR",
+    "KernelIRError",
     "available",
     "format_ir_table",
     "load",
@@ -58,7 +58,7 @@ def load(kernel: str, arch: str = "sm_90") -> KernelIR:
 
     Raises
     ------
-    SimtSimError
+    KernelIRError
         If no IR exists for that pair (the message lists the kernels and archs that do).
     """
     files = _ir_files()
@@ -66,7 +66,7 @@ def load(kernel: str, arch: str = "sm_90") -> KernelIR:
     if entry is None:
         kernels = sorted({k for k, _ in files}, key=lambda k: _order((k, "")))
         archs = sorted({a for _, a in files}, key=lambda a: _order(("", a)))
-        raise SimtSimError(
+        raise KernelIRError(
             f"no KernelIR for kernel {kernel!r} arch {arch!r}; kernels: {', '.join(kernels)}; "
             f"archs: {', '.join(archs)}"
         )
@@ -110,7 +110,7 @@ def summary_table(arch: str = "sm_90") -> pd.DataFrame:
     (0 where a kernel lacks the block), plus registers and unattributed instructions."""
     kernels = [k for k, a in available() if a == arch]
     if not kernels:
-        raise SimtSimError(f"no KernelIR for arch {arch!r}; archs: {', '.join(ARCHS)}")
+        raise KernelIRError(f"no KernelIR for arch {arch!r}; archs: {', '.join(ARCHS)}")
     irs = [load(k, arch) for k in kernels]
     used = [b for b in BLOCKS if any(b in ir.blocks for ir in irs)]
     table = pd.DataFrame(

@@ -10,7 +10,7 @@ import pandas as pd
 
 from kernels_ir import format_ir_table, load, summary_table
 from kernels_ir.build import ARCHS, IR_DIR, KERNELS, build_all, check
-from simt_sim.errors import SimtSimError
+from kernels_ir.errors import KernelIRError
 
 
 def to_markdown(table: pd.DataFrame) -> str:
@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         print(to_markdown(summary_table(args.arch)))
         return 0
-    except SimtSimError as exc:
+    except KernelIRError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

@@ -27,9 +27,9 @@ from collections.abc import Iterable, Sequence
 from pathlib import PurePath
 from typing import NamedTuple
 
+from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import BLOCKS, CLASSES
 from kernels_ir.sass import SassInstruction, base_opcode, branch_target, classify
-from simt_sim.errors import SimtSimError
 
 UNATTRIBUTED = "unattributed"
 _MARKER = re.compile(r"^\s*//\s*@(?P<kind>block|end)\b\s*(?P<name>\w*)\s*$")
@@ -40,7 +40,7 @@ def parse_markers(source: str, name: str = "<source>") -> dict[int, str]:
 
     Raises
     ------
-    SimtSimError
+    KernelIRError
         On an unknown block name, a ``@block`` without a name, or no marker at all.
     """
     owner: dict[int, str] = {}
@@ -55,7 +55,7 @@ def parse_markers(source: str, name: str = "<source>") -> dict[int, str]:
             else:
                 block = m.group("name")
                 if block not in BLOCKS:
-                    raise SimtSimError(
+                    raise KernelIRError(
                         f"{name}:{lineno}: unknown block {block!r}; use one of {', '.join(BLOCKS)}"
                     )
                 current = block
@@ -63,7 +63,7 @@ def parse_markers(source: str, name: str = "<source>") -> dict[int, str]:
         if current is not None:
             owner[lineno] = current
     if not seen:
-        raise SimtSimError(f"{name}: no `// @block NAME` marker; mark the kernel's blocks")
+        raise KernelIRError(f"{name}: no `// @block NAME` marker; mark the kernel's blocks")
     return owner
 
 
@@ -143,7 +143,7 @@ def map_blocks(
 
     Raises
     ------
-    SimtSimError
+    KernelIRError
         If a subroutine calls another one (not emitted by nvcc for these kernels).
     """
     want = PurePath(kernel_file).name
@@ -164,7 +164,7 @@ def map_blocks(
         cls = classify(ins.opcode)
         if ins.function.startswith("$"):
             if base_opcode(ins.opcode) == "CALL":
-                raise SimtSimError(f"subroutine {ins.function} calls another; not supported")
+                raise KernelIRError(f"subroutine {ins.function} calls another; not supported")
             continue
         block = owner.get(ins.line) if PurePath(ins.file).name == want else None
         block = block or UNATTRIBUTED

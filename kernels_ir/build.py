@@ -19,15 +19,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from kernels_ir.blocks import UNATTRIBUTED, map_blocks, parse_markers
-from kernels_ir.kernel_ir import REQUIRED_BLOCKS
+from kernels_ir.errors import KernelIRError
 from kernels_ir.sass import parse_listing
-from simt_sim.errors import SimtSimError
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 CUDA_DIR = PACKAGE_DIR / "cuda"
 IR_DIR = PACKAGE_DIR / "ir"
 HEADER = "common.cuh"
-KERNELS = tuple(REQUIRED_BLOCKS)
+#: every kernel: one ``.cu`` file each beside the shared header
+KERNELS = tuple(sorted(p.stem for p in CUDA_DIR.glob("*.cu")))
 #: targets compiled; sm_75..sm_90 are required, sm_100/sm_120 are the Blackwell parts the
 #: pinned CUDA 13 compiler offers (CUDA 13 dropped everything below sm_75)
 ARCHS = ("sm_75", "sm_80", "sm_86", "sm_89", "sm_90", "sm_100", "sm_120")
@@ -59,7 +59,7 @@ def find_toolchain() -> Toolchain:
 
     Raises
     ------
-    SimtSimError
+    KernelIRError
         If the wheels are not installed.
     """
     spec = importlib.util.find_spec("nvidia")
@@ -72,16 +72,16 @@ def find_toolchain() -> Toolchain:
             release = re.search(r"release [\d.]+, (V[\d.]+)", out)
             build = re.search(r"^Build (\S+)", out, re.MULTILINE)
             if not (release and build):
-                raise SimtSimError(f"cannot read the version of {nvcc}; reinstall the wheels")
+                raise KernelIRError(f"cannot read the version of {nvcc}; reinstall the wheels")
             return Toolchain(nvcc, nvdisasm, f"nvcc {release.group(1)} ({build.group(1)})")
-    raise SimtSimError(f"CUDA toolchain not found (nvidia-cuda-nvcc wheel); {_INSTALL_HINT}")
+    raise KernelIRError(f"CUDA toolchain not found (nvidia-cuda-nvcc wheel); {_INSTALL_HINT}")
 
 
 def toolchain_available() -> bool:
     """True when :func:`find_toolchain` would succeed."""
     try:
         find_toolchain()
-    except SimtSimError:
+    except KernelIRError:
         return False
     return True
 
@@ -90,7 +90,7 @@ def _run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
     proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         msg = (proc.stderr or proc.stdout).strip().splitlines()
-        raise SimtSimError(f"{Path(cmd[0]).name} failed: {' | '.join(msg[:6])}")
+        raise KernelIRError(f"{Path(cmd[0]).name} failed: {' | '.join(msg[:6])}")
     return proc
 
 
@@ -108,7 +108,7 @@ def _ptxas_info(log: str, kernel: str) -> tuple[int, dict[str, str]]:
         r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill loads", log
     )
     if not (regs and frame):
-        raise SimtSimError(f"{kernel}: ptxas -v printed no register/spill line; check the flags")
+        raise KernelIRError(f"{kernel}: ptxas -v printed no register/spill line; check the flags")
     notes = {
         "stack_frame_bytes": frame.group(1),
         "spill_store_bytes": frame.group(2),
@@ -122,8 +122,8 @@ def build_one(kernel: str, arch: str, tools: Toolchain, workdir: Path) -> dict:
 
     Raises
     ------
-    SimtSimError
-        On a compiler warning or error, or when a required block gets no instruction.
+    KernelIRError
+        On a compiler warning or error, or when a marked block gets no instruction.
     """
     cubin = workdir / f"{kernel}.{arch}.cubin"
     cmd = [str(tools.nvcc), f"-arch={arch}", *FLAGS, "-o", str(cubin), f"{kernel}.cu"]
@@ -131,7 +131,7 @@ def build_one(kernel: str, arch: str, tools: Toolchain, workdir: Path) -> dict:
     log = proc.stdout + proc.stderr
     warnings = [ln for ln in log.splitlines() if "warning" in ln.lower()]
     if warnings:
-        raise SimtSimError(f"{kernel} {arch}: compiler warning: {warnings[0].strip()}")
+        raise KernelIRError(f"{kernel} {arch}: compiler warning: {warnings[0].strip()}")
     registers, notes = _ptxas_info(log, kernel)
     listing = _run([str(tools.nvdisasm), "-c", "-g", "-gi", str(cubin)], CUDA_DIR).stdout
     # the kernel and the compiler subroutines ($__internal_*) it calls
@@ -145,9 +145,10 @@ def build_one(kernel: str, arch: str, tools: Toolchain, workdir: Path) -> dict:
     # where the scheme sees a diverged warp: speculative); other fallbacks stay uncharged
     if "trav_step" in fallback:
         counts["trav_diverged"] = fallback["trav_step"]
-    missing = [b for b in REQUIRED_BLOCKS[kernel] if sum(counts.get(b, {}).values()) <= 0]
+    # every marked block must own code: a marker the compiler left empty would cost nothing
+    missing = [b for b in sorted(set(owner.values())) if sum(counts.get(b, {}).values()) <= 0]
     if missing:
-        raise SimtSimError(f"{kernel} {arch}: no instruction mapped to {', '.join(missing)}")
+        raise KernelIRError(f"{kernel} {arch}: no instruction mapped to {', '.join(missing)}")
     notes["unattributed_instructions"] = str(sum(unattributed.values()))
     fallback_sizes = {b: sum(row.values()) for b, row in fallback.items()}
     notes["divergent_fallback_instructions"] = str(sum(fallback_sizes.values()))

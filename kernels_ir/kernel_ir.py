@@ -61,32 +61,6 @@ CLASSES = (
     "sfu",
     "other",
 )
-TRACE_BLOCKS = (
-    "ray_setup",
-    "loop_control",
-    "trav_step",
-    "trav_none",
-    "trav_one",
-    "trav_both",
-    "leaf_entry",
-    "tri_test",
-    "tri_hit",
-    "finish",
-)
-#: blocks each kernel must have, by kernel (= scheme) name
-REQUIRED_BLOCKS: dict[str, tuple[str, ...]] = {
-    "while_while": TRACE_BLOCKS,
-    "if_if": TRACE_BLOCKS,
-    "persistent_while_while": TRACE_BLOCKS + ("pool_fetch",),
-    "persistent_speculative_while_while": TRACE_BLOCKS + ("pool_fetch", "postpone"),
-    "dynamic_fetch": TRACE_BLOCKS + ("pool_fetch",),
-    "packet": TRACE_BLOCKS,
-    "megakernel": TRACE_BLOCKS + ("shade",),
-    "wavefront_generate": ("ray_setup", "queue_push"),
-    "wavefront_extend": TRACE_BLOCKS,
-    "wavefront_shade": ("shade", "queue_push", "finish"),
-    "wavefront_connect": TRACE_BLOCKS,
-}
 
 
 @dataclass(frozen=True)
@@ -109,3 +83,23 @@ class KernelIR:
     def cost(self, block: str) -> int:
         """Total instructions of one execution of ``block`` (0 if the kernel lacks it)."""
         return int(sum(self.blocks.get(block, {}).values()))
+
+
+@dataclass(frozen=True)
+class KernelLaunch:
+    """How the CUDA tracer launches a scheme's kernel (its ``.cu`` header comment says so).
+
+    Attributes
+    ----------
+    kernel : str
+        The ``.cu`` kernel (``kernels_ir/cuda/<kernel>.cu``).
+    persistent : bool
+        Warps fetch rays from a global pool: only resident warps are launched, and the
+        pool counter is reset before every launch.
+    shared_stack : bool
+        One 64-entry traversal stack per warp in shared memory (packet).
+    """
+
+    kernel: str
+    persistent: bool = False
+    shared_stack: bool = False

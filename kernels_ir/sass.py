@@ -17,7 +17,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from simt_sim.errors import SimtSimError
+from kernels_ir.errors import KernelIRError
 
 _FUNC = re.compile(r"^\s*\.text\.(?P<name>[A-Za-z_][\w$.]*):\s*$")
 _SUBROUTINE = re.compile(r"^(?P<name>\$[\w$.]+):\s*$")
@@ -114,7 +114,7 @@ def parse_listing(text: str) -> list[SassInstruction]:
 
     Raises
     ------
-    SimtSimError
+    KernelIRError
         If the text contains no SASS instruction (not an nvdisasm listing).
     """
     out: list[SassInstruction] = []
@@ -147,7 +147,7 @@ def parse_listing(text: str) -> list[SassInstruction]:
             )
             labels = []
     if not out:
-        raise SimtSimError(
+        raise KernelIRError(
             "no SASS instruction found: pass the output of `nvdisasm -c -g -gi` on a cubin"
         )
     return out

@@ -8,28 +8,18 @@ status 2, never a traceback and never a half-written file.
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
-import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import pandas as pd
 
+from kernels_ir.errors import KernelIRError
 from simt_sim.errors import SimtSimError
-from simt_sim.tables import FORMATS, emit
-
-DEFAULT_SCENE = "room"
-MEMORY_DETAIL = (
-    "lines_per_warp_step",
-    "line_bytes_per_ray",
-    "working_set_kib",
-    "l1_hit_rate",
-    "l2_hit_rate",
-)
-"""Memory-model columns left out of the terminal (markdown) table; CSV and JSON keep them."""
-#: timed launches per CUDA kernel in ``bench`` (after 2 warm-ups, as the paper measured)
-CUDA_TIMED_LAUNCHES = 10
+from simt_sim.report.tables import DETAIL_COLUMNS, FORMATS, emit
+from simt_sim.scene.load import DEFAULT_SCENE
+from simt_sim.simt.gpus import DEFAULT_GPU
+from simt_sim.simt.memory import MODES as MEMORY_MODES
 
 
 class _Parser(argparse.ArgumentParser):
@@ -101,7 +91,7 @@ def _add_quiet_arg(p: argparse.ArgumentParser) -> None:
 
 
 def _workload(args: argparse.Namespace, ray_type: str):
-    from simt_sim.workload import make_workload, parse_resolution
+    from simt_sim.study.workload import make_workload, parse_resolution
 
     return make_workload(
         args.scene,
@@ -115,104 +105,27 @@ def _workload(args: argparse.Namespace, ray_type: str):
     )
 
 
-def _time(
-    fn: Callable[[], object], repeats: int, done: Callable[[], object] = lambda: None
-) -> tuple[object, float]:
-    """Run once to warm up, then ``repeats`` times; the last result and the median seconds.
-
-    ``done`` is called after each run, outside the timed span (a progress bar's update).
-    """
-    result = fn()
-    done()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - t0)
-        done()
-    return result, statistics.median(times)
-
-
 def cmd_bench(args: argparse.Namespace) -> int:
     """Measure real tracers on the same rays; agreement is against Embree's hits."""
-    import numba
-
     from simt_sim import progress
-    from simt_sim.hits import agreement
-    from simt_sim.tracers import numba_tracer
-    from simt_sim.tracers.embree_tracer import THREADS as EMBREE_THREADS
-    from simt_sim.tracers.embree_tracer import EmbreeTracer
+    from simt_sim.study.bench import bench_tracers, check_bench, runs
 
     tracers = [t.strip() for t in args.tracers.split(",") if t.strip()]
-    known = ("numba", "embree", "cuda")
-    bad = [t for t in tracers if t not in known]
-    if bad or not tracers:
-        raise SimtSimError(
-            f"unknown tracer {bad[0] if bad else ''!r}; use any of {', '.join(known)}"
-        )
-    if args.repeats < 1:
-        raise SimtSimError(f"--repeats must be at least 1, got {args.repeats}")
-    all_threads = numba.config.NUMBA_NUM_THREADS
-    numba_threads = sorted({1, all_threads})
+    check_bench(tracers, args.repeats)
     with progress.bar("loading", enabled=progress.wanted(args.quiet)) as bar:
         wl = _workload(args, args.rays)
-        rays = wl.rays
-        runs = (("embree" in tracers) + ("numba" in tracers) * len(numba_threads)) * (
-            args.repeats + 1
-        )
-        if "cuda" in tracers:
-            from simt_sim.tracers.cuda_tracer import TRACE_KERNELS, CudaTracer
-
-            runs += CUDA_TIMED_LAUNCHES * len(TRACE_KERNELS)
-        bar.reset(total=len(rays) * runs)
-
-        def traced(n: int = 1) -> None:
-            bar.update(n * len(rays))
-
-        results: list[tuple[str, int | str, object, float]] = []
-        if "embree" in tracers:
-            bar.set_description("embree")
-            emb = EmbreeTracer(wl.scene.vertices, wl.scene.triangles)
-            hits, sec = _time(lambda: emb.trace(rays), args.repeats, traced)
-            results.append(("embree", EMBREE_THREADS, hits, sec))
-        if "numba" in tracers:
-            for threads in numba_threads:
-                bar.set_description(f"numba, {threads} thread{'s' * (threads > 1)}")
-                numba.set_num_threads(threads)
-                hits, sec = _time(lambda: numba_tracer.trace(wl.bvh, rays), args.repeats, traced)
-                results.append(("numba", threads, hits, sec))
-            numba.set_num_threads(all_threads)
-        if "cuda" in tracers:
-            cu = CudaTracer(wl.bvh)
-            for kernel in TRACE_KERNELS:
-                bar.set_description(f"cuda:{kernel}")
-                hits, secs = cu.trace_timed(rays, kernel, repeats=CUDA_TIMED_LAUNCHES)
-                traced(len(secs))
-                results.append((f"cuda:{kernel}", cu.device_name, hits, statistics.median(secs)))
-    ref = next((h for name, _, h, _ in results if name == "embree"), None)
-    rows = []
-    for name, threads, hits, sec in results:
-        rows.append(
-            {
-                "tracer": name,
-                "threads": threads,
-                "ray_type": args.rays,
-                "rays": len(rays),
-                "seconds": sec,
-                "mrays_per_s": len(rays) / sec / 1e6 if sec > 0 else float("nan"),
-                "hit_agreement": agreement(hits, ref) if ref is not None else float("nan"),
-            }
-        )
-    emit(pd.DataFrame(rows), args.format, args.out)
+        bar.reset(total=len(wl.rays) * runs(tracers, args.repeats))
+        df = bench_tracers(wl, tracers, args.rays, args.repeats, bar)
+    emit(df, args.format, args.out)
     return 0
 
 
 def cmd_trace(args: argparse.Namespace) -> int:
     """Record every ray's op sequence and save it; print the summary."""
     from simt_sim import progress
-    from simt_sim.optrace import OpTrace
-    from simt_sim.record import record
-    from simt_sim.tracefile import save_trace
+    from simt_sim.trace.record import record
+    from simt_sim.trace.tracefile import save_trace
+    from simt_sim.types.optrace import OpTrace
 
     totals = np.zeros(3, dtype=np.int64)
     hits = 0
@@ -261,53 +174,55 @@ def cmd_trace(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_table(args: argparse.Namespace) -> int:
-    """Simulate every scheme on the same recorded rays and print the efficiency table."""
-    from simt_sim.sampling import check_fraction
+def _spec(args: argparse.Namespace, **fields: object):
+    """The StudySpec of a ``table`` or ``plot`` command line."""
+    from simt_sim import schemes
     from simt_sim.simt.gpus import load_gpus
-    from simt_sim.study import ALL_SCHEMES, RAY_TYPES, StudySpec, parse_list, run_study
-    from simt_sim.workload import parse_resolution
+    from simt_sim.study.spec import StudySpec, parse_list
+    from simt_sim.study.workload import parse_resolution
+    from simt_sim.types.raybatch import RAY_TYPES
 
-    if args.spp < 1:
-        raise SimtSimError(f"--spp must be at least 1, got {args.spp}")
-    spec = StudySpec(
+    return StudySpec(
         scene=args.scene,
         ray_types=parse_list(args.rays, RAY_TYPES, "ray type"),
-        schemes=parse_list(args.schemes, ALL_SCHEMES, "scheme"),
+        schemes=parse_list(args.schemes, schemes.names(), "scheme"),
         gpus=parse_list(args.gpu, tuple(load_gpus(args.gpus)), "GPU"),
         gpu_file=args.gpus,
-        cameras=args.camera,
         resolution=parse_resolution(args.resolution),
         spp=args.spp,
         seed=args.seed,
         max_leaf=args.max_leaf,
         node_cost=args.node_cost,
+        **fields,
+    )
+
+
+def cmd_table(args: argparse.Namespace) -> int:
+    """Simulate every scheme on the same recorded rays and print the efficiency table."""
+    from simt_sim import progress
+    from simt_sim.study.run import run_study
+    from simt_sim.study.sampling import check_fraction
+
+    if args.spp < 1:
+        raise SimtSimError(f"--spp must be at least 1, got {args.spp}")
+    spec = _spec(
+        args,
+        cameras=args.camera,
         actual=args.actual,
         sample=check_fraction(args.sample),
         memory=args.memory_model,
     )
-    from simt_sim import progress
-
     if args.workers is None and args.scheduler is None:
         _, df = run_study(spec, progress=progress.wanted(args.quiet))
     else:
-        from simt_sim.cluster import dask_client
+        from simt_sim.study.cluster import dask_client
 
         with dask_client(args.workers, args.scheduler) as client:
             _, df = run_study(spec, progress=progress.wanted(args.quiet), client=client)
     if args.format == "md":
-        detail = ("makespan", "ir_arch", *MEMORY_DETAIL)
-        df = df.drop(columns=[c for c in detail if c in df])
+        df = df.drop(columns=[c for c in DETAIL_COLUMNS if c in df])
     emit(df, args.format, args.out)
     return 0
-
-
-def _measure_numba(wl) -> float:
-    """MRays/s of the numba tracer on the workload's rays (median of 3 after a warm-up)."""
-    from simt_sim.tracers import numba_tracer
-
-    _, sec = _time(lambda: numba_tracer.trace(wl.bvh, wl.rays), 3)
-    return len(wl.rays) / sec / 1e6 if sec > 0 else float("nan")
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
@@ -316,15 +231,9 @@ def cmd_plot(args: argparse.Namespace) -> int:
     nothing behind."""
     from pathlib import Path
 
-    import kernels_ir
-    from kernels_ir.kernel_ir import BLOCKS
-    from simt_sim import plots, progress
-    from simt_sim.record import record_all
-    from simt_sim.simt.engine import cost_vector
-    from simt_sim.simt.gpus import get_gpu, load_gpus
-    from simt_sim.study import ALL_SCHEMES, RAY_TYPES, StudySpec, parse_list, run_study
-    from simt_sim.warpstats import TIMELINE_SCHEMES, WARP_SCHEMES, warp_counts, warp_timeline
-    from simt_sim.workload import make_workload, parse_resolution
+    from simt_sim import progress
+    from simt_sim.report.figures import figure_steps, study_figures
+    from simt_sim.report.plots import write_figure
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -335,90 +244,19 @@ def cmd_plot(args: argparse.Namespace) -> int:
         raise SimtSimError(f"--camera {args.camera!r} is not one camera index like 0")
     if args.warp is not None and args.warp < 0:
         raise SimtSimError(f"--warp must be a warp index >= 0, got {args.warp}")
-    spec = StudySpec(
-        scene=args.scene,
-        ray_types=parse_list(args.rays, RAY_TYPES, "ray type"),
-        schemes=parse_list(args.schemes, ALL_SCHEMES, "scheme"),
-        gpus=parse_list(args.gpu, tuple(load_gpus(args.gpus)), "GPU"),
-        gpu_file=args.gpus,
-        cameras=args.camera.strip(),
-        resolution=parse_resolution(args.resolution),
-        spp=args.spp,
-        seed=args.seed,
-        max_leaf=args.max_leaf,
-        node_cost=args.node_cost,
-    )
+    spec = _spec(args, cameras=args.camera.strip())
     show = progress.wanted(args.quiet)
-    results, table = run_study(spec, progress=show)
-    width, height = spec.resolution
-    setup = f"{width}x{height}, camera {spec.cameras}"
-    warp_schemes = [s for s in spec.schemes if s in WARP_SCHEMES]
-    n_figures = len(spec.ray_types) + 1 + len(warp_schemes)
-    n_figures += len([s for s in warp_schemes if s in TIMELINE_SCHEMES])
-    n_measured = len([rt for rt in spec.ray_types if rt != "path"]) if args.measured else 0
-    figures = {}
-    # every figure is drawn, then written: one step each, plus loading, measuring, recording
-    with progress.bar(
-        "drawing", enabled=show, unit="step", total=2 * n_figures + n_measured + 2
-    ) as steps:
-        for rt in spec.ray_types:
-            figures[f"active_lanes_{rt}"] = plots.active_lanes_figure(
-                [r for r in results if r.ray_type == rt and r.gpu.id == spec.gpus[0]],
-                f"{rt} rays on {results[0].scene} ({setup}, {spec.gpus[0]}): active lanes "
-                "per issued instruction",
-            )
-            steps.update()
-        wl = make_workload(
-            spec.scene, "primary", cameras=spec.cameras, resolution=spec.resolution,
-            spp=spec.spp, seed=spec.seed, max_leaf=spec.max_leaf, node_cost=spec.node_cost,
-        )  # fmt: skip
-        steps.update()
-        measured = {}
-        if args.measured:
-            steps.set_description("measuring")
-            for rt in spec.ray_types:
-                if rt != "path":
-                    rays = make_workload(
-                        wl.scene, rt, cameras=spec.cameras, resolution=spec.resolution,
-                        spp=spec.spp, seed=spec.seed, bvh=wl.bvh,
-                    )  # fmt: skip
-                    measured[rt] = _measure_numba(rays)
-                    steps.update()
-        steps.set_description("drawing")
-        figures["mrays"] = plots.mrays_figure(
-            table, f"Upper-bound MRays/s on {wl.scene.name} ({setup})", measured
+    # every figure is drawn, then written: a step each, plus loading, measuring, recording
+    total = figure_steps(spec, args.measured)
+    with progress.bar("drawing", enabled=show, unit="step", total=total) as steps:
+        figures = study_figures(
+            spec, warp=args.warp, measured=args.measured, steps=steps, progress=show
         )
-        steps.update()
-        trace = record_all(wl.bvh, wl.rays)
-        steps.update()
-        per_ray = trace.counts()
-        gpu = get_gpu(spec.gpus[0], spec.gpu_file)
-        for s in warp_schemes:
-            ir = kernels_ir.load(s, gpu.ir_arch)
-            wc = warp_counts(trace, s, cost_vector(ir), gpu.warp_size)
-            eff = wc.efficiency[np.arange(trace.n_rays) // gpu.warp_size]
-            figures[f"pixels_{s}"] = plots.pixels_figure(
-                *(plots.to_image(v, wl.rays.pixel, width, height) for v in (
-                    per_ray[:, 0], per_ray[:, 2], eff
-                )),
-                f"{s}: primary rays on {wl.scene.name} ({setup}, {gpu.id})",
-            )  # fmt: skip
-            steps.update()
-            if s in TIMELINE_SCHEMES:
-                warp = int(np.argmax(wc.warp_instructions)) if args.warp is None else args.warp
-                costs = {b: ir.cost(b) for b in BLOCKS}
-                figures[f"timeline_{s}"] = plots.timeline_figure(
-                    warp_timeline(trace, warp, s, costs, gpu.warp_size),
-                    costs,
-                    gpu.warp_size,
-                    f"{s}: warp {warp} of the primary rays on {wl.scene.name} ({setup}, {gpu.id})",
-                )
-                steps.update()
         steps.set_description("writing")
         out.mkdir(exist_ok=True)
         written = []
         for stem, fig in figures.items():
-            written += [str(p) for p in plots.write_figure(fig, out, stem)]
+            written += [str(p) for p in write_figure(fig, out, stem)]
             steps.update()
     emit(pd.DataFrame({"file": written}), "md", None)
     return 0
@@ -514,7 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--gpu",
-        default="gtx285",
+        default=DEFAULT_GPU,
         help="comma list of GPU ids or 'all' (see 'simt-sim gpus'; default: %(default)s)",
     )
     _add_gpus_arg(p)
@@ -534,7 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--memory-model",
-        choices=("auto", "on", "off"),
+        choices=MEMORY_MODES,
         default="auto",
         help="bytes, 128-byte lines and caches per warp step, and bandwidth-bound MRays/s: "
         "auto runs it when the scene's BVH outgrows the GPU's L2 (default: %(default)s)",
@@ -574,7 +412,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--gpu",
-        default="gtx285",
+        default=DEFAULT_GPU,
         help="comma list of GPU ids or 'all'; the first one costs the per-pixel and "
         "timeline figures (default: %(default)s)",
     )
@@ -629,7 +467,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
-    except SimtSimError as exc:
+    except (SimtSimError, KernelIRError) as exc:
         print(f"simt-sim: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

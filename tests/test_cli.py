@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from simt_sim.tracefile import read_meta
+from simt_sim.trace.tracefile import read_meta
 
 SMALL = ["--scene", "room", "--resolution", "32x24", "--camera", "0"]
 

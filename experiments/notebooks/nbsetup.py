@@ -21,8 +21,8 @@ from pathlib import Path
 from IPython.display import Image
 from matplotlib.figure import Figure
 
-from simt_sim.plots import write_figure
-from simt_sim.scene import list_scenes
+from simt_sim.report.plots import write_figure
+from simt_sim.scene.load import list_scenes
 
 #: the folder of the experiment scripts (``approximation_error.py`` ...), for imports
 EXPERIMENTS = Path(__file__).resolve().parent.parent

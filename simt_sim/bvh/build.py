@@ -102,7 +102,7 @@ def _grow_bin(box, blo, bhi, bcnt, a, k):
 
 
 @njit(cache=True, nogil=True)
-def _binned_best(idx, start, end, tlo, thi, cen, bins, blo, bhi, bcnt, rarea, cbox):
+def binned_best_split(idx, start, end, tlo, thi, cen, bins, blo, bhi, bcnt, rarea, cbox):
     """Best binned SAH split of ``idx[start:end]`` over all three axes.
 
     Returns ``(cost, axis, bin, cmin, scale)`` where cost is the unnormalised split cost
@@ -220,7 +220,7 @@ def _sorted_along(idx, start, end, cen, axis, keys, order):
 
 
 @njit(cache=True, nogil=True)
-def _sweep_best(idx, start, end, tlo, thi, cen, keys, order, rarea, cbox):
+def sweep_best_split(idx, start, end, tlo, thi, cen, keys, order, rarea, cbox):
     """Best full-sweep SAH split: every plane between distinct centroids, all axes.
 
     Returns ``(cost, axis, pos)``: the first ``pos`` triangles of the stable centroid
@@ -312,11 +312,11 @@ def _build(tlo, thi, cen, sweep, max_leaf, bins, node_cost):
         mid = -1
         if not make_leaf:
             if sweep:
-                cost, axis, pos = _sweep_best(
+                cost, axis, pos = sweep_best_split(
                     idx, start, end, tlo, thi, cen, keys, order, rarea, cbox
                 )
             else:
-                cost, axis, sbin, cmin, scale = _binned_best(
+                cost, axis, sbin, cmin, scale = binned_best_split(
                     idx, start, end, tlo, thi, cen, bins, blo, bhi, bcnt, rarea, cbox
                 )
             # Leaf cost n * A versus split cost A * node_cost + A_L N_L + A_R N_R (unnormalised).
@@ -391,7 +391,7 @@ def widened(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     A point on a box's face (a vertex; a ray running in the face's plane with a zero
     direction component, whose clamped inverse 2^80 turns a zero slab distance into
     ``0 * 2^80 = 0``) then lies strictly inside, ``2^42`` times the box's coordinates
-    from leaving it along such a ray (:mod:`simt_sim.geometry`). Scaling by a power of
+    from leaving it along such a ray (:mod:`simt_sim.bvh.geometry`). Scaling by a power of
     two scales the result exactly.
 
     Parameters

@@ -1,1 +1,3 @@
-"""The warp-level SIMT model: replay op traces under ideal scheduling, one scheme a module."""
+"""The warp-level SIMT model: lane-mask counters, the replay driver, results and their model
+cards, GPU configurations, the memory model. Each scheme's own replay is in
+:mod:`simt_sim.schemes`."""

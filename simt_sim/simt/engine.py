@@ -13,7 +13,9 @@ Counter arrays (one set per parallel chunk, summed afterwards):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from llvmlite import ir as llvm_ir
@@ -22,7 +24,7 @@ from numba.extending import intrinsic
 
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
 from simt_sim.errors import SimtSimError
-from simt_sim.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS
+from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS, OpTrace
 
 N_BLOCKS = len(BLOCKS)
 RAY_SETUP = BLOCKS.index("ray_setup")
@@ -36,6 +38,8 @@ LEAF_ENTRY = BLOCKS.index("leaf_entry")
 TRI_TEST = BLOCKS.index("tri_test")
 TRI_HIT_B = BLOCKS.index("tri_hit")
 FINISH = BLOCKS.index("finish")
+SHADE = BLOCKS.index("shade")
+QUEUE_PUSH = BLOCKS.index("queue_push")
 # trav_none, trav_one, trav_both follow each other in BLOCKS, in op-code order
 assert BLOCKS[TRAV_NONE_B : TRAV_NONE_B + 3] == ("trav_none", "trav_one", "trav_both")
 
@@ -393,10 +397,20 @@ class ReplayParams:
         Lanes per warp.
     resident_warps : int
         Persistent schemes: warps kept resident (SMs x resident warps per SM).
-    threshold : int
-        Dynamic fetch: refill dead lanes when fewer than this many lanes are alive.
+    scheme : mapping
+        The scheme's own parameters (``SchemeInfo.params`` with the caller's values).
     """
 
     warp_size: int
     resident_warps: int
-    threshold: int
+    scheme: Mapping[str, Any] = field(default_factory=dict)
+
+
+def replay_arrays(trace: OpTrace) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The trace's CSR arrays (:meth:`OpTrace.csr`) as the replay kernels read them: a
+    trace without ops gets a one-op dummy, since the kernels read ``op[0]`` for lanes
+    whose stream is empty."""
+    offsets, op, addr = trace.csr()
+    if op.shape[0] == 0:
+        op, addr = np.zeros(1, np.uint8), np.zeros(1, np.int32)
+    return offsets, op, addr

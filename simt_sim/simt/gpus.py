@@ -16,6 +16,10 @@ from typing import Any
 
 from simt_sim.errors import SimtSimError
 
+#: the GPU a study, the lockstep executor and the CLI cost with when none is named: the
+#: paper's GTX 285
+DEFAULT_GPU = "gtx285"
+
 _FIELDS: dict[str, type | tuple[type, ...]] = {
     "id": str,
     "name": str,

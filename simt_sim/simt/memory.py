@@ -44,9 +44,9 @@ from numba import njit, prange
 
 from simt_sim.bvh.layout import NODE_BYTES, WOOP_FLOAT4_PER_TRI
 from simt_sim.errors import SimtSimError
-from simt_sim.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS, OpTrace
-from simt_sim.simt.engine import N_CHUNKS, chunk_bounds, scan_trace
+from simt_sim.simt.engine import MAX_MASK_LANES, N_CHUNKS, chunk_bounds, scan_trace
 from simt_sim.simt.gpus import GpuConfig
+from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS, OpTrace
 
 LINE_BYTES = 128
 FLOAT4_BYTES = 16
@@ -469,15 +469,11 @@ def memory_counts(trace: OpTrace, warp_size: int, gpu: GpuConfig | None = None) 
         Run the cache model with this GPU's L1, L2, SMs and resident warps (needed for
         :func:`memory_columns` when the model is on). Caches start empty in each call.
     """
-    if not 1 <= warp_size <= 64:
-        raise SimtSimError(f"warp_size must be in 1..64 for the memory model, got {warp_size}")
-    offsets = np.ascontiguousarray(trace.offsets, dtype=np.int64)
-    op = np.ascontiguousarray(trace.op, dtype=np.uint8)
-    addr = np.ascontiguousarray(trace.addr, dtype=np.int32)
-    if offsets.ndim != 1 or offsets.shape[0] < 1 or offsets[0] != 0 or offsets[-1] != op.shape[0]:
-        raise SimtSimError("OpTrace offsets disagree with its ops; re-record the trace")
-    if op.shape != addr.shape:
-        raise SimtSimError("OpTrace op and addr lengths differ; re-record the trace")
+    if not 1 <= warp_size <= MAX_MASK_LANES:
+        raise SimtSimError(
+            f"warp_size must be in 1..{MAX_MASK_LANES} for the memory model, got {warp_size}"
+        )
+    offsets, op, addr = trace.csr()
     if addr.shape[0] and addr.min() < 0:
         raise SimtSimError("OpTrace has negative addresses; re-record the trace")
     if op.shape[0] and scan_trace(offsets, op)[3] >= 0:

@@ -1,52 +1,45 @@
-"""The SIMT model's entry point: replay op traces under a scheme, cost them, measure.
+"""The SIMT model's entry points: replay traces or path traces under a scheme, cost, measure.
 
-``simulate`` streams OpTrace batches through one scheme's replay and sums the integer
-counters, so memory stays bounded by one batch (or one launch). Schemes whose warps are
-independent (while-while, if-if, packet) give results independent of how the rays were
-split into batches; persistent schemes replay launch by launch (``launch_size`` rays, by
-default each batch is one launch): their totals are still split-independent (fetched
-groups are independent) except for dynamic fetch, whose refills cross group boundaries,
-so its results depend on the launch size (the paper used launches of 2^20 rays).
+:func:`simulate_traces` streams OpTrace batches through a trace scheme's replay and sums
+the integer counters, so memory stays bounded by one batch (or one launch). Schemes
+whose warps are independent (while-while, if-if, packet) give results independent of how
+the rays were split into batches; persistent schemes replay launch by launch
+(``launch_size`` rays, by default each batch is one launch): their totals are still
+split-independent (fetched groups are independent) except for dynamic fetch, whose
+refills cross group boundaries, so its results depend on the launch size (the paper used
+launches of 2^20 rays). :func:`simulate_paths` replays a PathTrace under a path scheme
+(megakernel, wavefront), :func:`simulate_queues` a PathTrace's queues under a trace
+scheme. Schemes come as :class:`~simt_sim.simt.scheme.SchemeInfo` records
+(``simt_sim.schemes.get_scheme(name)``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from kernels_ir.kernel_ir import KernelIR
 from simt_sim.errors import SimtSimError
-from simt_sim.optrace import OP_NAMES, OpTrace
+from simt_sim.simt.card import model_card
 from simt_sim.simt.engine import (
     Counts,
     ReplayParams,
     check_warp_size,
     cost_vector,
     empty_counts,
+    replay_arrays,
     scan_trace,
 )
 from simt_sim.simt.gpus import GpuConfig
-from simt_sim.simt.result import SimResult, check_ir
-from simt_sim.simt.schemes import get_scheme
+from simt_sim.simt.result import SimResult, check_ir, merge
+from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
+from simt_sim.types.optrace import OP_NAMES, OpTrace
+from simt_sim.types.paths import PathTrace
 
 Arrays = tuple[np.ndarray, np.ndarray, np.ndarray]
-
-
-def _arrays(trace: OpTrace) -> Arrays:
-    """The trace's CSR arrays in the dtypes the numba kernels are compiled for."""
-    offsets = np.ascontiguousarray(trace.offsets, dtype=np.int64)
-    op = np.ascontiguousarray(trace.op, dtype=np.uint8)
-    addr = np.ascontiguousarray(trace.addr, dtype=np.int32)
-    if offsets.ndim != 1 or offsets.shape[0] < 1 or offsets[0] != 0:
-        raise SimtSimError("OpTrace.offsets must be 1-D and start at 0; re-record the trace")
-    if op.shape != addr.shape or offsets[-1] != op.shape[0]:
-        raise SimtSimError("OpTrace op/addr lengths disagree with offsets; re-record the trace")
-    if offsets.shape[0] > 1 and np.any(np.diff(offsets) < 0):
-        raise SimtSimError("OpTrace.offsets must be non-decreasing; re-record the trace")
-    if op.shape[0] == 0:  # the kernels read op[0] as a dummy for lanes without ops
-        op, addr = np.zeros(1, np.uint8), np.zeros(1, np.int32)
-    return offsets, op, addr
 
 
 def _slice(a: Arrays, start: int, stop: int) -> Arrays:
@@ -86,27 +79,35 @@ def _launches(batches: Iterator[Arrays], size: int) -> Iterator[Arrays]:
         yield _concat(pending)
 
 
-def simulate(
+def _check_kind(scheme: SchemeInfo, kind: str, call: str) -> None:
+    if scheme.kind != kind:
+        other = "simulate_paths" if kind == TRACE else "simulate_traces"
+        raise SimtSimError(
+            f"{scheme.name!r} is a {scheme.kind} scheme: replay it with {other}, not {call}"
+        )
+
+
+def simulate_traces(
     traces: Iterable[OpTrace],
-    scheme: str,
+    scheme: SchemeInfo,
     ir: KernelIR,
     gpu: GpuConfig,
     *,
     scene: str = "",
     launch_size: int | None = None,
-    threshold: int = 20,
     resident_warps: int | None = None,
+    **params: Any,
 ) -> SimResult:
-    """Replay op traces as warps under ``scheme``, costed with ``ir``, on ``gpu``.
+    """Replay op traces as warps under trace scheme ``scheme``, costed with ``ir``, on ``gpu``.
 
     Parameters
     ----------
     traces : iterable of OpTrace
         Batches in warp order; each a multiple of ``gpu.warp_size`` rays except the last.
-    scheme : str
-        One of ``simt_sim.simt.schemes.SCHEMES``.
+    scheme : SchemeInfo
+        A trace scheme (``simt_sim.schemes.get_scheme(name)``).
     ir : KernelIR
-        Instruction costs of the scheme's kernel (``ir.kernel`` must equal ``scheme``).
+        Instruction costs of the scheme's kernel (``ir.kernel`` must be it).
     gpu : GpuConfig
         Warp size, resident warps and the figures of the upper bound.
     scene : str
@@ -114,34 +115,31 @@ def simulate(
     launch_size : int, optional
         Persistent schemes: rays per launch (a multiple of the warp size); default: each
         batch is one launch. Only dynamic fetch's counters depend on it.
-    threshold : int
-        Dynamic fetch: dead lanes refill when fewer than this many lanes hold a ray.
     resident_warps : int, optional
         Persistent schemes: override ``gpu.resident_warps`` (SMs x warps per SM).
+    **params
+        The scheme's own parameters (``scheme.params``: dynamic fetch's ``threshold``).
     """
-    module = get_scheme(scheme)
-    check_ir(ir, scheme)
+    _check_kind(scheme, TRACE, "simulate_traces")
+    check_ir(ir, scheme.kernel, scheme.kernels[scheme.kernel])
+    values = scheme.with_params(params)
     w = gpu.warp_size
     check_warp_size(w)
     r = gpu.resident_warps if resident_warps is None else resident_warps
     if r < 1:
         raise SimtSimError(f"resident_warps must be >= 1, got {r}")
-    if threshold < 1:
-        raise SimtSimError(
-            f"threshold must be >= 1 (lanes alive before refilling), got {threshold}"
-        )
     if launch_size is not None and (launch_size < 1 or launch_size % w):
         raise SimtSimError(
             f"launch_size must be a positive multiple of the warp size {w}, got {launch_size}"
         )
-    params = ReplayParams(w, r, threshold)
+    replay_params = ReplayParams(w, r, values)
     costs = cost_vector(ir)
     totals = np.zeros(3, np.int64)
-    state = {"rays": 0, "ray_type": None, "short": None}
+    state: dict[str, Any] = {"rays": 0, "ray_type": None, "short": None}
 
     def batches() -> Iterator[Arrays]:
         for trace in traces:
-            a = _arrays(trace)
+            a = replay_arrays(trace)
             n = a[0].shape[0] - 1
             if state["short"] is not None:
                 raise SimtSimError(
@@ -171,39 +169,34 @@ def simulate(
             yield a
 
     units: Iterator[Arrays] = batches()
-    if module.PERSISTENT and launch_size is not None:
+    if scheme.persistent and launch_size is not None:
         units = _launches(units, launch_size)
-    counts: Counts = empty_counts(w, r if module.PERSISTENT else None)
+    counts: Counts = empty_counts(w, r if scheme.persistent else None)
     launches = 0
     for offsets, op, addr in units:
         if offsets.shape[0] > 1:
-            counts = counts + module.replay(offsets, op, addr, costs, params)
+            counts = counts + scheme.replay(offsets, op, addr, costs, replay_params)
             launches += 1
-
-    card: dict = {
-        "scheme": scheme,
-        "approximations": list(module.APPROXIMATIONS),
-        "gpu": gpu.figures(),
-        "warp_size": w,
-        "ir_kernel": ir.kernel,
-        "ir_arch": ir.arch,
-        "ir_compiler": ir.compiler,
-        "recostable": scheme != "dynamic_fetch",
-    }
-    if ir.arch != gpu.ir_arch:
-        card["ir_arch_note"] = f"costed with {ir.arch}; the GPU's table entry names {gpu.ir_arch}"
-    if module.PERSISTENT:
-        card.update(
+    extra: dict[str, Any] = {}
+    if scheme.persistent:
+        extra.update(
             resident_warps=r,
             launch_size=launch_size if launch_size is not None else "one launch per batch",
             launches=launches,
         )
-    if scheme == "dynamic_fetch":
-        card["threshold"] = threshold
+    card = model_card(
+        scheme.name,
+        [ir],
+        gpu,
+        approximations=scheme.approximations,
+        recostable=scheme.recostable,
+        **extra,
+        **values,
+    )
     return SimResult(
         scene=scene,
         ray_type=state["ray_type"] or "",
-        scheme=scheme,
+        scheme=scheme.name,
         gpu=gpu,
         rays=int(state["rays"]),
         warp_size=w,
@@ -214,3 +207,112 @@ def simulate(
         n_tri=int(totals[2]),
         model_card=card,
     )
+
+
+@dataclass(frozen=True, eq=False)
+class PathReplay:
+    """What a path scheme's replay counted, before it becomes a SimResult.
+
+    Attributes
+    ----------
+    counts : Counts
+    costs : int64 (N_BLOCKS,)
+        Instructions per block execution the counts are costed with (unit costs where the
+        counts are already instructions, as the wavefront's sum over its kernels).
+    n_trav, n_leaf, n_tri : int
+        Ops replayed, by kind.
+    approximations : tuple of str
+    recostable : bool
+    card : dict
+        What the scheme adds to the model card (its parameters, per-kernel rows).
+    """
+
+    counts: Counts
+    costs: np.ndarray
+    n_trav: int
+    n_leaf: int
+    n_tri: int
+    approximations: tuple[str, ...]
+    recostable: bool
+    card: dict[str, Any] = field(default_factory=dict)
+
+
+def simulate_paths(
+    pt: PathTrace,
+    scheme: SchemeInfo,
+    irs: Mapping[str, KernelIR],
+    gpu: GpuConfig,
+    *,
+    scene: str = "",
+    **params: Any,
+) -> SimResult:
+    """Replay the paths of ``pt`` under path scheme ``scheme`` on ``gpu``.
+
+    ``irs`` maps each of ``scheme.kernels`` to its KernelIR. ``rays`` counts every extend
+    and shadow ray traced; the model card adds the paths (and the scheme's breakdown).
+    ``params`` are the scheme's own (``scheme.params``: the megakernel's ``order``).
+    """
+    _check_kind(scheme, PATH, "simulate_paths")
+    missing = [k for k in scheme.kernels if k not in irs]
+    if missing:
+        raise SimtSimError(
+            f"{scheme.name} needs a KernelIR for each of {', '.join(scheme.kernels)}; missing "
+            f"{', '.join(missing)}"
+        )
+    for kernel, blocks in scheme.kernels.items():
+        check_ir(irs[kernel], kernel, blocks)
+    values = scheme.with_params(params)
+    out = scheme.replay_paths(pt, {k: irs[k] for k in scheme.kernels}, gpu, **values)
+    card = model_card(
+        scheme.name,
+        [irs[k] for k in scheme.kernels],
+        gpu,
+        approximations=out.approximations,
+        recostable=out.recostable,
+        **values,
+        **out.card,
+        **path_card(pt),
+    )
+    return SimResult(
+        scene=scene,
+        ray_type="path",
+        scheme=scheme.name,
+        gpu=gpu,
+        rays=pt.n_rays,
+        warp_size=gpu.warp_size,
+        counts=out.counts,
+        costs=out.costs,
+        n_trav=out.n_trav,
+        n_leaf=out.n_leaf,
+        n_tri=out.n_tri,
+        model_card=card,
+    )
+
+
+def path_card(pt: PathTrace) -> dict[str, Any]:
+    """What a model card says about the paths replayed."""
+    return {
+        "paths": pt.n_paths,
+        "bounces": pt.n_bounces,
+        "extend_rays": sum(t.n_rays for t in pt.extend),
+        "connect_rays": sum(t.n_rays for t in pt.connect),
+        "max_bounces": pt.max_bounces,
+        "rr_start": pt.rr_start,
+        "albedo": pt.albedo,
+        "seed": pt.seed,
+        "queue_order": "live paths in path-id order (ideal compaction)",
+    }
+
+
+def simulate_queues(
+    pt: PathTrace, kind: str, scheme: SchemeInfo, ir: KernelIR, gpu: GpuConfig, **kwargs: Any
+) -> SimResult:
+    """A trace scheme (while_while, persistent ...) as the extend / connect kernels of ``pt``.
+
+    Each bounce's queue (:meth:`PathTrace.queues`, ``kind`` extend, connect or all) is one
+    launch of :func:`simulate_traces`; the launches are merged. ``kwargs`` go to it.
+    """
+    results = [simulate_traces([q], scheme, ir, gpu, **kwargs) for q in pt.queues(kind)]
+    if not results:
+        raise SimtSimError("the path trace has no queues; trace at least one path")
+    return merge(results)

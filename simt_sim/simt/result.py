@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from kernels_ir.kernel_ir import BLOCKS, REQUIRED_BLOCKS, KernelIR
+from kernels_ir.kernel_ir import BLOCKS, KernelIR
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.engine import Counts, cost_vector
 from simt_sim.simt.gpus import GpuConfig
@@ -25,14 +25,15 @@ TRAVERSAL_BLOCKS = ("trav_step", "trav_none", "trav_one", "trav_both", "trav_div
 INTERSECTION_BLOCKS = ("leaf_entry", "tri_test", "tri_hit")
 
 
-def check_ir(ir: KernelIR, scheme: str) -> None:
-    """Refuse an IR of another kernel or one lacking a block the scheme charges."""
-    if ir.kernel != scheme:
+def check_ir(ir: KernelIR, kernel: str, blocks: Sequence[str]) -> None:
+    """Refuse an IR of another kernel than ``kernel``, or one lacking one of ``blocks`` (those
+    the replay charges: ``SchemeInfo.kernels[kernel]``)."""
+    if ir.kernel != kernel:
         raise SimtSimError(
-            f"KernelIR is for kernel {ir.kernel!r} but the scheme is {scheme!r}; "
-            f"load the IR of {scheme!r}"
+            f"KernelIR is for kernel {ir.kernel!r} but the scheme runs {kernel!r}; "
+            f"load the IR of {kernel!r}"
         )
-    missing = [b for b in REQUIRED_BLOCKS[scheme] if b not in ir.blocks]
+    missing = [b for b in blocks if b not in ir.blocks]
     if missing:
         raise SimtSimError(
             f"KernelIR {ir.kernel}/{ir.arch} lacks block(s) {', '.join(missing)}; regenerate the IR"
@@ -196,17 +197,20 @@ class SimResult:
         }
 
     def recost(self, ir: KernelIR) -> SimResult:
-        """The same counts costed with another KernelIR, without replaying.
+        """The same counts costed with another KernelIR of the same kernel, without replaying.
 
-        Valid for every scheme but dynamic fetch (its pool order follows the costs). The
-        per-warp totals of persistent schemes follow the costs too, so they are dropped.
+        Valid for every result whose card says ``recostable`` (all schemes but dynamic
+        fetch, whose pool order follows the costs). The IR must have every block the counts
+        charged. The per-warp totals of persistent schemes follow the costs too, so they
+        are dropped.
         """
-        if self.scheme == "dynamic_fetch":
+        if not self.model_card.get("recostable", False):
             raise SimtSimError(
-                "dynamic_fetch results cannot be re-costed (pool order depends on the block "
-                "costs); run simulate() again with the new KernelIR"
+                f"{self.scheme} results cannot be re-costed (its schedule depends on the block "
+                "costs); replay it again with the new KernelIR"
             )
-        check_ir(ir, self.scheme)
+        charged = [b for b, n in zip(BLOCKS, self.counts.executions, strict=True) if n]
+        check_ir(ir, self.model_card.get("ir_kernel", self.scheme), charged)
         c = self.counts
         counts = Counts(c.executions, c.active, c.hist, None, 0)
         card = dict(self.model_card)

@@ -14,9 +14,9 @@ import numpy as np
 from numba import njit, prange
 
 from simt_sim.errors import SimtSimError
-from simt_sim.hits import Hits
-from simt_sim.optrace import LEAF, TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS, OpTrace
 from simt_sim.simt.engine import N_CHUNKS, chunk_bounds
+from simt_sim.types.hits import Hits
+from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS, OpTrace
 
 _MUL = np.uint64(2685821657736338717)
 _GOLD = np.uint64(0x9E3779B97F4A7C15)

@@ -10,8 +10,8 @@ import numpy as np
 from numba import njit, prange
 
 from simt_sim.errors import SimtSimError
-from simt_sim.hits import MISS, Hits
-from simt_sim.raybatch import RayBatch
+from simt_sim.types.hits import MISS, Hits
+from simt_sim.types.raybatch import RayBatch
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")

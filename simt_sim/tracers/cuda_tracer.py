@@ -7,14 +7,15 @@ here (:func:`pack_bvh`, :func:`pack_rays`, :func:`launch_config`, :func:`kernel_
 so it is tested on machines without one; :class:`CudaTracer` only uploads, compiles
 (cupy + NVRTC) and launches.
 
-Launch rules, from the kernels' header comments:
+Launch rules, from the kernels' header comments; each scheme's record says which of them
+its kernel follows (``SchemeInfo.launch``, a :class:`~kernels_ir.kernel_ir.KernelLaunch`):
 
-- ``while_while``, ``if_if``: one thread per ray, any grid covering the rays.
-- ``packet``: block size a multiple of 32 and ``(blockDim.x / 32) * 64 * 4`` bytes of
-  dynamic shared memory (one 64-entry stack per warp).
-- ``persistent_while_while``, ``persistent_speculative_while_while``, ``dynamic_fetch``:
-  block size a multiple of 32, only as many warps as the GPU keeps resident (they fetch
-  rays from a pool), and the pool counter set to 0 before every launch.
+- by default (while-while, if-if): one thread per ray, any grid covering the rays;
+- ``shared_stack`` (packet): block size a multiple of 32 and ``(blockDim.x / 32) * 64 * 4``
+  bytes of dynamic shared memory (one 64-entry stack per warp);
+- ``persistent`` (persistent while-while, speculative, dynamic fetch): block size a
+  multiple of 32, only as many warps as the GPU keeps resident (they fetch rays from a
+  pool), and the pool counter set to 0 before every launch.
 """
 
 from __future__ import annotations
@@ -22,32 +23,18 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 from functools import cache
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from kernels_ir.build import CUDA_DIR, HEADER
+from kernels_ir.build import CUDA_DIR, HEADER, KERNELS
+from kernels_ir.kernel_ir import KernelLaunch
 from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
+from simt_sim.bvh.traverse import check_bvh, ray_arrays
 from simt_sim.errors import SimtSimError
-from simt_sim.hits import Hits
-from simt_sim.raybatch import RayBatch
-from simt_sim.simt.gpus import GpuConfig
-from simt_sim.tracers.numba_tracer import ray_arrays
-from simt_sim.traverse import check_bvh
+from simt_sim.types.hits import Hits
+from simt_sim.types.raybatch import RayBatch
 
-#: the kernels that trace a RayBatch (the wavefront and megakernel ones trace paths)
-TRACE_KERNELS = (
-    "while_while",
-    "if_if",
-    "persistent_while_while",
-    "persistent_speculative_while_while",
-    "dynamic_fetch",
-    "packet",
-)
-#: kernels that fetch rays from a global pool: resident-warp grid, counter reset per launch
-PERSISTENT_KERNELS = frozenset(
-    {"persistent_while_while", "persistent_speculative_while_while", "dynamic_fetch"}
-)
 #: the kernels' parameters in order (``pool_next`` only for persistent kernels)
 KERNEL_PARAMS = (
     "nodes", "woop", "tri_index", "root", "ray_o", "ray_d", "num_rays", "any_hit",
@@ -74,6 +61,14 @@ _INCLUDE = f'#include "{HEADER}"'
 CUPY_HINT = "the CUDA tracer needs cupy and an NVIDIA GPU: pip install 'simt-sim[cuda]'"
 
 
+class Residency(Protocol):
+    """How many warps a persistent launch can keep resident: a GpuConfig (from the data
+    sheet) or :class:`DeviceLimits` (from the device)."""
+
+    sms: int
+    resident_warps_per_sm: int
+
+
 @dataclass(frozen=True)
 class DeviceLimits:
     """How many warps a persistent launch can keep resident on a device.
@@ -88,17 +83,16 @@ class DeviceLimits:
 
 
 def check_kernel(kernel: str) -> None:
-    """Refuse a kernel name that is not one of the ray-tracing kernels."""
-    if kernel not in TRACE_KERNELS:
-        raise SimtSimError(
-            f"unknown CUDA kernel {kernel!r}; kernels that trace rays: {', '.join(TRACE_KERNELS)}"
-        )
+    """Refuse a kernel name that has no ``.cu`` source in ``kernels_ir/cuda``."""
+    if kernel not in KERNELS:
+        raise SimtSimError(f"unknown CUDA kernel {kernel!r}; kernels: {', '.join(KERNELS)}")
 
 
-def kernel_params(kernel: str) -> tuple[str, ...]:
-    """Parameter names of ``kernel`` in launch order (as in its ``.cu`` signature)."""
-    check_kernel(kernel)
-    return KERNEL_PARAMS + ((POOL_PARAM,) if kernel in PERSISTENT_KERNELS else ())
+def kernel_params(launch: KernelLaunch) -> tuple[str, ...]:
+    """Parameter names of a ray-tracing kernel in launch order (as in its ``.cu``
+    signature)."""
+    check_kernel(launch.kernel)
+    return KERNEL_PARAMS + ((POOL_PARAM,) if launch.persistent else ())
 
 
 @cache
@@ -234,9 +228,9 @@ def check_block_threads(block_threads: int) -> None:
 
 
 def launch_config(
-    kernel: str,
+    launch: KernelLaunch,
     n_rays: int,
-    gpu: GpuConfig | DeviceLimits,
+    gpu: Residency,
     *,
     block_threads: int = BLOCK_THREADS,
 ) -> tuple[int, int, int]:
@@ -245,32 +239,32 @@ def launch_config(
     Persistent kernels get the warps the GPU keeps resident (``sms x
     resident_warps_per_sm``, 720 on GTX 285 as in the paper), but no more than the rays
     fill, since an extra warp only finds the pool empty. The others get one thread per
-    ray; ``packet`` also one 64-entry int stack per warp in shared memory.
+    ray; a shared-stack kernel (packet) also one 64-entry int stack per warp in shared memory.
 
     Returns
     -------
     grid, block, shared_mem : int
         Blocks, threads per block, bytes of dynamic shared memory.
     """
-    check_kernel(kernel)
+    check_kernel(launch.kernel)
     check_block_threads(block_threads)
     if not 0 < n_rays <= MAX_RAYS:
         raise SimtSimError(f"a launch takes 1 to {MAX_RAYS} rays, got {n_rays}")
     warps_per_block = block_threads // WARP_SIZE
-    if kernel in PERSISTENT_KERNELS:
+    if launch.persistent:
         if gpu.sms <= 0 or gpu.resident_warps_per_sm <= 0:
             raise SimtSimError(
-                f"{kernel} needs a GPU with resident warps, got {gpu.sms} SMs x "
+                f"{launch.kernel} needs a GPU with resident warps, got {gpu.sms} SMs x "
                 f"{gpu.resident_warps_per_sm} warps"
             )
         warps = min(gpu.sms * gpu.resident_warps_per_sm, -(-n_rays // WARP_SIZE))
         return -(-warps // warps_per_block), block_threads, 0
     grid = -(-n_rays // block_threads)
-    shared = warps_per_block * STACK_SIZE * 4 if kernel == "packet" else 0
+    shared = warps_per_block * STACK_SIZE * 4 if launch.shared_stack else 0
     return grid, block_threads, shared
 
 
-def _import_cupy() -> Any:
+def import_cupy() -> Any:
     """cupy, with at least one CUDA device behind it, or the install hint."""
     try:
         cp = importlib.import_module("cupy")
@@ -315,7 +309,7 @@ class CudaTracer:
     def __init__(self, bvh: BVH, *, device: int = 0, block_threads: int = BLOCK_THREADS) -> None:
         packed = pack_bvh(bvh)
         check_block_threads(block_threads)
-        cp = _import_cupy()
+        cp = import_cupy()
         count = cp.cuda.runtime.getDeviceCount()
         if not 0 <= device < count:
             raise SimtSimError(f"no CUDA device {device}; this machine has {count}, 0..{count - 1}")
@@ -346,26 +340,28 @@ class CudaTracer:
                 ) from None
         return self._kernels[kernel]
 
-    def device_limits(self, kernel: str) -> DeviceLimits:
-        """Resident warps of ``kernel`` per SM from the occupancy API (registers, shared
+    def device_limits(self, launch: KernelLaunch) -> DeviceLimits:
+        """Resident warps of the kernel per SM from the occupancy API (registers, shared
         memory and block size of the compiled kernel all count)."""
-        fn = self._kernel(kernel)
+        fn = self._kernel(launch.kernel)
         _, block, shared = launch_config(
-            kernel, 1, DeviceLimits(1, 1), block_threads=self.block_threads
+            launch, 1, DeviceLimits(1, 1), block_threads=self.block_threads
         )
         with self._device:
             blocks = self._cp.cuda.driver.occupancyMaxActiveBlocksPerMultiprocessor(
                 fn.kernel.ptr, block, shared
             )
         if blocks < 1:
-            raise SimtSimError(f"{kernel} cannot run {block} threads per block on this device")
+            raise SimtSimError(
+                f"{launch.kernel} cannot run {block} threads per block on this device"
+            )
         return DeviceLimits(self._sms, blocks * (block // WARP_SIZE))
 
-    def _prepare(self, packed: np.ndarray, any_hit: bool, kernel: str) -> _Launch:
-        """Upload packed rays and allocate the results of one launch of ``kernel``."""
+    def _prepare(self, packed: np.ndarray, any_hit: bool, launch: KernelLaunch) -> _Launch:
+        """Upload packed rays and allocate the results of one launch."""
         cp = self._cp
         n = packed.shape[1]
-        limits = self.device_limits(kernel) if kernel in PERSISTENT_KERNELS else DeviceLimits(1, 1)
+        limits = self.device_limits(launch) if launch.persistent else DeviceLimits(1, 1)
         rays_dev = cp.asarray(packed)
         hit_tri = cp.empty(n, dtype=cp.int32)
         hit_t = cp.empty(n, dtype=cp.float32)
@@ -381,42 +377,43 @@ class CudaTracer:
             POOL_PARAM: self._pool,
         }
         return _Launch(
-            fn=self._kernel(kernel),
-            args=tuple(values[p] for p in kernel_params(kernel)),
-            config=launch_config(kernel, n, limits, block_threads=self.block_threads),
-            persistent=kernel in PERSISTENT_KERNELS,
+            fn=self._kernel(launch.kernel),
+            args=tuple(values[p] for p in kernel_params(launch)),
+            config=launch_config(launch, n, limits, block_threads=self.block_threads),
+            persistent=launch.persistent,
             hit_tri=hit_tri,
             hit_t=hit_t,
         )
 
-    def _run(self, launch: _Launch, start: Any = None, stop: Any = None) -> None:
+    def _run(self, prepared: _Launch, start: Any = None, stop: Any = None) -> None:
         """Reset the pool (persistent kernels), then launch, between the events if given."""
-        if launch.persistent:
+        if prepared.persistent:
             self._pool.fill(0)
         if start is not None:
             start.record()
-        grid, block, shared = launch.config
-        launch.fn((grid,), (block,), launch.args, shared_mem=shared)
+        grid, block, shared = prepared.config
+        prepared.fn((grid,), (block,), prepared.args, shared_mem=shared)
         if stop is not None:
             stop.record()
 
-    def trace(self, rays: RayBatch, kernel: str = "while_while") -> Hits:
-        """Closest or any hit (per ``rays.query``) of every ray with ``kernel``.
+    def trace(self, rays: RayBatch, launch: KernelLaunch) -> Hits:
+        """Closest or any hit (per ``rays.query``) of every ray with ``launch``'s kernel
+        (a scheme's ``SchemeInfo.launch``).
 
         ``tri`` is the scene triangle (``tri_index`` of the hit Woop slot, as the kernels
         store it), ``t`` float32, ``inf`` for a miss. An empty batch launches nothing.
         """
-        check_kernel(kernel)
+        check_kernel(launch.kernel)
         packed = pack_rays(rays)
         if packed.shape[1] == 0:
             return Hits(tri=np.empty(0, np.int32), t=np.empty(0, np.float32))
         with self._device:
-            launch = self._prepare(packed, rays.query == "any", kernel)
-            self._run(launch)
-            return Hits(tri=launch.hit_tri.get(), t=launch.hit_t.get())
+            prepared = self._prepare(packed, rays.query == "any", launch)
+            self._run(prepared)
+            return Hits(tri=prepared.hit_tri.get(), t=prepared.hit_t.get())
 
     def trace_timed(
-        self, rays: RayBatch, kernel: str = "while_while", warmup: int = 2, repeats: int = 10
+        self, rays: RayBatch, launch: KernelLaunch, warmup: int = 2, repeats: int = 10
     ) -> tuple[Hits, list[float]]:
         """Trace ``warmup`` untimed then ``repeats`` timed launches, as the paper measured.
 
@@ -424,7 +421,7 @@ class CudaTracer:
         and the pool-counter reset stay outside the events. Returns the hits of the last
         launch and the seconds of each timed one.
         """
-        check_kernel(kernel)
+        check_kernel(launch.kernel)
         if warmup < 0 or repeats < 1:
             raise SimtSimError(f"need warmup >= 0 and repeats >= 1, got {warmup} and {repeats}")
         packed = pack_rays(rays)
@@ -432,12 +429,12 @@ class CudaTracer:
             raise SimtSimError("cannot time an empty ray batch; give at least one ray")
         cp = self._cp
         with self._device:
-            launch = self._prepare(packed, rays.query == "any", kernel)
+            prepared = self._prepare(packed, rays.query == "any", launch)
             start, stop = cp.cuda.Event(), cp.cuda.Event()
             seconds = []
             for i in range(warmup + repeats):
-                self._run(launch, start, stop)
+                self._run(prepared, start, stop)
                 stop.synchronize()
                 if i >= warmup:
                     seconds.append(cp.cuda.get_elapsed_time(start, stop) / 1e3)
-            return Hits(tri=launch.hit_tri.get(), t=launch.hit_t.get()), seconds
+            return Hits(tri=prepared.hit_tri.get(), t=prepared.hit_t.get()), seconds

@@ -1,6 +1,6 @@
 """Embree through embreex: the production CPU tracer we measure ourselves against.
 
-embreex's quirks, handled here so callers see plain :class:`~simt_sim.hits.Hits`:
+embreex's quirks, handled here so callers see plain :class:`~simt_sim.types.hits.Hits`:
 
 - float32 only, and geometry is handed over as one (m, 3, 3) triangle array;
 - ``tnear`` is fixed at 0: a ray with ``tmin > 0`` is started at ``o + tmin d`` and its
@@ -17,8 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 from simt_sim.errors import SimtSimError
-from simt_sim.hits import MISS, UNKNOWN_TRI, Hits
-from simt_sim.raybatch import RayBatch
+from simt_sim.types.hits import MISS, UNKNOWN_TRI, Hits
+from simt_sim.types.raybatch import RayBatch
 
 THREADS = 1
 

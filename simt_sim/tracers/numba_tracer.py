@@ -9,49 +9,12 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from numba import njit
 
 from simt_sim.bvh.layout import BVH
+from simt_sim.bvh.traverse import check_bvh, depth_error, ray_arrays, stack_size, traverse_batch
 from simt_sim.errors import SimtSimError
-from simt_sim.geometry import MIN_DIRECTION
-from simt_sim.hits import Hits
-from simt_sim.raybatch import RayBatch
-from simt_sim.traverse import check_bvh, depth_error, stack_size, traverse_batch
-
-
-@njit(cache=True, nogil=True)
-def first_short_direction(direction: np.ndarray, limit: np.float32) -> int:
-    """Index of the first ray whose direction is below ``limit`` in every component, or -1.
-
-    A plain loop: numpy's ``abs(direction).max(axis=1)`` took a third of a trace's time.
-    """
-    for i in range(direction.shape[0]):
-        if abs(direction[i, 0]) < limit and abs(direction[i, 1]) < limit:
-            if abs(direction[i, 2]) < limit:
-                return i
-    return -1
-
-
-def ray_arrays(rays: RayBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Origin, direction, tmin, tmax as contiguous float32 (copies only where needed)."""
-    if rays.query not in ("closest", "any"):
-        raise SimtSimError(f"unknown ray query {rays.query!r}; use 'closest' or 'any'")
-    n = len(rays)
-    origin = np.ascontiguousarray(rays.origin, dtype=np.float32)
-    direction = np.ascontiguousarray(rays.direction, dtype=np.float32)
-    tmin = np.ascontiguousarray(rays.tmin, dtype=np.float32)
-    tmax = np.ascontiguousarray(rays.tmax, dtype=np.float32)
-    if origin.shape != (n, 3) or direction.shape != (n, 3):
-        raise SimtSimError("ray origin and direction must be (n, 3) arrays; rebuild the RayBatch")
-    if tmin.shape != (n,) or tmax.shape != (n,):
-        raise SimtSimError("ray tmin and tmax must be (n,) arrays; rebuild the RayBatch")
-    short = first_short_direction(direction, MIN_DIRECTION)
-    if short >= 0:
-        raise SimtSimError(
-            f"ray {short} has direction {direction[short].tolist()}, below {MIN_DIRECTION:g}"
-            " in every component (zero or too short to trace); scale the directions up"
-        )
-    return origin, direction, tmin, tmax
+from simt_sim.types.hits import Hits
+from simt_sim.types.raybatch import RayBatch
 
 
 def trace(bvh: BVH, rays: RayBatch) -> Hits:

@@ -1,0 +1,811 @@
+"""Exact lockstep execution of the traversal kernels, to measure the replay's error.
+
+The replay (:mod:`simt_sim.simt.replay`) charges each scheme's blocks over op streams
+that the while-while tracer recorded. That is exact for schemes that visit what a
+while-while ray visits, and an approximation where the scheme changes the visits:
+speculative traversal tests nodes with a stale ``tmax``, and a packet visits the union of
+its lanes' nodes in an order decided by votes, with every lane taking part in every leaf.
+This module runs the kernels themselves: warps of lanes stepping through the real BVH
+(the same float32 box and Woop tests as the tracer, :mod:`simt_sim.bvh.geometry`) under each
+scheme's loop structure, charging the same blocks with the same rules as the replay.
+Comparing the two measures the approximation; for while-while and if-if the two must
+agree counter for counter, which pins the replay to the kernels' control flow.
+
+Kernel control flow per scheme (a lane's *next op* is what its state makes it do next:
+an interior node to step, a leaf to enter, a triangle to test, or nothing):
+
+- ``while_while``, ``if_if``, ``persistent_while_while``: as the replay's rules; the
+  persistent variant runs each group of ``warp_size`` consecutive rays as one fetch
+  (``pool_fetch`` then while-while) and assigns groups to resident warps by the replay's
+  ideal-scheduling rule.
+- ``persistent_speculative_while_while`` (Aila & Laine's kernel): per outer iteration
+  every lane starts *searching*; in the traversal loop each lane with an interior node
+  steps; a lane that lands on a leaf while holding none postpones it (``postpone``: park
+  it, pop the next node) and stops searching; a lane whose node is a leaf or that ran out
+  of nodes leaves the loop; after each step the loop breaks when no lane that stepped is
+  still searching (``if (!__any(searchingLeaf)) break;``); a step taken with fewer than
+  ``warp_size`` lanes also charges ``trav_diverged``, the vote's divergent-warp fallback
+  (sm_75..sm_89). The intersection loop then
+  processes each lane's postponed leaf and, like while-while, any leaves that follow
+  (``leaf_entry``, lockstep ``tri_test``). Traversal uses the lane's *current* ``tmax``,
+  so a lane may step nodes its recorded stream skipped, and an any-hit lane may traverse
+  past its terminating leaf.
+- ``packet``: one shared stack per warp, each entry holding a node and the lanes active
+  for it (those whose ray hit its box when it was pushed; the root: all lanes). At an
+  interior node the active lanes test both child boxes against their own ray and ``tmax``
+  (``trav_step``); the warp takes the branch of the union (``trav_both`` when some lane
+  hits each child, ``trav_one``, ``trav_none``) with all active lanes; with both children
+  hit, the child more lanes prefer as nearer goes first (a lane hitting one child prefers
+  it; tie -> child 0), the other is pushed. At a leaf every active lane enters
+  (``leaf_entry``) and tests every triangle (``tri_test``, ``tri_hit`` for the lanes
+  whose hit is accepted, shrinking that lane's ``tmax``); any-hit lanes drop out at their
+  first hit and are removed from every mask they appear in. ``loop_control`` is charged
+  once per node or leaf the warp works on, with every lane that has a ray (the whole warp
+  runs the shared loop, as in the replay); an entry whose lanes all dropped out is popped
+  without work. The warp ends when its stack is empty.
+
+Every run reports per-ray hits (identical to the tracer's for every scheme: the closest
+``t`` does not depend on the order triangles are found in) and per-ray TRAV/LEAF/TRI
+counts of the work each lane actually did.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numba import njit, prange
+
+from kernels_ir.kernel_ir import KernelIR
+from simt_sim.bvh.geometry import (
+    SENTINEL_I32,
+    inverse_direction,
+    near_columns,
+    node_child_intervals,
+    woop_hit_t,
+)
+from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
+from simt_sim.bvh.traverse import check_bvh, ray_arrays, stack_size
+from simt_sim.errors import SimtSimError
+from simt_sim.simt.card import model_card
+from simt_sim.simt.engine import (
+    FINISH,
+    LEAF_ENTRY,
+    LOOP_CONTROL,
+    N_BLOCKS,
+    POOL_FETCH,
+    POSTPONE,
+    RAY_SETUP,
+    TRAV_DIVERGED,
+    TRAV_NONE_B,
+    TRAV_STEP,
+    TRI_HIT_B,
+    TRI_TEST,
+    Counts,
+    charge,
+    cost_vector,
+    schedule_groups,
+)
+from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, get_gpu
+from simt_sim.simt.replay import simulate_traces
+from simt_sim.simt.result import SimResult, check_ir
+from simt_sim.simt.scheme import SchemeInfo
+from simt_sim.trace.record import record_all
+from simt_sim.types.hits import Hits
+from simt_sim.types.optrace import TRAV_BOTH, TRAV_NONE, TRAV_ONE
+from simt_sim.types.raybatch import RayBatch
+
+#: the kernel bodies the executor runs (``SchemeInfo.lockstep``); a persistent scheme adds
+#: its ``pool_fetch``. Dynamic fetch has none: its pool order follows instruction costs,
+#: and it visits what while-while visits, so its replay is exact.
+WHILE_WHILE_BODY, IF_IF_BODY, SPECULATIVE_BODY, PACKET_BODY = range(4)
+MAX_WARP = 64
+"""Largest warp size the executor accepts (lane masks are small boolean arrays)."""
+
+# Lane integer state, one row per lane: position, triangle cursor, stack, hit, parked leaf,
+# and the node columns of the ray's near slab planes (``geometry.near_columns``).
+_STATE, _NODE, _J, _SP, _HIT, _PLEAF, _SEARCH, _NX, _NY, _NZ = range(10)
+_N_INT = 10
+# Lane float32 state: origin, direction, inverse direction, tmin and the current tmax.
+_OX, _OY, _OZ, _DX, _DY, _DZ, _IX, _IY, _IZ, _TMIN, _TMAX = range(11)
+_N_FLOAT = 11
+# Lane positions (``_STATE``): at an interior node, at a leaf not yet entered, done.
+_AT_NODE, _AT_LEAF, _DONE = 0, 1, 2
+# What a lane does next (see :func:`_next`).
+_K_TRAV, _K_LEAF, _K_TRI, _K_NONE = 0, 1, 2, 3
+# Per-ray op counters (columns of ``ops``), as in ``OpTrace.counts``.
+_C_TRAV, _C_LEAF, _C_TRI = 0, 1, 2
+_NO_LEAF = 0  # ``_PLEAF`` when no leaf is parked (leaf addresses are negative)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _goto(li, lane, node):
+    """Move a lane to ``node``: an interior node (>= 0) or a leaf (< 0) to enter."""
+    li[lane, _NODE] = node
+    li[lane, _STATE] = _AT_NODE if node >= 0 else _AT_LEAF
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pop(li, stack, lane):
+    """Continue with the top of the lane's stack, or run out of nodes."""
+    sp = li[lane, _SP]
+    if sp == 0:
+        li[lane, _STATE] = _DONE
+    else:
+        li[lane, _SP] = sp - 1
+        _goto(li, lane, stack[lane, sp - 1])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _terminate(li, lane):
+    """An any-hit lane found its hit: no nodes, triangles or parked leaf remain."""
+    li[lane, _STATE] = _DONE
+    li[lane, _J] = -1
+    li[lane, _PLEAF] = _NO_LEAF
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _next(li, lane):
+    """What the lane does next: a triangle test, a traversal step, a leaf entry or nothing.
+
+    A parked (speculative) leaf is not a next op: the scheme decides when it is processed.
+    """
+    if li[lane, _J] >= 0:
+        return _K_TRI
+    s = li[lane, _STATE]
+    if s == _AT_NODE:
+        return _K_TRAV
+    if s == _AT_LEAF:
+        return _K_LEAF
+    return _K_NONE
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _init_lane(li, lf, lane, r, origin, direction, tmin, tmax, root):
+    """Load ray ``r`` into a lane, positioned at the root with an empty stack."""
+    lf[lane, _OX] = origin[r, 0]
+    lf[lane, _OY] = origin[r, 1]
+    lf[lane, _OZ] = origin[r, 2]
+    lf[lane, _DX] = direction[r, 0]
+    lf[lane, _DY] = direction[r, 1]
+    lf[lane, _DZ] = direction[r, 2]
+    idx, idy, idz = inverse_direction(direction[r, 0], direction[r, 1], direction[r, 2])
+    lf[lane, _IX] = idx
+    lf[lane, _IY] = idy
+    lf[lane, _IZ] = idz
+    nx, ny, nz = near_columns(idx, idy, idz)
+    li[lane, _NX] = nx
+    li[lane, _NY] = ny
+    li[lane, _NZ] = nz
+    lf[lane, _TMIN] = tmin[r]
+    lf[lane, _TMAX] = tmax[r]
+    li[lane, _SP] = 0
+    li[lane, _J] = -1
+    li[lane, _HIT] = -1
+    li[lane, _PLEAF] = _NO_LEAF
+    li[lane, _SEARCH] = 0
+    _goto(li, lane, root)
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _child_hits(nodes, li, lf, lane):
+    """Both child intervals of the lane's node under its current ``tmax``."""
+    return node_child_intervals(
+        nodes, li[lane, _NODE],
+        lf[lane, _OX], lf[lane, _OY], lf[lane, _OZ],
+        lf[lane, _IX], lf[lane, _IY], lf[lane, _IZ],
+        li[lane, _NX], li[lane, _NY], li[lane, _NZ],
+        lf[lane, _TMIN], lf[lane, _TMAX],
+    )  # fmt: skip
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _trav_step(li, lf, stack, lane, nodes, nodes_i):
+    """One while-while traversal step of a lane; returns its outcome (TRAV_* code).
+
+    Both hit: go to the nearer (tie -> child 0), push the farther; one hit: go there;
+    none: pop. Returns -1 if the push would overflow the stack.
+    """
+    node = li[lane, _NODE]
+    n0, f0, n1, f1 = _child_hits(nodes, li, lf, lane)
+    h0 = n0 <= f0
+    h1 = n1 <= f1
+    c0 = nodes_i[node, COL_CHILD0]
+    c1 = nodes_i[node, COL_CHILD1]
+    if h0 and h1:
+        sp = li[lane, _SP]
+        if sp == stack.shape[1]:
+            return -1
+        if n1 < n0:
+            stack[lane, sp] = c0
+            _goto(li, lane, c1)
+        else:
+            stack[lane, sp] = c1
+            _goto(li, lane, c0)
+        li[lane, _SP] = sp + 1
+        return TRAV_BOTH
+    if h0 or h1:
+        _goto(li, lane, c0 if h0 else c1)
+        return TRAV_ONE
+    _pop(li, stack, lane)
+    return TRAV_NONE
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _open_leaf(li, lane, leaf, woop_i):
+    """Point the lane's triangle cursor at the first triangle of ``leaf`` (if any)."""
+    j = ~leaf
+    li[lane, _J] = j if woop_i[j, 0] != SENTINEL_I32 else -1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _tri_test(li, lf, lane, woop, woop_i, any_hit):
+    """Test the lane's next triangle; returns whether the hit was accepted.
+
+    An accepted hit shrinks the lane's ``tmax``; an any-hit lane terminates on it.
+    """
+    j = li[lane, _J]
+    ok, t = woop_hit_t(
+        woop, j,
+        lf[lane, _OX], lf[lane, _OY], lf[lane, _OZ],
+        lf[lane, _DX], lf[lane, _DY], lf[lane, _DZ],
+        lf[lane, _TMIN], lf[lane, _TMAX],
+    )  # fmt: skip
+    if ok:
+        li[lane, _HIT] = j
+        lf[lane, _TMAX] = t
+        if any_hit:
+            _terminate(li, lane)
+            return True
+    j += 3
+    li[lane, _J] = j if woop_i[j, 0] != SENTINEL_I32 else -1
+    return ok
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs):
+    """One lockstep traversal step of lanes ``sel[:n]``: trav_step plus outcome branches.
+
+    Returns the cost issued, or -1 on stack overflow.
+    """
+    cost = charge(cnt, hist, costs, TRAV_STEP, n)
+    outcome_lanes = np.zeros(3, np.int64)
+    for k in range(n):
+        lane = sel[k]
+        o = _trav_step(li, lf, stack, lane, nodes, nodes_i)
+        if o < 0:
+            return np.int64(-1)
+        outcome_lanes[o] += 1
+        ops[base + lane, _C_TRAV] += 1
+    for o in range(3):
+        cost += charge(cnt, hist, costs, TRAV_NONE_B + o, outcome_lanes[o])
+    return cost
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _tri_iteration(li, lf, sel, n, woop, woop_i, any_hit, ops, base, cnt, hist, costs):
+    """Lanes ``sel[:n]`` each test their next triangle in lockstep (tri_test, tri_hit)."""
+    hits = 0
+    for k in range(n):
+        lane = sel[k]
+        ops[base + lane, _C_TRI] += 1
+        if _tri_test(li, lf, lane, woop, woop_i, any_hit):
+            hits += 1
+    return charge(cnt, hist, costs, TRI_TEST, n) + charge(cnt, hist, costs, TRI_HIT_B, hits)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _lanes_with(li, lanes, kind, sel):
+    """Write the lanes whose next op is ``kind`` into ``sel``; return how many."""
+    n = 0
+    for lane in range(lanes):
+        if _next(li, lane) == kind:
+            sel[n] = lane
+            n += 1
+    return n
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _while_while(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, base,
+                 cnt, hist, costs):  # fmt: skip
+    """While-while on ``lanes`` loaded lanes, after ray_setup; returns cost (-1 overflow).
+
+    ``while alive { while any at an interior node: step; while any at a leaf: enter it
+    and test its triangles in lockstep }``, then ``finish``.
+    """
+    sel = np.empty(lanes, np.int64)
+    tri_sel = np.empty(lanes, np.int64)
+    cost = np.int64(0)
+    while True:
+        alive = lanes - _lanes_with(li, lanes, _K_NONE, sel)
+        if alive == 0:
+            break
+        cost += charge(cnt, hist, costs, LOOP_CONTROL, alive)
+        while True:
+            n = _lanes_with(li, lanes, _K_TRAV, sel)
+            if n == 0:
+                break
+            c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base,
+                                     cnt, hist, costs)  # fmt: skip
+            if c < 0:
+                return np.int64(-1)
+            cost += c
+        while True:
+            n = _lanes_with(li, lanes, _K_LEAF, sel)
+            if n == 0:
+                break
+            cost += charge(cnt, hist, costs, LEAF_ENTRY, n)
+            for k in range(n):
+                lane = sel[k]
+                ops[base + lane, _C_LEAF] += 1
+                leaf = li[lane, _NODE]
+                _pop(li, stack, lane)
+                _open_leaf(li, lane, leaf, woop_i)
+            while True:
+                m = 0
+                for k in range(n):
+                    if _next(li, sel[k]) == _K_TRI:
+                        tri_sel[m] = sel[k]
+                        m += 1
+                if m == 0:
+                    break
+                cost += _tri_iteration(li, lf, tri_sel, m, woop, woop_i, any_hit, ops, base,
+                                       cnt, hist, costs)  # fmt: skip
+    return cost + charge(cnt, hist, costs, FINISH, lanes)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _if_if(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, base,
+           cnt, hist, costs):  # fmt: skip
+    """If-if: per outer iteration one traversal step, then a leaf entry, then one triangle.
+
+    The ifs are sequential, so a lane whose step lands on a leaf enters it in the same
+    iteration, and a lane that entered a leaf tests its first triangle in it too.
+    """
+    sel = np.empty(lanes, np.int64)
+    cost = np.int64(0)
+    while True:
+        alive = lanes - _lanes_with(li, lanes, _K_NONE, sel)
+        if alive == 0:
+            break
+        cost += charge(cnt, hist, costs, LOOP_CONTROL, alive)
+        n = _lanes_with(li, lanes, _K_TRAV, sel)
+        if n > 0:
+            c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base,
+                                     cnt, hist, costs)  # fmt: skip
+            if c < 0:
+                return np.int64(-1)
+            cost += c
+        n = _lanes_with(li, lanes, _K_LEAF, sel)
+        cost += charge(cnt, hist, costs, LEAF_ENTRY, n)
+        for k in range(n):
+            lane = sel[k]
+            ops[base + lane, _C_LEAF] += 1
+            leaf = li[lane, _NODE]
+            _pop(li, stack, lane)
+            _open_leaf(li, lane, leaf, woop_i)
+        n = _lanes_with(li, lanes, _K_TRI, sel)
+        if n > 0:
+            cost += _tri_iteration(li, lf, sel, n, woop, woop_i, any_hit, ops, base,
+                                   cnt, hist, costs)  # fmt: skip
+    return cost + charge(cnt, hist, costs, FINISH, lanes)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _speculative(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, base,
+                 cnt, hist, costs):  # fmt: skip
+    """Aila & Laine's speculative while-while (see the module docstring)."""
+    sel = np.empty(lanes, np.int64)
+    tri_sel = np.empty(lanes, np.int64)
+    cost = np.int64(0)
+    while True:
+        alive = 0
+        for lane in range(lanes):
+            if _next(li, lane) != _K_NONE or li[lane, _PLEAF] != _NO_LEAF:
+                alive += 1
+        if alive == 0:
+            break
+        cost += charge(cnt, hist, costs, LOOP_CONTROL, alive)
+        for lane in range(lanes):
+            li[lane, _SEARCH] = 1
+        # Traversal loop: lanes at interior nodes step; the first leaf a lane meets is
+        # parked; break once no lane that stepped is still searching.
+        n = _lanes_with(li, lanes, _K_TRAV, sel)
+        while n > 0:
+            c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base,
+                                     cnt, hist, costs)  # fmt: skip
+            if c < 0:
+                return np.int64(-1)
+            cost += c
+            if n < hist.shape[1] - 1:  # a diverged warp: the vote takes its fallback
+                cost += charge(cnt, hist, costs, TRAV_DIVERGED, n)
+            parked = 0
+            searching = False
+            for k in range(n):
+                lane = sel[k]
+                if li[lane, _STATE] == _AT_LEAF and li[lane, _PLEAF] == _NO_LEAF:
+                    li[lane, _PLEAF] = li[lane, _NODE]
+                    li[lane, _SEARCH] = 0
+                    _pop(li, stack, lane)
+                    parked += 1
+                if li[lane, _SEARCH] == 1:
+                    searching = True
+            cost += charge(cnt, hist, costs, POSTPONE, parked)
+            if not searching:
+                break
+            m = 0
+            for k in range(n):
+                if _next(li, sel[k]) == _K_TRAV:
+                    sel[m] = sel[k]
+                    m += 1
+            n = m
+        # Intersection loop: parked leaves first, then leaves the lanes stand at.
+        while True:
+            n = 0
+            for lane in range(lanes):
+                if li[lane, _PLEAF] != _NO_LEAF or _next(li, lane) == _K_LEAF:
+                    sel[n] = lane
+                    n += 1
+            if n == 0:
+                break
+            cost += charge(cnt, hist, costs, LEAF_ENTRY, n)
+            for k in range(n):
+                lane = sel[k]
+                ops[base + lane, _C_LEAF] += 1
+                leaf = li[lane, _PLEAF]
+                if leaf != _NO_LEAF:
+                    li[lane, _PLEAF] = _NO_LEAF
+                else:
+                    leaf = li[lane, _NODE]
+                    _pop(li, stack, lane)
+                _open_leaf(li, lane, leaf, woop_i)
+            while True:
+                m = 0
+                for k in range(n):
+                    if _next(li, sel[k]) == _K_TRI:
+                        tri_sel[m] = sel[k]
+                        m += 1
+                if m == 0:
+                    break
+                cost += _tri_iteration(li, lf, tri_sel, m, woop, woop_i, any_hit, ops, base,
+                                       cnt, hist, costs)  # fmt: skip
+    return cost + charge(cnt, hist, costs, FINISH, lanes)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _packet(li, lf, lanes, cap, root, nodes, nodes_i, woop, woop_i, any_hit, ops, base,
+            cnt, hist, costs):  # fmt: skip
+    """One packet (shared stack) traversal of ``lanes`` lanes (see the module docstring)."""
+    node_stack = np.empty(cap, np.int32)
+    mask_stack = np.zeros((cap, lanes), np.bool_)
+    mask = np.ones(lanes, np.bool_)
+    m0 = np.empty(lanes, np.bool_)
+    m1 = np.empty(lanes, np.bool_)
+    done = np.zeros(lanes, np.bool_)
+    sp = 0
+    node = root
+    cost = np.int64(0)
+    while True:
+        active = 0
+        for lane in range(lanes):
+            mask[lane] = mask[lane] and not done[lane]
+            active += mask[lane]
+        go_on = False  # whether the warp continues with a child instead of popping
+        if active > 0:
+            cost += charge(cnt, hist, costs, LOOP_CONTROL, lanes)
+            if node >= 0:
+                cost += charge(cnt, hist, costs, TRAV_STEP, active)
+                any0 = 0
+                any1 = 0
+                vote0 = 0
+                vote1 = 0
+                for lane in range(lanes):
+                    m0[lane] = False
+                    m1[lane] = False
+                    if not mask[lane]:
+                        continue
+                    ops[base + lane, _C_TRAV] += 1
+                    li[lane, _NODE] = node
+                    n0, f0, n1, f1 = _child_hits(nodes, li, lf, lane)
+                    h0 = n0 <= f0
+                    h1 = n1 <= f1
+                    m0[lane] = h0
+                    m1[lane] = h1
+                    any0 += h0
+                    any1 += h1
+                    if h1 and (not h0 or n1 < n0):
+                        vote1 += 1
+                    elif h0:
+                        vote0 += 1
+                c0 = nodes_i[node, COL_CHILD0]
+                c1 = nodes_i[node, COL_CHILD1]
+                if any0 > 0 and any1 > 0:
+                    cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_BOTH, active)
+                    if sp == cap:
+                        return np.int64(-1)
+                    near_is_1 = vote1 > vote0
+                    node_stack[sp] = c0 if near_is_1 else c1
+                    for lane in range(lanes):
+                        mask_stack[sp, lane] = m0[lane] if near_is_1 else m1[lane]
+                        mask[lane] = m1[lane] if near_is_1 else m0[lane]
+                    sp += 1
+                    node = c1 if near_is_1 else c0
+                    go_on = True
+                elif any0 > 0 or any1 > 0:
+                    cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_ONE, active)
+                    node = c0 if any0 > 0 else c1
+                    for lane in range(lanes):
+                        mask[lane] = m0[lane] if any0 > 0 else m1[lane]
+                    go_on = True
+                else:
+                    cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_NONE, active)
+            else:
+                cost += charge(cnt, hist, costs, LEAF_ENTRY, active)
+                for lane in range(lanes):
+                    if mask[lane]:
+                        ops[base + lane, _C_LEAF] += 1
+                j = ~node
+                while woop_i[j, 0] != SENTINEL_I32:
+                    testing = 0
+                    hits = 0
+                    for lane in range(lanes):
+                        if not mask[lane] or done[lane]:
+                            continue
+                        testing += 1
+                        ops[base + lane, _C_TRI] += 1
+                        li[lane, _J] = j
+                        if _tri_test(li, lf, lane, woop, woop_i, any_hit):
+                            hits += 1
+                            done[lane] = any_hit
+                    if testing == 0:
+                        break
+                    cost += charge(cnt, hist, costs, TRI_TEST, testing)
+                    cost += charge(cnt, hist, costs, TRI_HIT_B, hits)
+                    j += 3
+        if not go_on:
+            if sp == 0:
+                break
+            sp -= 1
+            node = node_stack[sp]
+            for lane in range(lanes):
+                mask[lane] = mask_stack[sp, lane]
+    for lane in range(lanes):
+        li[lane, _J] = -1
+    return cost + charge(cnt, hist, costs, FINISH, lanes)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, tmin, tmax, any_hit,
+             cap, warp_size, costs):  # fmt: skip
+    """Run every warp (or fetched group) of the batch; parallel over independent units.
+
+    Returns per-unit counters ``cnt`` (units, 2, N_BLOCKS), ``hist`` (units, N_BLOCKS,
+    warp_size + 1), per-unit cost, per-ray hit triangle, ``t`` and op counts, and whether
+    some lane overflowed its stack.
+    """
+    nodes_i = nodes.view(np.int32)
+    woop_i = woop.view(np.int32)
+    n = origin.shape[0]
+    units = (n + warp_size - 1) // warp_size
+    cnt = np.zeros((units, 2, N_BLOCKS), np.int64)
+    hist = np.zeros((units, N_BLOCKS, warp_size + 1), np.int64)
+    unit_cost = np.zeros(units, np.int64)
+    ops = np.zeros((n, 3), np.int64)
+    out_tri = np.full(n, -1, np.int32)
+    out_t = np.full(n, np.inf, np.float32)
+    overflow = np.zeros(units, np.bool_)
+    for u in prange(units):
+        base = u * warp_size
+        lanes = min(warp_size, n - base)
+        li = np.zeros((lanes, _N_INT), np.int32)
+        lf = np.zeros((lanes, _N_FLOAT), np.float32)
+        stack = np.empty((lanes, cap), np.int32)
+        for lane in range(lanes):
+            _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, root)
+        c = cnt[u]
+        h = hist[u]
+        cost = np.int64(0)
+        if persistent:
+            cost += charge(c, h, costs, POOL_FETCH, lanes)
+        cost += charge(c, h, costs, RAY_SETUP, lanes)
+        if body == WHILE_WHILE_BODY:
+            rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,
+                                ops, base, c, h, costs)  # fmt: skip
+        elif body == IF_IF_BODY:
+            rest = _if_if(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,
+                          ops, base, c, h, costs)  # fmt: skip
+        elif body == SPECULATIVE_BODY:
+            rest = _speculative(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,
+                                ops, base, c, h, costs)  # fmt: skip
+        else:
+            rest = _packet(li, lf, lanes, cap, root, nodes, nodes_i, woop, woop_i, any_hit,
+                           ops, base, c, h, costs)  # fmt: skip
+        overflow[u] = rest < 0
+        unit_cost[u] = cost + rest
+        for lane in range(lanes):
+            j = li[lane, _HIT]
+            if j >= 0:
+                out_tri[base + lane] = tri_index[j]
+                out_t[base + lane] = lf[lane, _TMAX]
+    return cnt, hist, unit_cost, out_tri, out_t, ops, overflow.any()
+
+
+@dataclass(frozen=True)
+class Execution:
+    """What the exact executor measured.
+
+    Attributes
+    ----------
+    result : SimResult
+        Counters and metrics in the replay's own type, comparable counter by counter.
+    hits : Hits
+        Per-ray hits (scene triangle, ``t``), as the tracer reports them.
+    ops : int64 (n, 3)
+        Per-ray TRAV, LEAF, TRI counts of the work each lane did (packet: the nodes,
+        leaves and triangles the lane was active for).
+    """
+
+    result: SimResult
+    hits: Hits
+    ops: np.ndarray
+
+
+def _gpu(gpu: GpuConfig | None, warp_size: int | None) -> GpuConfig:
+    """The GPU to cost with (GTX 285 by default), its warp size overridden if asked."""
+    g = get_gpu(DEFAULT_GPU) if gpu is None else gpu
+    if warp_size is not None:
+        g = replace(g, warp_size=int(warp_size))
+    if not 1 <= g.warp_size <= MAX_WARP:
+        raise SimtSimError(
+            f"warp size must be in 1..{MAX_WARP} for the lockstep executor, got {g.warp_size}"
+        )
+    return g
+
+
+def execute(
+    bvh: BVH,
+    rays: RayBatch,
+    scheme: SchemeInfo,
+    ir: KernelIR,
+    gpu: GpuConfig | None = None,
+    *,
+    warp_size: int | None = None,
+    scene: str = "",
+    resident_warps: int | None = None,
+) -> Execution:
+    """Run ``scheme``'s kernel in lockstep on warps of ``rays`` over ``bvh``; exact counts.
+
+    Slow next to the replay (it traverses the BVH), meant for a few hundred warps: it is
+    the yardstick the replay's approximations are measured against.
+
+    Parameters
+    ----------
+    bvh : BVH
+        The tree the rays traverse (Aila-Laine layout).
+    rays : RayBatch
+        Rays in warp order; the whole batch is one launch for the persistent schemes.
+    scheme : SchemeInfo
+        A scheme with a lockstep kernel body (``scheme.lockstep``).
+    ir : KernelIR
+        Costs of the scheme's kernel.
+    gpu : GpuConfig, optional
+        Machine figures; GTX 285 by default.
+    warp_size : int, optional
+        Override of ``gpu.warp_size`` (1..64).
+    scene : str
+        Name recorded in the result.
+    resident_warps : int, optional
+        Persistent schemes: override of ``gpu.resident_warps``.
+
+    Returns
+    -------
+    Execution
+    """
+    if scheme.lockstep is None:
+        raise SimtSimError(
+            f"the lockstep executor has no kernel body for scheme {scheme.name!r}; use a "
+            "scheme whose SchemeInfo.lockstep is set"
+        )
+    check_ir(ir, scheme.kernel, scheme.kernels[scheme.kernel])
+    check_bvh(bvh)
+    g = _gpu(gpu, warp_size)
+    persistent = scheme.persistent
+    r = g.resident_warps if resident_warps is None else int(resident_warps)
+    if r < 1:
+        raise SimtSimError(f"resident_warps must be >= 1, got {r}")
+    origin, direction, tmin, tmax = ray_arrays(rays)
+    costs = cost_vector(ir)
+    cnt, hist, unit_cost, tri, t, ops, overflow = _execute(
+        scheme.lockstep, persistent, bvh.nodes, bvh.woop, bvh.tri_index, bvh.root,
+        origin, direction, tmin, tmax, rays.query == "any", stack_size(bvh), g.warp_size, costs,
+    )  # fmt: skip
+    if overflow:
+        raise SimtSimError(
+            f"BVH is deeper than its stats.depth ({bvh.stats.depth}) says; "
+            "rebuild it with build_bvh"
+        )
+    totals = None
+    span = 0
+    if persistent:
+        totals = np.zeros(r, np.int64)
+        span = int(schedule_groups(unit_cost, r, totals)) if len(rays) else 0
+    counts = Counts(cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0), totals, span)
+    extra = {"resident_warps": r, "launch_size": len(rays), "launches": 1} if persistent else {}
+    card = model_card(
+        scheme.name,
+        [ir],
+        g,
+        approximations=(),
+        recostable=scheme.recostable,
+        executor="exact lockstep execution over the BVH (simt_sim.oracles.lockstep)",
+        **extra,
+    )
+    n_ops = ops.sum(axis=0)
+    result = SimResult(
+        scene=scene,
+        ray_type=rays.ray_type,
+        scheme=scheme.name,
+        gpu=g,
+        rays=len(rays),
+        warp_size=g.warp_size,
+        counts=counts,
+        costs=costs,
+        n_trav=int(n_ops[_C_TRAV]),
+        n_leaf=int(n_ops[_C_LEAF]),
+        n_tri=int(n_ops[_C_TRI]),
+        model_card=card,
+    )
+    return Execution(result=result, hits=Hits(tri=tri, t=t), ops=ops)
+
+
+#: metrics compared by :func:`approximation_error`
+METRICS = (
+    "warp_instructions",
+    "simd_efficiency",
+    "simd_efficiency_traversal",
+    "simd_efficiency_intersection",
+    "mrays_upper",
+)
+
+
+def approximation_error(
+    bvh: BVH,
+    rays: RayBatch,
+    scheme: SchemeInfo,
+    ir: KernelIR,
+    gpu: GpuConfig | None = None,
+    *,
+    warp_size: int | None = None,
+    scene: str = "",
+) -> dict[str, float | int | str]:
+    """Replay versus exact execution of ``scheme`` on the same rays: relative errors.
+
+    The rays are recorded as one batch (one launch, as :func:`execute` runs them) and
+    replayed with :func:`simt_sim.simt.replay.simulate_traces`.
+
+    Returns
+    -------
+    dict
+        ``scheme``, ``ray_type``, ``rays``; for each metric in :data:`METRICS`,
+        ``<metric>_replay``, ``<metric>_exact`` and ``<metric>_rel_err`` =
+        (replay - exact) / exact; and mean TRAV/LEAF/TRI per ray of both.
+    """
+    g = _gpu(gpu, warp_size)
+    exact = execute(bvh, rays, scheme, ir, g, scene=scene).result
+    trace = record_all(bvh, rays, batch_size=max(len(rays), 1))
+    replayed = simulate_traces([trace], scheme, ir, g, scene=scene)
+    row: dict[str, float | int | str] = {
+        "scheme": scheme.name,
+        "ray_type": rays.ray_type,
+        "rays": len(rays),
+    }
+    for m in METRICS:
+        a = float(getattr(replayed, m))
+        b = float(getattr(exact, m))
+        row[f"{m}_replay"] = a
+        row[f"{m}_exact"] = b
+        row[f"{m}_rel_err"] = (a - b) / b
+    for kind in ("trav", "leaf", "tri"):
+        row[f"mean_{kind}_replay"] = getattr(replayed, f"mean_{kind}")
+        row[f"mean_{kind}_exact"] = getattr(exact, f"mean_{kind}")
+    return row

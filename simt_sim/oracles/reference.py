@@ -1,0 +1,332 @@
+"""Slow, plain-Python warp replay of every trace scheme, written straight from the rules.
+
+It exists so tests can check the numba replay counter for counter: no lane lists kept
+between passes, no shared helpers with the numba code, sets and lists everywhere. Use it
+on a few hundred warps at most. Each scheme's record (``SchemeInfo.reference_warp`` or,
+for dynamic fetch, ``SchemeInfo.reference``) names the function here that replays it.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from kernels_ir.kernel_ir import BLOCKS
+from simt_sim.errors import SimtSimError
+from simt_sim.simt.scheme import SchemeInfo
+from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS
+
+_OUTCOME_BLOCK = ("trav_none", "trav_one", "trav_both")
+
+
+@dataclass
+class RefCounts:
+    """Counters of a reference replay, by block name."""
+
+    warp_size: int
+    costs: dict[str, int]
+    executions: dict[str, int] = field(default_factory=dict)
+    active: dict[str, int] = field(default_factory=dict)
+    hist: dict[str, list[int]] = field(default_factory=dict)
+    warp_totals: list[int] | None = None
+    makespan: int = 0
+
+    def __post_init__(self) -> None:
+        for b in BLOCKS:
+            self.executions[b] = 0
+            self.active[b] = 0
+            self.hist[b] = [0] * (self.warp_size + 1)
+
+    def charge(self, block: str, lanes: Sequence[int]) -> int:
+        """A warp issues ``block`` if any lane executes it; returns the instructions."""
+        n = len(lanes)
+        if n == 0:
+            return 0
+        self.executions[block] += 1
+        self.active[block] += n
+        self.hist[block][n] += 1
+        return self.costs.get(block, 0)
+
+
+class _Lanes:
+    """Op streams of the lanes of one warp, with a cursor each."""
+
+    def __init__(self, streams: list[list[int]]) -> None:
+        self.streams = streams
+        self.cur = [0] * len(streams)
+
+    def next(self, lane: int) -> int | None:
+        s = self.streams[lane]
+        return s[self.cur[lane]] if self.cur[lane] < len(s) else None
+
+    def advance(self, lanes: Sequence[int]) -> None:
+        for lane in lanes:
+            self.cur[lane] += 1
+
+
+def _is_trav(o: int | None) -> bool:
+    return o is not None and o <= TRAV_BOTH
+
+
+def _is_tri(o: int | None) -> bool:
+    return o in (TRI_MISS, TRI_HIT)
+
+
+def _tri_loop(w: _Lanes, group: list[int], rec: RefCounts) -> int:
+    issued = 0
+    while True:
+        x = [lane for lane in group if _is_tri(w.next(lane))]
+        if not x:
+            return issued
+        issued += rec.charge("tri_test", x)
+        issued += rec.charge("tri_hit", [lane for lane in x if w.next(lane) == TRI_HIT])
+        w.advance(x)
+
+
+def _ww_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
+    """loop_control, traversal loop, intersection loop of while-while."""
+    issued = rec.charge("loop_control", alive)
+    while True:
+        t = [lane for lane in alive if _is_trav(w.next(lane))]
+        if not t:
+            break
+        issued += rec.charge("trav_step", t)
+        for o, block in enumerate(_OUTCOME_BLOCK):
+            issued += rec.charge(block, [lane for lane in t if w.next(lane) == o])
+        w.advance(t)
+    while True:
+        leaf = [lane for lane in alive if w.next(lane) == LEAF]
+        if not leaf:
+            break
+        issued += rec.charge("leaf_entry", leaf)
+        w.advance(leaf)
+        issued += _tri_loop(w, leaf, rec)
+    return issued
+
+
+def while_while_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
+    """One while-while warp, charged in issue order; returns its instructions."""
+    w = _Lanes(streams)
+    everyone = list(range(len(streams)))
+    issued = rec.charge("ray_setup", everyone)
+    while True:
+        alive = [lane for lane in everyone if w.next(lane) is not None]
+        if not alive:
+            break
+        issued += _ww_iteration(w, alive, rec)
+    return issued + rec.charge("finish", everyone)
+
+
+def if_if_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
+    """One if-if warp, charged in issue order; returns its instructions."""
+    w = _Lanes(streams)
+    everyone = list(range(len(streams)))
+    issued = rec.charge("ray_setup", everyone)
+    while True:
+        alive = [lane for lane in everyone if w.next(lane) is not None]
+        if not alive:
+            break
+        issued += rec.charge("loop_control", alive)
+        t = [lane for lane in alive if _is_trav(w.next(lane))]
+        issued += rec.charge("trav_step", t)
+        for o, block in enumerate(_OUTCOME_BLOCK):
+            issued += rec.charge(block, [lane for lane in t if w.next(lane) == o])
+        w.advance(t)
+        leaf = [lane for lane in alive if w.next(lane) == LEAF]
+        issued += rec.charge("leaf_entry", leaf)
+        w.advance(leaf)
+        x = [lane for lane in alive if _is_tri(w.next(lane))]
+        issued += rec.charge("tri_test", x)
+        issued += rec.charge("tri_hit", [lane for lane in x if w.next(lane) == TRI_HIT])
+        w.advance(x)
+    return issued + rec.charge("finish", everyone)
+
+
+def speculative_group(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
+    """One fetched group of persistent speculative while-while, in issue order."""
+    w = _Lanes(streams)
+    everyone = list(range(len(streams)))
+    issued = rec.charge("pool_fetch", everyone) + rec.charge("ray_setup", everyone)
+    parked: dict[int, list[int]] = {}
+    while True:
+        alive = [lane for lane in everyone if w.next(lane) is not None]
+        if not alive:
+            break
+        issued += rec.charge("loop_control", alive)
+        while True:
+            t = [lane for lane in alive if _is_trav(w.next(lane))]
+            if not t:
+                break
+            issued += rec.charge("trav_step", t)
+            for o, block in enumerate(_OUTCOME_BLOCK):
+                issued += rec.charge(block, [lane for lane in t if w.next(lane) == o])
+            if len(t) < rec.warp_size:
+                issued += rec.charge("trav_diverged", t)
+            w.advance(t)
+            post = [lane for lane in t if w.next(lane) == LEAF and lane not in parked]
+            issued += rec.charge("postpone", post)
+            for lane in post:
+                ops = [LEAF]
+                w.advance([lane])
+                while _is_tri(w.next(lane)):
+                    ops.append(w.next(lane))
+                    w.advance([lane])
+                parked[lane] = ops
+            if all(lane in parked for lane in t):
+                break
+        if parked:
+            held = sorted(parked)
+            pw = _Lanes([parked[lane] for lane in held])
+            group = list(range(len(held)))
+            issued += rec.charge("leaf_entry", group)
+            pw.advance(group)
+            issued += _tri_loop(pw, group, rec)
+            parked = {}
+        while True:
+            leaf = [lane for lane in alive if w.next(lane) == LEAF]
+            if not leaf:
+                break
+            issued += rec.charge("leaf_entry", leaf)
+            w.advance(leaf)
+            issued += _tri_loop(w, leaf, rec)
+    return issued + rec.charge("finish", everyone)
+
+
+def persistent_group(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
+    """One fetched group of persistent while-while: pool_fetch, then a while-while warp."""
+    issued = rec.charge("pool_fetch", list(range(len(streams))))
+    return issued + while_while_warp(streams, addrs, rec)
+
+
+def packet_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
+    """One packet warp: the union of its lanes' nodes, each charged once (not in issue
+    order: the packet's visiting order is not recorded); returns its instructions."""
+    issued = 0
+    nodes: dict[int, set[int]] = {}
+    outcome: dict[int, int] = {}
+    leaves: dict[int, set[int]] = {}
+    tris: dict[int, set[int]] = {}
+    tri_hits: dict[int, set[int]] = {}
+    for lane, (ops, adr) in enumerate(zip(streams, addrs, strict=True)):
+        for o, a in zip(ops, adr, strict=True):
+            if o <= TRAV_BOTH:
+                nodes.setdefault(a, set()).add(lane)
+                outcome[a] = max(outcome.get(a, 0), o)
+            elif o == LEAF:
+                leaves.setdefault(a, set()).add(lane)
+            else:
+                tris.setdefault(a, set()).add(lane)
+                if o == TRI_HIT:
+                    tri_hits.setdefault(a, set()).add(lane)
+    everyone = list(range(len(streams)))
+    issued += rec.charge("ray_setup", everyone)
+    for a, lanes in nodes.items():
+        issued += rec.charge("loop_control", everyone)
+        issued += rec.charge("trav_step", sorted(lanes))
+        issued += rec.charge(_OUTCOME_BLOCK[outcome[a]], sorted(lanes))
+    for lanes in leaves.values():
+        issued += rec.charge("loop_control", everyone)
+        issued += rec.charge("leaf_entry", sorted(lanes))
+    for a, lanes in tris.items():
+        issued += rec.charge("tri_test", sorted(lanes))
+        issued += rec.charge("tri_hit", sorted(tri_hits.get(a, set())))
+    return issued + rec.charge("finish", everyone)
+
+
+def dynamic_fetch_launch(
+    rays: list[list[int]],
+    addrs: list[list[int]],
+    rec: RefCounts,
+    resident: int,
+    params: dict[str, Any],
+) -> tuple[list[int], int]:
+    """One dynamic-fetch launch (``params["threshold"]``): each resident warp's
+    instructions and the makespan."""
+    threshold = params["threshold"]
+    w = rec.warp_size
+    slots: list[list[int | None]] = [[None] * w for _ in range(resident)]  # ray per lane
+    cursors = [[0] * w for _ in range(resident)]
+    pool = 0
+    heap = [(0, wid) for wid in range(resident)]
+    totals = [0] * resident
+    span = 0
+    while heap:
+        issued_so_far, wid = heapq.heappop(heap)
+        ray, cur = slots[wid], cursors[wid]
+        issued = 0
+        held = [lane for lane in range(w) if ray[lane] is not None]
+        if len(held) < threshold and pool < len(rays):
+            fetch = []
+            for lane in range(w):
+                if ray[lane] is None and pool < len(rays):
+                    ray[lane], cur[lane] = pool, 0
+                    pool += 1
+                    fetch.append(lane)
+            issued += rec.charge("pool_fetch", fetch) + rec.charge("ray_setup", fetch)
+        if all(r is None for r in ray):
+            totals[wid] = issued_so_far
+            span = max(span, issued_so_far)
+            continue
+        lanes = _Lanes([rays[r] if r is not None else [] for r in ray])
+        lanes.cur = cur
+        alive = [
+            lane for lane in range(w) if ray[lane] is not None and lanes.next(lane) is not None
+        ]
+        if alive:
+            issued += _ww_iteration(lanes, alive, rec)
+        done = [lane for lane in range(w) if ray[lane] is not None and lanes.next(lane) is None]
+        issued += rec.charge("finish", done)
+        for lane in done:
+            ray[lane] = None
+        heapq.heappush(heap, (issued_so_far + issued, wid))
+    return totals, span
+
+
+def reference_replay(
+    streams: list[list[int]],
+    addrs: list[list[int]],
+    scheme: SchemeInfo,
+    costs: dict[str, int],
+    warp_size: int,
+    *,
+    resident_warps: int = 1,
+    launch_size: int | None = None,
+    **params: Any,
+) -> RefCounts:
+    """Replay per-ray op lists (and their addresses) under trace scheme ``scheme``, slowly
+    and plainly.
+
+    ``launch_size`` splits the rays into launches for the persistent schemes (default:
+    all rays one launch); ``params`` are the scheme's own (``scheme.params``).
+    """
+    if scheme.reference_warp is None and scheme.reference is None:
+        raise SimtSimError(f"scheme {scheme.name!r} has no plain-Python reference replay")
+    values = scheme.with_params(params)
+    rec = RefCounts(warp_size, dict(costs))
+    n = len(streams)
+    if not scheme.persistent:
+        for r0 in range(0, n, warp_size):
+            scheme.reference_warp(streams[r0 : r0 + warp_size], addrs[r0 : r0 + warp_size], rec)
+        return rec
+    size = launch_size or max(n, 1)
+    rec.warp_totals = [0] * resident_warps
+    for l0 in range(0, n, size):
+        launch, launch_addrs = streams[l0 : l0 + size], addrs[l0 : l0 + size]
+        if scheme.reference is not None:
+            totals, span = scheme.reference(launch, launch_addrs, rec, resident_warps, values)
+        else:
+            heap = [(0, wid) for wid in range(resident_warps)]
+            for g0 in range(0, len(launch), warp_size):
+                group = slice(g0, g0 + warp_size)
+                cost = scheme.reference_warp(launch[group], launch_addrs[group], rec)
+                load, wid = heapq.heappop(heap)
+                heapq.heappush(heap, (load + cost, wid))
+            totals = [0] * resident_warps
+            for load, wid in heap:
+                totals[wid] = load
+            span = max(totals)
+        rec.warp_totals = [a + b for a, b in zip(rec.warp_totals, totals, strict=True)]
+        rec.makespan += span
+    return rec

@@ -1,0 +1,112 @@
+"""The figures of ``simt-sim plot``: one study drawn every way the report module can draw it.
+
+:func:`study_figures` runs the study, then draws the active-lanes histograms of each ray
+type, the MRays/s bars (with the numba tracer's measured speed if asked) and, for the
+primary rays of the one camera, every scheme's per-pixel map and the issue timeline of
+one warp (the schemes that have per-warp figures, :mod:`simt_sim.report.warpstats`).
+Nothing is written: the caller saves the figures once all of them are drawn.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from kernels_ir.kernel_ir import BLOCKS
+from simt_sim import schemes
+from simt_sim.report import plots
+from simt_sim.report.warpstats import has_timeline, has_warp_counts, warp_counts, warp_timeline
+from simt_sim.simt.engine import cost_vector
+from simt_sim.study.bench import timed
+from simt_sim.study.plan import plan_study
+from simt_sim.study.run import run_plan
+from simt_sim.study.spec import StudySpec
+from simt_sim.study.workload import Workload
+from simt_sim.trace.record import record_all
+from simt_sim.tracers import numba_tracer
+from simt_sim.types.raybatch import PATH_RAYS
+
+#: timed runs of the numba tracer (after one warm-up) for the measured bars
+MEASURE_REPEATS = 3
+
+
+def figure_steps(spec: StudySpec, measured: bool) -> int:
+    """Steps of drawing and writing ``spec``'s figures, for a progress bar: a draw and a
+    write per figure, a measurement per trace ray type, loading and recording the primary
+    rays (:func:`study_figures` reports all but the writes)."""
+    chosen = [schemes.get_scheme(s) for s in spec.schemes]
+    per_warp = [s for s in chosen if has_warp_counts(s)]
+    n_figures = len(spec.ray_types) + 1 + len(per_warp) + sum(map(has_timeline, per_warp))
+    n_measured = len([rt for rt in spec.ray_types if rt != PATH_RAYS]) if measured else 0
+    return 2 * n_figures + n_measured + 2
+
+
+def measure_numba(wl: Workload) -> float:
+    """MRays/s of the numba tracer on the workload's rays (median of 3 after a warm-up)."""
+    _, sec = timed(lambda: numba_tracer.trace(wl.bvh, wl.rays), MEASURE_REPEATS)
+    return len(wl.rays) / sec / 1e6 if sec > 0 else float("nan")
+
+
+def study_figures(
+    spec: StudySpec, *, warp: int | None = None, measured: bool = False, steps: Any, progress: bool
+) -> dict[str, Figure]:
+    """Every figure of ``spec`` (one camera), by file stem.
+
+    ``warp`` picks the primary-ray warp the timelines show (default: the one issuing the
+    most instructions); ``measured`` adds the numba tracer's MRays/s on this CPU; ``steps``
+    is a progress bar (``update``, ``set_description``) advanced once per step of
+    :func:`figure_steps` but the writes.
+    """
+    plan = plan_study(spec)
+    results, table = run_plan(plan, progress=progress)
+    width, height = spec.resolution
+    setup = f"{width}x{height}, camera {spec.cameras}"
+    gpu = plan.gpus[0]
+    name = plan.scene.name
+    figures: dict[str, Figure] = {}
+    for rt in spec.ray_types:
+        figures[f"active_lanes_{rt}"] = plots.active_lanes_figure(
+            [r for r in results if r.ray_type == rt and r.gpu.id == gpu.id],
+            f"{rt} rays on {name} ({setup}, {gpu.id}): active lanes per issued instruction",
+        )
+        steps.update()
+    wl = plan.workload("primary")
+    steps.update()
+    speeds = {}
+    if measured:
+        steps.set_description("measuring")
+        for rt in plan.trace_ray_types:
+            speeds[rt] = measure_numba(plan.workload(rt))
+            steps.update()
+    steps.set_description("drawing")
+    figures["mrays"] = plots.mrays_figure(table, f"Upper-bound MRays/s on {name} ({setup})", speeds)
+    steps.update()
+    trace = record_all(wl.bvh, wl.rays)
+    steps.update()
+    per_ray = trace.counts()
+    for s in plan.schemes:
+        if not has_warp_counts(s):
+            continue
+        ir = plan.irs[(s.kernel, gpu.ir_arch)]
+        wc = warp_counts(trace, s, cost_vector(ir), gpu.warp_size)
+        eff = wc.efficiency[np.arange(trace.n_rays) // gpu.warp_size]
+        images = [plots.to_image(v, wl.rays.pixel, width, height) for v in (
+            per_ray[:, 0], per_ray[:, 2], eff
+        )]  # fmt: skip
+        figures[f"pixels_{s.name}"] = plots.pixels_figure(
+            *images, f"{s.name}: primary rays on {name} ({setup}, {gpu.id})"
+        )
+        steps.update()
+        if has_timeline(s):
+            w = int(np.argmax(wc.warp_instructions)) if warp is None else warp
+            costs = {b: ir.cost(b) for b in BLOCKS}
+            figures[f"timeline_{s.name}"] = plots.timeline_figure(
+                warp_timeline(trace, w, s, costs, gpu.warp_size),
+                costs,
+                gpu.warp_size,
+                f"{s.name}: warp {w} of the primary rays on {name} ({setup}, {gpu.id})",
+            )
+            steps.update()
+    return figures

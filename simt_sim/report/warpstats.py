@@ -1,0 +1,143 @@
+"""Per-warp views of a replay: each warp's instruction counts, and one warp's issue sequence.
+
+A SimResult sums the counters of all warps; the per-pixel and timeline plots need them
+warp by warp. Both views run the scheme's own code, so they agree with the replay:
+
+- :func:`warp_counts` calls the scheme's ``warp_counts`` (its own replay kernel,
+  recording each warp's totals), so the per-warp warp and lane instructions are exact
+  and sum to the SimResult's totals;
+- :func:`warp_timeline` runs the scheme's plain-Python reference replay of one warp
+  (``SchemeInfo.reference_warp``) with a counter that also logs every issue in order.
+
+Only schemes where a warp (or a persistent scheme's fetched group) is a fixed set of 32
+consecutive rays have per-warp figures (``SchemeInfo.warp_counts``): dynamic fetch
+refills lanes from the pool, so a ray belongs to no fixed warp; megakernel and
+wavefront replay paths, not ray batches. The timeline also needs a reference that
+charges in issue order (``SchemeInfo.issue_order``), which packet's, gathering the union
+of the lanes' nodes, does not.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from simt_sim.errors import SimtSimError
+from simt_sim.oracles.reference import RefCounts
+from simt_sim.schemes import SCHEMES
+from simt_sim.simt.engine import MAX_MASK_LANES, replay_arrays
+from simt_sim.simt.scheme import SchemeInfo
+from simt_sim.types.optrace import OpTrace
+
+
+def has_warp_counts(scheme: SchemeInfo) -> bool:
+    """Whether ``scheme``'s warps are fixed sets of consecutive rays with per-warp counts."""
+    return scheme.warp_counts is not None
+
+
+def has_timeline(scheme: SchemeInfo) -> bool:
+    """Whether one of ``scheme``'s warps can be drawn issue by issue."""
+    return has_warp_counts(scheme) and scheme.reference_warp is not None and scheme.issue_order
+
+
+def warp_schemes() -> tuple[str, ...]:
+    """Names of the schemes with per-warp counts."""
+    return tuple(n for n, s in SCHEMES.items() if has_warp_counts(s))
+
+
+def timeline_schemes() -> tuple[str, ...]:
+    """Names of the schemes with an issue timeline."""
+    return tuple(n for n, s in SCHEMES.items() if has_timeline(s))
+
+
+@dataclass(frozen=True)
+class WarpCounts:
+    """Instructions of each warp of a trace (warp ``w`` = rays ``32w .. 32w+31``).
+
+    Attributes
+    ----------
+    warp_instructions : int64 (n_warps,)
+        Warp instructions the warp issued.
+    lane_instructions : int64 (n_warps,)
+        Active lanes summed over those instructions.
+    warp_size : int
+    """
+
+    warp_instructions: np.ndarray
+    lane_instructions: np.ndarray
+    warp_size: int
+
+    @property
+    def efficiency(self) -> np.ndarray:
+        """SIMD efficiency of each warp (float64; NaN for a warp that issued nothing)."""
+        issued = self.warp_instructions * self.warp_size
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(issued > 0, self.lane_instructions / np.maximum(issued, 1), np.nan)
+
+
+def _check_scheme(scheme: SchemeInfo, ok: bool, known: Sequence[str], what: str) -> None:
+    if not ok:
+        raise SimtSimError(
+            f"scheme {scheme.name!r} has no {what} (its rays belong to no fixed warp or its "
+            f"replay has no issue order); use one of {', '.join(known)}"
+        )
+
+
+def warp_counts(
+    trace: OpTrace, scheme: SchemeInfo, costs: np.ndarray, warp_size: int
+) -> WarpCounts:
+    """Exact instructions of every warp of ``trace`` under ``scheme`` (parallel over warps).
+
+    Parameters
+    ----------
+    trace : OpTrace
+        Rays in warp order.
+    scheme : SchemeInfo
+        A scheme with per-warp counts (:func:`has_warp_counts`).
+    costs : int64 (N_BLOCKS,)
+        Block costs in ``BLOCKS`` order (``engine.cost_vector(ir)``).
+    warp_size : int
+        Lanes per warp (at most 64).
+    """
+    _check_scheme(scheme, has_warp_counts(scheme), warp_schemes(), "per-warp counts")
+    if not 1 <= warp_size <= MAX_MASK_LANES:
+        raise SimtSimError(f"warp_size must lie in 1..{MAX_MASK_LANES}, got {warp_size}")
+    offsets, op, addr = replay_arrays(trace)
+    out = scheme.warp_counts(offsets, op, addr, np.ascontiguousarray(costs, np.int64), warp_size)
+    return WarpCounts(out[:, 0].copy(), out[:, 1].copy(), warp_size)
+
+
+class _Log(RefCounts):
+    """Reference counters that also log each issued block and its active lanes, in order."""
+
+    def __init__(self, warp_size: int, costs: dict[str, int]) -> None:
+        super().__init__(warp_size, costs)
+        self.events: list[tuple[str, int]] = []
+
+    def charge(self, block: str, lanes: Sequence[int]) -> int:
+        if lanes:
+            self.events.append((block, len(lanes)))
+        return super().charge(block, lanes)
+
+
+def warp_timeline(
+    trace: OpTrace, warp: int, scheme: SchemeInfo, costs: dict[str, int], warp_size: int
+) -> list[tuple[str, int]]:
+    """The blocks warp ``warp`` issues under ``scheme``, in order, with their active lanes.
+
+    Runs the plain-Python reference replay (the rules of the scheme's module docstring)
+    on the warp's ``warp_size`` rays. Cheap for one warp, too slow for many.
+    """
+    _check_scheme(scheme, has_timeline(scheme), timeline_schemes(), "issue timeline")
+    n_warps = -(-trace.n_rays // warp_size)
+    if not 0 <= warp < n_warps:
+        raise SimtSimError(f"warp {warp} does not exist; the rays form warps 0..{n_warps - 1}")
+    r0, r1 = warp * warp_size, min((warp + 1) * warp_size, trace.n_rays)
+    off = trace.offsets
+    streams = [trace.op[off[r] : off[r + 1]].tolist() for r in range(r0, r1)]
+    addrs = [trace.addr[off[r] : off[r + 1]].tolist() for r in range(r0, r1)]
+    log = _Log(warp_size, costs)
+    scheme.reference_warp(streams, addrs, log)
+    return log.events

@@ -1,0 +1,234 @@
+"""dynamic fetch (Kepler addendum, Aila et al. 2012): dead lanes refill while others work.
+
+``resident_warps`` persistent warps share the launch's ray pool. At the top of each outer
+iteration of a warp, if fewer than ``threshold`` lanes hold a ray and the pool is not
+empty, the lanes without a ray take the next rays of the pool (in lane order):
+``pool_fetch`` once with the refilling lanes (one atomic per warp), then ``ray_setup``
+with them. Then one while-while outer iteration (``loop_control``, traversal loop,
+intersection loop) with the lanes that have ops left, and ``finish`` with the lanes whose
+ray ended in this iteration (finish is per ray here). A warp whose lanes are all done
+once the pool is empty retires.
+
+Scheduling is a discrete-event simulation: the warp with the fewest instructions issued
+so far runs its next outer iteration (ties to the lowest id), so which rays a warp gets
+depends on the block costs: results depend on the launch size and cannot be re-costed
+with another KernelIR without replaying.
+
+How it is replayed, exactly and in parallel. The warps only interact through the pool,
+and only at *refill points*: the starts of iterations with fewer than ``threshold`` lanes
+holding a ray. Between two refill points a warp's iterations depend on its own lanes
+alone. Event order is (start time, warp id) with time = instructions issued so far, so the
+refill points are served in that order; a warp that has just refilled at time ``t`` will
+reach its next refill point no earlier than ``t`` + the cost of the refill and of the
+traversal loop its longest first traversal run forces (a lower bound known at refill
+time). The sequential loop therefore serves refill points in order while each is
+earlier than every pending warp's bound, and when one is not, replays the pending warps'
+iterations up to their next refill points in parallel. Counters are integer sums and
+every warp's iterations are the same as in a one-event-at-a-time simulation, so the
+result is that simulation's, bit for bit, at any thread count.
+
+Each warp keeps the mask of lanes holding a ray; after an outer iteration every lane
+still holding one is at a TRAV op, so only refilled lanes need classifying.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from simt_sim.errors import SimtSimError
+from simt_sim.oracles.reference import dynamic_fetch_launch
+from simt_sim.schemes.while_while import WINDOW, classify, outer_step
+from simt_sim.simt.engine import (
+    FINISH,
+    LOOP_CONTROL,
+    N_BLOCKS,
+    POOL_FETCH,
+    RAY_SETUP,
+    TRAV_NONE_B,
+    TRAV_STEP,
+    Counts,
+    ReplayParams,
+    charge,
+    heap_sift_down,
+    lowest_lane,
+    popcount,
+)
+from simt_sim.simt.scheme import TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
+from simt_sim.types.optrace import TRAV_BOTH
+
+#: refill dead lanes when fewer than this many lanes hold a ray (the kernel's default)
+DEFAULT_THRESHOLD = 20
+#: parallel slots a batch of pending warps is split into (fixed: the split never
+#: depends on the thread count)
+N_SLOTS = 16
+_NEVER = np.iinfo(np.int64).max
+
+
+@njit(cache=True, nogil=True)
+def _iterate(op, cur, end, held, fresh, issued, t, threshold, tail, acc, costs, cnt, hist):
+    """A warp's iterations from the one starting at time ``t``, whose refill (lanes
+    ``fresh``, costing ``issued``) is done, up to the start of the next iteration with
+    fewer than ``threshold`` lanes holding a ray (``tail``: with none, the pool being
+    empty). ``held`` holds a ray; all but the fresh lanes are at a TRAV op. Returns that
+    start time and the lanes then holding a ray.
+    """
+    trav = held & ~fresh
+    leaf = np.int64(0)
+    m = fresh
+    while m:
+        lane = lowest_lane(m)
+        m &= m - 1
+        trav, leaf = classify(op, cur, end, lane, trav, leaf)
+    while True:
+        alive = np.int64(0)
+        if trav | leaf:
+            o_issued, alive = outer_step(op, cur, end, trav, leaf, acc, costs, cnt, hist)
+            issued += o_issued
+        issued += charge(cnt, hist, costs, FINISH, popcount(held & ~alive))
+        t += issued
+        held = alive
+        if held == 0 or (not tail and popcount(held) < threshold):
+            return t, held
+        issued = np.int64(0)
+        trav = held
+        leaf = np.int64(0)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _replay(offsets, op, costs, warp_size, resident_warps, threshold, warp_totals):
+    """One launch: counters per slot, each warp's instructions added to ``warp_totals``,
+    and the makespan (the last retirement)."""
+    n_rays = offsets.shape[0] - 1
+    runs = np.empty(n_rays, np.int64)  # leading TRAV ops of each ray (for the bounds)
+    for r in prange(n_rays):
+        c = offsets[r]
+        while c < offsets[r + 1] and op[np.uint64(c)] <= TRAV_BOTH:
+            c += 1
+        runs[r] = c - offsets[r]
+    cnt = np.zeros((N_SLOTS, 2, N_BLOCKS), np.int64)
+    hist = np.zeros((N_SLOTS, N_BLOCKS, warp_size + 1), np.int64)
+    acc = np.zeros((N_SLOTS, WINDOW), np.int64)
+    cur = np.zeros((resident_warps, warp_size), np.int64)
+    end = np.zeros((resident_warps, warp_size), np.int64)
+    held = np.zeros(resident_warps, np.int64)  # lanes holding a ray
+    fresh = np.zeros(resident_warps, np.int64)  # lanes refilled, not yet classified
+    pend = np.zeros(resident_warps, np.int64)  # instructions of the refill in progress
+    t = np.zeros(resident_warps, np.int64)  # start of the warp's next refill point
+    # heap of warps waiting at a known refill point, by (time, warp id): all at 0 at first
+    key = np.zeros(resident_warps, np.int64)
+    wid = np.arange(resident_warps)
+    size = resident_warps
+    pending = np.empty(resident_warps, np.int64)
+    n_pending = 0
+    bound = _NEVER  # no pending warp reaches its next refill point before this
+    done = np.empty(resident_warps, np.int64)  # warps that met an empty pool, in order
+    n_done = 0
+    step_floor = costs[TRAV_STEP] + min(
+        costs[TRAV_NONE_B], costs[TRAV_NONE_B + 1], costs[TRAV_NONE_B + 2]
+    )
+    pool = 0
+    while size > 0 or n_pending > 0:
+        if size > 0 and key[0] < bound:  # the earliest event of all: serve it
+            w = wid[0]
+            size -= 1
+            key[0] = key[size]
+            wid[0] = wid[size]
+            heap_sift_down(key, wid, size, 0)
+            if pool == n_rays:
+                done[n_done] = w
+                n_done += 1
+                continue
+            h = held[w]
+            new = np.int64(0)
+            iters = np.int64(h != 0)
+            for lane in range(warp_size):
+                if not (h >> lane) & 1 and pool < n_rays:
+                    new |= np.int64(1) << lane
+                    cur[w, lane] = offsets[pool]
+                    end[w, lane] = offsets[pool + 1]
+                    iters = max(iters, runs[pool])
+                    pool += 1
+            k = popcount(new)
+            issued = charge(cnt[0], hist[0], costs, POOL_FETCH, k)
+            issued += charge(cnt[0], hist[0], costs, RAY_SETUP, k)
+            held[w] = h | new
+            fresh[w] = new
+            pend[w] = issued
+            pending[n_pending] = w
+            n_pending += 1
+            lower = t[w] + issued + iters * step_floor
+            if iters:
+                lower += costs[LOOP_CONTROL]
+            bound = min(bound, lower)
+            continue
+        # some pending warp may come first: run the pending warps to their next refill
+        # points (in parallel), then put them back in the heap
+        for s in prange(N_SLOTS):
+            for i in range(n_pending * s // N_SLOTS, n_pending * (s + 1) // N_SLOTS):
+                w = pending[i]
+                t[w], held[w] = _iterate(
+                    op, cur[w], end[w], held[w], fresh[w], pend[w], t[w], threshold, False,
+                    acc[s], costs, cnt[s], hist[s],
+                )  # fmt: skip
+        for i in range(n_pending):
+            key[size] = t[pending[i]]
+            wid[size] = pending[i]
+            size += 1
+        for i in range(size // 2 - 1, -1, -1):
+            heap_sift_down(key, wid, size, i)
+        n_pending = 0
+        bound = _NEVER
+    # the pool is empty: each warp finishes its lanes and retires
+    for s in prange(N_SLOTS):
+        for i in range(n_done * s // N_SLOTS, n_done * (s + 1) // N_SLOTS):
+            w = done[i]
+            t[w], held[w] = _iterate(
+                op, cur[w], end[w], held[w], 0, 0, t[w], threshold, True,
+                acc[s], costs, cnt[s], hist[s],
+            )  # fmt: skip
+    span = np.int64(0)
+    for w in range(resident_warps):
+        warp_totals[w] += t[w]
+        span = max(span, t[w])
+    return cnt, hist, span
+
+
+def replay(
+    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, p: ReplayParams
+) -> Counts:
+    """Replay one launch: refill points in event order, warps' iterations between them in
+    parallel (see the module docstring)."""
+    threshold = p.scheme["threshold"]
+    if not isinstance(threshold, int | np.integer) or threshold < 1:
+        raise SimtSimError(
+            f"threshold must be an integer >= 1 (lanes alive before refilling), got {threshold!r}"
+        )
+    totals = np.zeros(p.resident_warps, np.int64)
+    cnt, hist, span = _replay(
+        offsets, op, costs, p.warp_size, p.resident_warps, int(threshold), totals
+    )
+    return Counts(cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0), totals, int(span))
+
+
+SCHEME = SchemeInfo(
+    name="dynamic_fetch",
+    description="persistent warps whose dead lanes refill from the pool when fewer "
+    "than a threshold of lanes hold a ray",
+    kind=TRACE,
+    kernels={"dynamic_fetch": (*TRACE_BLOCKS, "pool_fetch")},
+    persistent=True,
+    recostable=False,
+    approximations=(
+        "ideal work distribution: the warp with the fewest instructions so far runs next, "
+        "and the SMs are perfectly balanced",
+    ),
+    # refills draw the next rays of the pool, and a sampled pool jumps to an unrelated
+    # warp every 32 rays (docs/speed_accuracy.md)
+    sampling_note="sampled estimate biased low: refills draw from a pool of sampled warps "
+    "(docs/speed_accuracy.md); run this scheme unsampled",
+    params={"threshold": DEFAULT_THRESHOLD},
+    replay=replay,
+    reference=dynamic_fetch_launch,
+    launch=KernelLaunch("dynamic_fetch", persistent=True),
+)

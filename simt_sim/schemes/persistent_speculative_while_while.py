@@ -1,0 +1,266 @@
+"""persistent speculative while-while: a lane that finds a leaf parks it and keeps traversing.
+
+Persistent fetching and ideal scheduling as in persistent while-while. Within a fetched
+group, the outer loop body mirrors the speculative kernel of Aila & Laine:
+
+- traversal loop: the lanes whose next op is a TRAV execute ``trav_step`` (+ outcome).
+  Right after its step, in the same iteration, a lane whose next op is a LEAF and that
+  holds no postponed leaf executes ``postpone``: it parks that leaf (the LEAF op and the
+  TRI ops after it) and continues with the op after the leaf. A lane holding a postponed
+  leaf keeps traversing until it reaches another LEAF, then waits. The loop ends when no
+  lane is at a TRAV op, or when every lane that stepped in an iteration now holds a
+  postponed leaf (the kernel's ``if (!__any(no leaf yet)) break``). A step taken by
+  fewer than ``warp_size`` lanes finds the warp diverged, and on sm_75..sm_89 that vote
+  then runs its divergent-warp fallback: ``trav_diverged`` with the same lanes;
+- intersection loop: the lanes holding a postponed leaf process it (``leaf_entry``, then
+  the triangle loop in lockstep); then, as in while-while's ``while node is leaf``, lanes
+  whose next op is a LEAF process it too, leaf after leaf.
+
+Approximation: each ray's ops are replayed from its recorded (non-speculative) stream, so
+op counts per ray are preserved; the real kernel may also visit nodes that a stale tmax
+no longer culls. That error is measured against an exact lockstep executor elsewhere.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from simt_sim.oracles.lockstep import SPECULATIVE_BODY
+from simt_sim.oracles.reference import speculative_group
+from simt_sim.schemes.while_while import (
+    WINDOW,
+    charge_trav,
+    classify,
+    isect_loop,
+    trav_lanes,
+    trav_pack,
+    tri_loop,
+)
+from simt_sim.simt.engine import (
+    FINISH,
+    LEAF_ENTRY,
+    LOOP_CONTROL,
+    N_BLOCKS,
+    N_CHUNKS,
+    POOL_FETCH,
+    POSTPONE,
+    RAY_SETUP,
+    TRAV_DIVERGED,
+    Counts,
+    ReplayParams,
+    charge,
+    chunk_bounds,
+    is_leaf,
+    is_trav,
+    lanes_so_far,
+    lowest_lane,
+    no_per_warp,
+    op_at,
+    per_warp_table,
+    persistent_counts,
+    popcount,
+    record_warp,
+)
+from simt_sim.simt.scheme import TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
+from simt_sim.types.optrace import LEAF, TRAV_BOTH
+
+
+@njit(cache=True, nogil=True)
+def _spec_trav_loop(op, cur, end, park, park_end, trav, acc, post, first, costs, cnt, hist):
+    """Speculative traversal loop of the lanes in mask ``trav`` (all at a TRAV op).
+
+    Returns the instructions issued and the masks of lanes holding a postponed leaf,
+    of lanes waiting at a LEAF, and of lanes still at a TRAV when the loop ended.
+
+    Lanes run ahead as in while-while's :func:`trav_loop`, through up to ``len(acc)``
+    iterations each: outcome counts go to ``acc[j]``, postpones to ``post[j]`` (both zero
+    on entry and on return), and ``first[lane]`` is scratch. The exit couples the lanes:
+    the loop ends after the first iteration in which every lane that stepped holds a
+    postponed leaf. A lane without one steps in a prefix of the iterations, so that
+    iteration is the end of the longest such prefix: first each lane without a postponed
+    leaf runs until it postpones one or stops, which fixes the last iteration; then the
+    lanes holding a leaf step on up to it.
+    """
+    issued = np.int64(0)
+    parked = np.int64(0)
+    leaf = np.int64(0)
+    window = acc.shape[0]
+    while trav:
+        # 1. lanes holding no postponed leaf run until they postpone one or stop
+        last = 0
+        m = trav
+        while m:
+            lane = lowest_lane(m)
+            m &= m - 1
+            bit = np.int64(1) << lane
+            first[lane] = 0  # the iteration of the lane's next step
+            if parked & bit:
+                continue
+            c = cur[lane]
+            e = end[lane]
+            o = op[np.uint64(c)]
+            j = 0
+            while True:
+                acc[j] += trav_pack(o)
+                c += 1
+                o = op_at(op, c, e)
+                j += 1
+                if o == LEAF:  # postpone: park the leaf and its triangles, go on
+                    park[lane] = c
+                    c += 1
+                    while c < e and op[np.uint64(c)] > LEAF:
+                        c += 1
+                    park_end[lane] = c
+                    parked |= bit
+                    post[j - 1] += 1
+                    last = max(last, j - 1)
+                    break
+                if o > TRAV_BOTH or j == window:
+                    last = max(last, j)
+                    break
+            cur[lane] = c
+            first[lane] = j
+        ended = last < window
+        if not ended:
+            last = window - 1
+        # 2. lanes holding a postponed leaf step on through iteration ``last``
+        nxt = np.int64(0)
+        span = 0
+        m = trav
+        while m:
+            lane = lowest_lane(m)
+            m &= m - 1
+            c = cur[lane]
+            e = end[lane]
+            o = op_at(op, c, e)
+            j = first[lane]
+            if (parked >> lane) & 1:
+                while o <= TRAV_BOTH and j <= last:
+                    acc[j] += trav_pack(o)
+                    c += 1
+                    o = op_at(op, c, e)
+                    j += 1
+                cur[lane] = c
+            nxt |= is_trav(o) << lane
+            leaf |= is_leaf(o) << lane
+            span = max(span, j)
+        warp_size = hist.shape[1] - 1
+        for j in range(span):
+            issued += charge_trav(cnt, hist, costs, acc[j])
+            k = trav_lanes(acc[j])
+            if k < warp_size:  # some threads are elsewhere: the vote takes its fallback
+                issued += charge(cnt, hist, costs, TRAV_DIVERGED, k)
+            issued += charge(cnt, hist, costs, POSTPONE, post[j])
+            acc[j] = 0
+            post[j] = 0
+        trav = nxt
+        if ended:
+            break
+    return issued, parked, leaf, trav
+
+
+@njit(cache=True, nogil=True)
+def _group(offsets, op, r0, n, cur, end, park, park_end, pcur, acc, post, first, costs, cnt,
+           hist):  # fmt: skip
+    trav = np.int64(0)
+    leaf = np.int64(0)
+    for lane in range(n):
+        cur[lane] = offsets[r0 + lane]
+        end[lane] = offsets[r0 + lane + 1]
+        trav, leaf = classify(op, cur, end, lane, trav, leaf)
+    issued = charge(cnt, hist, costs, POOL_FETCH, n)
+    issued += charge(cnt, hist, costs, RAY_SETUP, n)
+    while trav | leaf:
+        issued += charge(cnt, hist, costs, LOOP_CONTROL, popcount(trav | leaf))
+        t_issued, parked, t_leaf, trav = _spec_trav_loop(
+            op, cur, end, park, park_end, trav, acc, post, first, costs, cnt, hist
+        )
+        issued += t_issued
+        if parked:
+            issued += charge(cnt, hist, costs, LEAF_ENTRY, popcount(parked))
+            tri = np.int64(0)
+            m = parked
+            while m:
+                lane = lowest_lane(m)
+                m &= m - 1
+                pcur[lane] = park[lane] + 1
+                tri |= np.int64(pcur[lane] < park_end[lane]) << lane
+            issued += tri_loop(op, pcur, park_end, tri, acc, costs, cnt, hist)[0]
+        i_issued, i_trav = isect_loop(op, cur, end, leaf | t_leaf, acc, costs, cnt, hist)
+        issued += i_issued
+        trav |= i_trav
+        leaf = np.int64(0)
+    issued += charge(cnt, hist, costs, FINISH, n)
+    return issued
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _replay(offsets, op, costs, warp_size, per_warp):
+    """Groups in parallel chunks; each group's totals go to ``per_warp`` if it has rows."""
+    n_rays = offsets.shape[0] - 1
+    n_groups = (n_rays + warp_size - 1) // warp_size
+    nc = min(N_CHUNKS, max(n_groups, 1))
+    bounds = chunk_bounds(n_groups, nc)
+    cnt = np.zeros((nc, 2, N_BLOCKS), np.int64)
+    hist = np.zeros((nc, N_BLOCKS, warp_size + 1), np.int64)
+    group_cost = np.zeros(n_groups, np.int64)
+    for c in prange(nc):
+        cur = np.empty(warp_size, np.int64)
+        end = np.empty(warp_size, np.int64)
+        park = np.empty(warp_size, np.int64)
+        park_end = np.empty(warp_size, np.int64)
+        pcur = np.empty(warp_size, np.int64)
+        acc = np.zeros(WINDOW, np.int64)
+        post = np.zeros(WINDOW, np.int64)
+        first = np.zeros(warp_size, np.int64)
+        for g in range(bounds[c], bounds[c + 1]):
+            r0 = g * warp_size
+            n = min(warp_size, n_rays - r0)
+            before = lanes_so_far(per_warp, cnt[c], costs)
+            group_cost[g] = _group(
+                offsets, op, r0, n, cur, end, park, park_end, pcur, acc, post, first, costs,
+                cnt[c], hist[c],
+            )  # fmt: skip
+            record_warp(per_warp, g, group_cost[g], before, cnt[c], costs)
+    return cnt, hist, group_cost
+
+
+def replay(
+    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, p: ReplayParams
+) -> Counts:
+    """Replay one launch: groups in parallel, then ideal assignment to resident warps."""
+    return persistent_counts(
+        *_replay(offsets, op, costs, p.warp_size, no_per_warp()), p.resident_warps
+    )
+
+
+def warp_counts(
+    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, warp_size: int
+) -> np.ndarray:
+    """Warp and lane instructions of each fetched group of ``warp_size`` consecutive rays
+    (int64 (n_groups, 2)), as ``replay`` counts them (the scheduling aside)."""
+    per_warp = per_warp_table(offsets, warp_size)
+    _replay(offsets, op, costs, warp_size, per_warp)
+    return per_warp
+
+
+SCHEME = SchemeInfo(
+    name="persistent_speculative_while_while",
+    description="persistent while-while where a lane that finds a leaf postpones it and "
+    "keeps traversing",
+    kind=TRACE,
+    kernels={"persistent_speculative_while_while": (*TRACE_BLOCKS, "pool_fetch", "postpone")},
+    persistent=True,
+    approximations=(
+        "ideal work distribution: each fetch goes to the warp with the fewest instructions "
+        "so far, and the SMs are perfectly balanced",
+        "speculation replayed on the recorded streams: op counts per ray preserved, extra "
+        "node visits with a stale tmax are not modelled",
+    ),
+    replay=replay,
+    warp_counts=warp_counts,
+    reference_warp=speculative_group,
+    lockstep=SPECULATIVE_BODY,
+    launch=KernelLaunch("persistent_speculative_while_while", persistent=True),
+)

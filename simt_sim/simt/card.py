@@ -1,0 +1,50 @@
+"""The model card: what a result was computed with, built in one place for every result.
+
+Every SimResult carries one: the scheme and the approximations in force, the GPU's
+figures, the KernelIR(s) it was costed with, whether it can be re-costed, and what its
+replay adds (launches, resident warps, parameters, the paths replayed).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from kernels_ir.kernel_ir import KernelIR
+from simt_sim.simt.gpus import GpuConfig
+
+
+def _joined(values: Sequence[str]) -> str:
+    return "+".join(dict.fromkeys(values))
+
+
+def model_card(
+    scheme: str,
+    irs: Sequence[KernelIR],
+    gpu: GpuConfig,
+    *,
+    approximations: Sequence[str],
+    recostable: bool,
+    **extra: Any,
+) -> dict[str, Any]:
+    """The card of a result of ``scheme`` costed with ``irs`` on ``gpu``.
+
+    ``ir_kernel``, ``ir_arch`` and ``ir_compiler`` join the IRs' values (one each for a
+    one-kernel scheme); ``ir_arch_note`` says when the IR is not the GPU's own; ``extra``
+    entries follow in the order given.
+    """
+    card: dict[str, Any] = {
+        "scheme": scheme,
+        "approximations": list(approximations),
+        "gpu": gpu.figures(),
+        "warp_size": gpu.warp_size,
+        "ir_kernel": _joined([ir.kernel for ir in irs]),
+        "ir_arch": _joined([ir.arch for ir in irs]),
+        "ir_compiler": _joined([ir.compiler for ir in irs]),
+        "recostable": recostable,
+    }
+    foreign = _joined([ir.arch for ir in irs if ir.arch != gpu.ir_arch])
+    if foreign:
+        card["ir_arch_note"] = f"costed with {foreign}; the GPU's table entry names {gpu.ir_arch}"
+    card.update(extra)
+    return card

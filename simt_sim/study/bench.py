@@ -1,0 +1,123 @@
+"""``simt-sim bench``: the real tracers timed on one workload's rays, hits compared.
+
+Embree runs on one thread (embreex holds the GIL); the numba tracer on one thread and on
+all of numba's; the CUDA kernels, on a GPU, for every scheme whose record names a launch.
+Each figure is the median of ``repeats`` timed runs after one warm-up (CUDA: of
+:data:`CUDA_TIMED_LAUNCHES` launches after two, as the paper measured). Hit agreement is
+against Embree's hits.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numba
+import pandas as pd
+
+from simt_sim import schemes
+from simt_sim.errors import SimtSimError
+from simt_sim.study.workload import Workload
+from simt_sim.tracers import numba_tracer
+from simt_sim.tracers.agreement import agreement
+from simt_sim.tracers.embree_tracer import THREADS as EMBREE_THREADS
+from simt_sim.tracers.embree_tracer import EmbreeTracer
+
+TRACERS = ("numba", "embree", "cuda")
+#: timed launches per CUDA kernel (after 2 warm-ups, as the paper measured)
+CUDA_TIMED_LAUNCHES = 10
+
+
+def check_bench(names: Sequence[str], repeats: int) -> None:
+    """Refuse an empty tracer list, an unknown tracer name or fewer than one timed run."""
+    bad = [t for t in names if t not in TRACERS]
+    if bad or not names:
+        raise SimtSimError(
+            f"unknown tracer {bad[0] if bad else ''!r}; use any of {', '.join(TRACERS)}"
+        )
+    if repeats < 1:
+        raise SimtSimError(f"--repeats must be at least 1, got {repeats}")
+
+
+def timed(
+    fn: Callable[[], object], repeats: int, done: Callable[[], object] = lambda: None
+) -> tuple[object, float]:
+    """Run once to warm up, then ``repeats`` times; the last result and the median seconds.
+
+    ``done`` is called after each run, outside the timed span (a progress bar's update).
+    """
+    result = fn()
+    done()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        result = fn()
+        times.append(time.perf_counter() - t0)
+        done()
+    return result, statistics.median(times)
+
+
+def runs(names: Sequence[str], repeats: int) -> int:
+    """Traces of the whole ray set :func:`bench_tracers` makes (for a progress bar)."""
+    threads = sorted({1, numba.config.NUMBA_NUM_THREADS})
+    n = (("embree" in names) + ("numba" in names) * len(threads)) * (repeats + 1)
+    if "cuda" in names:
+        n += CUDA_TIMED_LAUNCHES * len(_cuda_schemes())
+    return n
+
+
+def _cuda_schemes() -> list:
+    return [s for s in schemes.SCHEMES.values() if s.launch is not None]
+
+
+def bench_tracers(
+    wl: Workload, names: Sequence[str], ray_type: str, repeats: int, bar: Any
+) -> pd.DataFrame:
+    """Time each tracer of ``names`` on the workload's rays; one row per tracer and thread
+    count (CUDA: per kernel). ``bar`` (``update``, ``set_description``) counts rays."""
+    check_bench(names, repeats)
+    rays = wl.rays
+    all_threads = numba.config.NUMBA_NUM_THREADS
+
+    def traced(n: int = 1) -> None:
+        bar.update(n * len(rays))
+
+    results: list[tuple[str, int | str, Any, float]] = []
+    if "embree" in names:
+        bar.set_description("embree")
+        emb = EmbreeTracer(wl.scene.vertices, wl.scene.triangles)
+        hits, sec = timed(lambda: emb.trace(rays), repeats, traced)
+        results.append(("embree", EMBREE_THREADS, hits, sec))
+    if "numba" in names:
+        for threads in sorted({1, all_threads}):
+            bar.set_description(f"numba, {threads} thread{'s' * (threads > 1)}")
+            numba.set_num_threads(threads)
+            hits, sec = timed(lambda: numba_tracer.trace(wl.bvh, rays), repeats, traced)
+            results.append(("numba", threads, hits, sec))
+        numba.set_num_threads(all_threads)
+    if "cuda" in names:
+        from simt_sim.tracers.cuda_tracer import CudaTracer
+
+        cu = CudaTracer(wl.bvh)
+        for s in _cuda_schemes():
+            bar.set_description(f"cuda:{s.launch.kernel}")
+            hits, secs = cu.trace_timed(rays, s.launch, repeats=CUDA_TIMED_LAUNCHES)
+            traced(len(secs))
+            kernel = f"cuda:{s.launch.kernel}"
+            results.append((kernel, cu.device_name, hits, statistics.median(secs)))
+    ref = next((h for name, _, h, _ in results if name == "embree"), None)
+    rows = [
+        {
+            "tracer": name,
+            "threads": threads,
+            "ray_type": ray_type,
+            "rays": len(rays),
+            "seconds": sec,
+            "mrays_per_s": len(rays) / sec / 1e6 if sec > 0 else float("nan"),
+            "hit_agreement": agreement(hits, ref) if ref is not None else float("nan"),
+        }
+        for name, threads, hits, sec in results
+    ]
+    return pd.DataFrame(rows)

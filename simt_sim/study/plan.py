@@ -1,0 +1,116 @@
+"""StudyPlan: a StudySpec resolved once into what every batch and row of the study uses.
+
+The spec names a scene, schemes and GPUs; the plan holds the loaded scene and its BVH,
+the GpuConfigs, the schemes' records, the KernelIR of every kernel they run on every
+GPU's architecture, and whether the memory model runs for each GPU. Each trace ray
+type's workload (its ray stream, primary hits included) is made when first asked for,
+so a Dask worker that serves one ray type makes only that one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import kernels_ir
+from kernels_ir.kernel_ir import KernelIR
+from simt_sim import schemes
+from simt_sim.bvh.build import build_bvh
+from simt_sim.bvh.layout import BVH
+from simt_sim.errors import SimtSimError
+from simt_sim.scene.load import load_scene
+from simt_sim.simt.gpus import GpuConfig, get_gpu
+from simt_sim.simt.memory import decide, footprint_bytes
+from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
+from simt_sim.study.spec import StudySpec
+from simt_sim.study.workload import Workload, make_workload, parse_cameras
+from simt_sim.types.raybatch import PATH_RAYS
+from simt_sim.types.scene import Scene
+
+
+@dataclass(frozen=True, eq=False)
+class StudyPlan:
+    """Everything a study of ``spec`` runs on, resolved once.
+
+    Attributes
+    ----------
+    spec : StudySpec
+    scene : Scene
+    bvh : BVH
+    cameras : tuple of int
+        The camera indices ``spec.cameras`` names.
+    gpus : tuple of GpuConfig
+    schemes : tuple of SchemeInfo
+        In the spec's order.
+    irs : dict
+        ``(kernel, arch)`` -> KernelIR, for every kernel of every scheme on every GPU's
+        ``ir_arch``.
+    memory : dict
+        GPU id -> (whether the memory model runs, the sentence saying why).
+    """
+
+    spec: StudySpec
+    scene: Scene
+    bvh: BVH
+    cameras: tuple[int, ...]
+    gpus: tuple[GpuConfig, ...]
+    schemes: tuple[SchemeInfo, ...]
+    irs: dict[tuple[str, str], KernelIR]
+    memory: dict[str, tuple[bool, str]]
+    _workloads: dict[str, Workload] = field(default_factory=dict, repr=False)
+
+    @property
+    def trace_schemes(self) -> tuple[SchemeInfo, ...]:
+        """The schemes that replay ray batches (OpTrace)."""
+        return tuple(s for s in self.schemes if s.kind == TRACE)
+
+    @property
+    def path_schemes(self) -> tuple[SchemeInfo, ...]:
+        """The schemes that replay whole path traces (PathTrace)."""
+        return tuple(s for s in self.schemes if s.kind == PATH)
+
+    @property
+    def trace_ray_types(self) -> tuple[str, ...]:
+        """The spec's ray types that are traced as ray batches (all but ``path``)."""
+        return tuple(rt for rt in self.spec.ray_types if rt != PATH_RAYS)
+
+    def irs_for(self, scheme: SchemeInfo, gpu: GpuConfig) -> dict[str, KernelIR]:
+        """The KernelIR of each of ``scheme``'s kernels on ``gpu``'s architecture."""
+        return {k: self.irs[(k, gpu.ir_arch)] for k in scheme.kernels}
+
+    def workload(self, ray_type: str) -> Workload:
+        """The scene, BVH and ray stream of trace ray type ``ray_type`` (made on first use)."""
+        if ray_type not in self._workloads:
+            s = self.spec
+            self._workloads[ray_type] = make_workload(
+                self.scene, ray_type, cameras=s.cameras, resolution=s.resolution, spp=s.spp,
+                seed=s.seed, bvh=self.bvh,
+            )  # fmt: skip
+        return self._workloads[ray_type]
+
+
+def plan_study(spec: StudySpec) -> StudyPlan:
+    """Check ``spec`` and resolve it: load the scene, build its BVH, look up the GPUs, the
+    schemes and their KernelIRs, and decide the memory model per GPU."""
+    spec.check()
+    gpus = tuple(get_gpu(g, spec.gpu_file) for g in spec.gpus)
+    if spec.sampled and len({g.warp_size for g in gpus}) > 1:
+        listed = ", ".join(f"{g.id} ({g.warp_size} lanes)" for g in gpus)
+        raise SimtSimError(
+            f"--sample draws whole warps, so the GPUs must share one warp size; got "
+            f"{listed}: run them in separate tables"
+        )
+    chosen = tuple(schemes.get_scheme(s) for s in spec.schemes)
+    irs = {
+        (k, g.ir_arch): kernels_ir.load(k, g.ir_arch)
+        for g in gpus
+        for s in chosen
+        for k in s.kernels
+    }
+    scene = load_scene(spec.scene)
+    cameras = parse_cameras(spec.cameras, scene)
+    bvh = build_bvh(
+        scene.vertices, scene.triangles, max_leaf=spec.max_leaf, node_cost=spec.node_cost
+    )
+    footprint = footprint_bytes(bvh.nodes.shape[0], bvh.woop.shape[0])
+    memory = {g.id: decide(spec.memory, footprint, g) for g in gpus}
+    return StudyPlan(spec, scene, bvh, cameras, gpus, chosen, irs, memory)

@@ -1,0 +1,77 @@
+"""StudySpec: what the user asked to simulate, as plain values (every field a CLI flag).
+
+A spec names things (a scene, schemes, GPUs) and says how much (resolution, samples);
+:func:`simt_sim.study.plan.plan_study` resolves it once into the objects a study runs on.
+Specs are small, hashable and picklable, so a Dask worker can rebuild the same plan.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from simt_sim import schemes
+from simt_sim.errors import SimtSimError
+from simt_sim.rays.generate import LAUNCH_SIZE
+from simt_sim.scene.load import DEFAULT_SCENE
+from simt_sim.simt.gpus import DEFAULT_GPU
+from simt_sim.simt.memory import MODES as MEMORY_MODES
+from simt_sim.study.sampling import check_fraction
+from simt_sim.types.raybatch import RAY_TYPES, TRACE_RAY_TYPES
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    """What to simulate; every field is a CLI flag of ``simt-sim table``."""
+
+    scene: str = DEFAULT_SCENE
+    ray_types: tuple[str, ...] = TRACE_RAY_TYPES
+    schemes: tuple[str, ...] = schemes.names()
+    gpus: tuple[str, ...] = (DEFAULT_GPU,)
+    cameras: str = "all"
+    resolution: tuple[int, int] = (1024, 768)
+    spp: int = 32
+    seed: int = 0
+    max_bounces: int = 8
+    max_leaf: int = 8
+    node_cost: float = 1.0
+    launch_size: int = LAUNCH_SIZE
+    actual: bool = False
+    sample: float = 1.0
+    memory: str = "auto"
+    gpu_file: str | None = None
+    """A TOML file of GPUs added to the packaged ones (``simt-sim table --gpus FILE``)."""
+
+    @property
+    def sampled(self) -> bool:
+        """Whether a fraction of the warps is replayed (``--sample F`` with ``F < 1``)."""
+        return self.sample < 1.0
+
+    def check(self) -> None:
+        """Refuse a spec no study can run, in one line that says what to change."""
+        for rt in self.ray_types:
+            if rt not in RAY_TYPES:
+                raise SimtSimError(f"unknown ray type {rt!r}; use any of {', '.join(RAY_TYPES)}")
+        for name in self.schemes:
+            schemes.get_scheme(name)
+        check_fraction(self.sample)
+        if self.memory not in MEMORY_MODES:
+            raise SimtSimError(
+                f"memory model mode {self.memory!r} is unknown; use one of "
+                f"{', '.join(MEMORY_MODES)}"
+            )
+        if self.spp < 1:
+            raise SimtSimError(f"--spp must be at least 1, got {self.spp}")
+
+
+def parse_list(text: str, known: Sequence[str], what: str) -> tuple[str, ...]:
+    """A comma list of names (``all`` = every known name), each checked against ``known``."""
+    if text.strip() == "all":
+        return tuple(known)
+    names = tuple(dict.fromkeys(s.strip() for s in text.split(",") if s.strip()))
+    if not names:
+        raise SimtSimError(f"no {what} given; use a comma list of {', '.join(known)} or 'all'")
+    for name in names:
+        if name not in known:
+            raise SimtSimError(f"unknown {what} {name!r}; use any of {', '.join(known)} or 'all'")
+    return names

@@ -1,0 +1,126 @@
+"""The recorder: run the shared traversal with logging and hand out OpTraces per batch.
+
+Two passes per batch, both parallel over rays: the first counts each ray's ops (the
+tracer's code path, nothing stored), a cumulative sum turns the counts into CSR offsets,
+and the second traverses again writing every op into exactly-sized arrays. Memory stays
+bounded by one batch, and the hits are the tracer's own (same routine, same arithmetic).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from simt_sim.bvh.layout import BVH
+from simt_sim.bvh.traverse import check_bvh, depth_error, ray_arrays, stack_size, traverse_batch
+from simt_sim.errors import SimtSimError
+from simt_sim.types.hits import Hits
+from simt_sim.types.optrace import OpTrace
+from simt_sim.types.raybatch import RayBatch
+
+DEFAULT_BATCH = 1 << 18
+
+
+def _record_batch(bvh: BVH, rays: RayBatch) -> OpTrace:
+    origin, direction, tmin, tmax = ray_arrays(rays)
+    n = origin.shape[0]
+    any_hit = rays.query == "any"
+    entries = stack_size(bvh)
+    out_tri = np.empty(n, dtype=np.int32)
+    out_t = np.empty(n, dtype=np.float32)
+    counts = np.empty(n, dtype=np.int64)
+    ok = traverse_batch(
+        bvh.nodes, bvh.woop, bvh.tri_index, bvh.root, origin, direction, tmin, tmax,
+        any_hit, entries, None, None, None, out_tri, out_t, counts,
+    )  # fmt: skip
+    if not ok:
+        raise depth_error(bvh)
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    total = int(offsets[-1])
+    op = np.empty(total, dtype=np.uint8)
+    addr = np.empty(total, dtype=np.int32)
+    traverse_batch(
+        bvh.nodes, bvh.woop, bvh.tri_index, bvh.root, origin, direction, tmin, tmax,
+        any_hit, entries, offsets, op, addr, out_tri, out_t, counts,
+    )  # fmt: skip
+    return OpTrace(
+        offsets=offsets,
+        op=op,
+        addr=addr,
+        hits=Hits(tri=out_tri, t=out_t),
+        query=rays.query,
+        ray_type=rays.ray_type,
+    )
+
+
+def record(bvh: BVH, rays: RayBatch, *, batch_size: int = DEFAULT_BATCH) -> Iterator[OpTrace]:
+    """Record the op streams of ``rays`` on ``bvh``, one :class:`OpTrace` per batch.
+
+    Parameters
+    ----------
+    batch_size : int
+        Rays per batch; a multiple of the warp size the traces will be replayed with, so
+        every warp lies in one batch (the replay refuses a partial batch before another).
+        Peak memory is about ``batch_size`` times the mean ops per ray times 5 bytes.
+    """
+    if batch_size <= 0:
+        raise SimtSimError(f"batch_size must be a positive number of rays, got {batch_size}")
+    check_bvh(bvh)
+    ray_arrays(rays)  # bad input fails here, at the call, not at the first next()
+    return _batches(bvh, rays, batch_size)
+
+
+def _batches(bvh: BVH, rays: RayBatch, batch_size: int) -> Iterator[OpTrace]:
+    for start in range(0, len(rays), batch_size):
+        yield _record_batch(bvh, rays.slice(start, min(len(rays), start + batch_size)))
+
+
+def concat_traces(traces: list[OpTrace]) -> OpTrace:
+    """Join batches (same query and ray type) into one OpTrace, rays in batch order."""
+    if not traces:
+        raise SimtSimError("no trace batches to join; record at least one ray")
+    first = traces[0]
+    if any(t.query != first.query or t.ray_type != first.ray_type for t in traces):
+        raise SimtSimError("trace batches mix queries or ray types; record them separately")
+    if len(traces) == 1:
+        return first
+    shifts = np.cumsum([0] + [int(t.offsets[-1]) for t in traces[:-1]])
+    offsets = np.concatenate(
+        [np.zeros(1, np.int64)] + [t.offsets[1:] + s for t, s in zip(traces, shifts, strict=True)]
+    )
+    return OpTrace(
+        offsets=offsets,
+        op=np.concatenate([t.op for t in traces]),
+        addr=np.concatenate([t.addr for t in traces]),
+        hits=Hits(
+            tri=np.concatenate([t.hits.tri for t in traces]),
+            t=np.concatenate([t.hits.t for t in traces]),
+        ),
+        query=first.query,
+        ray_type=first.ray_type,
+    )
+
+
+def record_all(bvh: BVH, rays: RayBatch, *, batch_size: int = DEFAULT_BATCH) -> OpTrace:
+    """All of ``rays`` as one OpTrace (for ray sets small enough to hold at once)."""
+    batches = list(record(bvh, rays, batch_size=batch_size))
+    return concat_traces(batches) if batches else _record_batch(bvh, rays)
+
+
+def summary(trace: OpTrace) -> dict:
+    """Headline numbers of a trace: rays, mean ops per ray by kind, hits."""
+    counts = trace.counts()
+    n = trace.n_rays
+    mean = counts.mean(axis=0) if n else np.zeros(3)
+    return {
+        "rays": n,
+        "query": trace.query,
+        "ray_type": trace.ray_type,
+        "ops": int(trace.offsets[-1]),
+        "trav_per_ray": float(mean[0]),
+        "leaf_per_ray": float(mean[1]),
+        "tri_per_ray": float(mean[2]),
+        "hits": int(np.count_nonzero(trace.hits.hit_mask)),
+    }

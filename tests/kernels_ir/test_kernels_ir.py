@@ -1,0 +1,343 @@
+"""kernels_ir: SASS parser, classifier, block mapper, committed IR, loader and CLI.
+
+The parser and mapper run on real nvdisasm listings committed under tests/data/sass
+(with the tiny kernel they came from), so nothing here needs the CUDA toolchain except
+the two rebuild tests, which skip without it.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+
+import pytest
+
+import kernels_ir
+from kernels_ir import ARCHS, KERNELS, available, format_ir_table, load, summary_table
+from kernels_ir.__main__ import main
+from kernels_ir.blocks import UNATTRIBUTED, divergent_only, map_blocks, parse_markers
+from kernels_ir.build import (
+    CUDA_DIR,
+    IR_DIR,
+    build_one,
+    check,
+    dumps,
+    find_toolchain,
+    source_sha256,
+    toolchain_available,
+)
+from kernels_ir.errors import KernelIRError
+from kernels_ir.kernel_ir import BLOCKS, CLASSES
+from kernels_ir.sass import classify, parse_listing
+
+DATA = Path(__file__).parents[1] / "data" / "sass"
+TINY = (DATA / "tiny.cu").read_text()
+NO_TOOLCHAIN = "CUDA toolchain wheels not installed (pip install -e '.[cuda-toolchain]')"
+
+
+def _tiny(arch: str) -> dict[str, dict[str, int]]:
+    listing = parse_listing((DATA / f"tiny.{arch}.sass").read_text())
+    return map_blocks(listing, parse_markers(TINY, "tiny.cu"), "tiny.cu").counts
+
+
+def _nonzero(row: dict[str, int]) -> dict[str, int]:
+    return {c: n for c, n in row.items() if n}
+
+
+# ------------------------------------------------------------------ parser and classifier
+
+
+def test_parser_reads_every_instruction_with_its_outermost_line() -> None:
+    ins = parse_listing((DATA / "tiny.sm_90.sass").read_text())
+    assert len(ins) == 40  # 30 instructions + 10 NOP padding
+    assert {i.function for i in ins} == {"tiny"}
+    first = ins[0]
+    assert (first.offset, first.opcode, first.file, first.line) == (0, "LDC", "tiny.cu", 7)
+    # the loads come from __ldg inlined into tiny_weight inlined into line 16 of tiny.cu
+    ldg = [i for i in ins if i.opcode.startswith("LDG")]
+    assert [(i.offset, i.file, i.line) for i in ldg] == [
+        (0x130, "tiny.cu", 16),
+        (0x140, "tiny.cu", 16),
+    ]
+    # predicate guards are stripped from the opcode
+    exits = [i for i in ins if i.opcode == "EXIT"]
+    assert [i.offset for i in exits] == [0x70, 0x1C0]
+
+
+def test_parser_rejects_text_without_instructions() -> None:
+    with pytest.raises(KernelIRError, match="nvdisasm"):
+        parse_listing("this is not a listing\n")
+
+
+@pytest.mark.parametrize(
+    ("opcode", "cls"),
+    [
+        ("FFMA", "fp32"),
+        ("FMNMX3", "fp32"),
+        ("FSETP.GE.AND", "fp32"),
+        ("HFMA2.MMA", "fp32"),
+        ("IADD3.X", "int"),
+        ("LOP3.LUT", "int"),
+        ("POPC", "int"),
+        ("ULDC.64", "int"),
+        ("LDCU.64", "int"),
+        ("LDG.E.128.CONSTANT", "ld_global"),
+        ("STG.E", "st_global"),
+        ("LDL", "local"),
+        ("STL.64", "local"),
+        ("LDS", "shared"),
+        ("STS", "shared"),
+        ("BRA.U", "control"),
+        ("BSSY", "control"),
+        ("EXIT", "control"),
+        ("WARPSYNC.ALL", "control"),
+        ("VOTE.ANY", "vote_atomic"),
+        ("ATOMG.E.ADD.STRONG.GPU", "vote_atomic"),
+        ("SHFL.IDX", "vote_atomic"),
+        ("MUFU.RCP", "sfu"),
+        ("TEX.SCR.LL", "other"),
+        ("NOP", None),
+    ],
+)
+def test_classify(opcode: str, cls: str | None) -> None:
+    assert classify(opcode) == cls
+
+
+# ------------------------------------------------------------------------------ mapper
+
+
+def test_markers_own_the_lines_up_to_the_next_marker() -> None:
+    owner = parse_markers(TINY, "tiny.cu")
+    assert {ln: owner[ln] for ln in (10, 11, 12)} == dict.fromkeys((10, 11, 12), "ray_setup")
+    assert {owner[ln] for ln in range(14, 18)} == {"trav_step"}
+    assert owner[19] == "finish"
+    assert 7 not in owner and 9 not in owner and 21 not in owner  # signature, marker, after @end
+
+
+def test_markers_reject_unknown_block_and_missing_markers() -> None:
+    with pytest.raises(KernelIRError, match="unknown block 'warp_step'"):
+        parse_markers("x;\n// @block warp_step\ny;\n", "k.cu")
+    with pytest.raises(KernelIRError, match="no `// @block NAME` marker"):
+        parse_markers("int x;\n", "k.cu")
+
+
+def test_mapper_counts_the_tiny_kernel_exactly() -> None:
+    counts = _tiny("sm_90")
+    assert set(counts) == {"ray_setup", "trav_step", "finish", UNATTRIBUTED}
+    assert all(set(row) == set(CLASSES) for row in counts.values())
+    assert _nonzero(counts["ray_setup"]) == {"int": 6, "control": 1}
+    assert _nonzero(counts["trav_step"]) == {"fp32": 3, "int": 10, "ld_global": 2, "control": 1}
+    assert _nonzero(counts["finish"]) == {"int": 2, "st_global": 1, "control": 1}
+    assert _nonzero(counts[UNATTRIBUTED]) == {"int": 1, "control": 2}
+
+
+def test_mapper_on_blackwell_listing_knows_every_opcode() -> None:
+    counts = _tiny("sm_100")
+    assert sum(row["other"] for row in counts.values()) == 0
+    assert counts["trav_step"]["ld_global"] == 2 and counts["trav_step"]["fp32"] >= 2
+    assert counts["finish"]["st_global"] == 1
+
+
+def test_mapper_sends_other_files_to_the_catch_all() -> None:
+    ins = parse_listing((DATA / "tiny.sm_90.sass").read_text())
+    counts, fallback = map_blocks(ins, parse_markers(TINY), "another.cu")
+    assert fallback == {}
+    assert set(counts) == {UNATTRIBUTED}
+    assert sum(counts[UNATTRIBUTED].values()) == 30
+
+
+def _tiny_vote() -> list:
+    return parse_listing((DATA / "tiny_vote.sm_75.sass").read_text())
+
+
+def test_parser_reads_labels_guards_and_subroutines() -> None:
+    by_offset = {i.offset: i for i in _tiny_vote()}
+    assert by_offset[0x240].labels == (".L_x_14",) and not by_offset[0x240].guarded
+    assert by_offset[0x260].guarded and by_offset[0x260].opcode == "BRA"
+    # the subroutine after the kernel starts a new function with no source line
+    sub = by_offset[0x380]
+    assert sub.function == "$__internal_0_$__cuda_sm70_votesync_any"
+    assert (sub.file, sub.line) == ("", 0)
+
+
+def test_divergent_fallback_is_the_bra_div_stub_and_its_subroutine() -> None:
+    ins = _tiny_vote()
+    found = sorted(ins[i].offset for i in divergent_only(ins))
+    # stub .L_x_4 (SEL, MOV, CALL, ISETP, BRA back) and the subroutine up to its RET;
+    # not the padding BRA after the RET
+    assert found == list(range(0x330, 0x380, 0x10)) + list(range(0x380, 0x3F0, 0x10))
+
+
+def test_mapper_charges_the_converged_path_and_keeps_the_fallback_apart() -> None:
+    counts, fallback = map_blocks(
+        _tiny_vote(), parse_markers((DATA / "tiny_vote.cu").read_text()), "tiny_vote.cu"
+    )
+    assert {b: sum(row.values()) for b, row in fallback.items()} == {"trav_step": 12}
+    assert _nonzero(counts["trav_step"]) == {
+        "int": 10, "ld_global": 1, "control": 9, "vote_atomic": 4,
+    }  # fmt: skip
+    assert _nonzero(counts["finish"]) == {"int": 3, "st_global": 1}
+    # EXIT and the padding loop after the subroutine's RET
+    assert _nonzero(counts[UNATTRIBUTED]) == {"int": 1, "control": 2}
+
+
+SYNTHETIC = """
+.text.k:
+        //## File "k.cu", line 3
+        /*0000*/                   IMAD.MOV.U32 R1, RZ, RZ, c[0x0][0x28] ;
+        /*0010*/                   BRA.CONV `(.L_x_1) ;
+        /*0020*/                   MOV R2, 0x40 ;
+        /*0030*/                   CALL.REL.NOINC `($__internal_0_$sync) ;
+.L_x_1:
+        /*0040*/                   MOV R4, 0x60 ;
+        /*0050*/                   CALL.REL.NOINC `($__internal_1_$helper) ;
+        //## File "k.cu", line 5
+        /*0060*/                   CALL.REL.NOINC `($__internal_1_$helper) ;
+        /*0070*/                   EXIT ;
+$__internal_0_$sync:
+        /*0080*/                   WARPSYNC R0 ;
+        /*0090*/                   RET.REL.NODEC R2 `(k) ;
+$__internal_1_$helper:
+        /*00a0*/                   IADD3 R5, R5, 0x1, RZ ;
+        /*00b0*/                   RET.REL.NODEC R4 `(k) ;
+.L_x_2:
+        /*00c0*/                   BRA `(.L_x_2);
+"""
+
+
+def test_subroutines_count_in_their_callers_and_bra_conv_skips_are_fallback() -> None:
+    owner = parse_markers("x\n// @block trav_step\na;\n// @block finish\nb;\n", "k.cu")
+    counts, fallback = map_blocks(parse_listing(SYNTHETIC), owner, "k.cu")
+    # line 3: IMAD, BRA.CONV, MOV, CALL + helper (IADD3, RET); line 5: CALL + helper again
+    assert sum(counts["trav_step"].values()) == 6
+    assert sum(counts["finish"].values()) == 4  # CALL, EXIT, helper's IADD3 and RET
+    # MOV, CALL skipped by BRA.CONV; $sync's WARPSYNC, RET
+    assert _nonzero(fallback["trav_step"]) == {"int": 1, "control": 3}
+    assert _nonzero(counts[UNATTRIBUTED]) == {"control": 1}  # the padding loop
+
+
+def test_a_subroutine_calling_another_is_refused() -> None:
+    text = SYNTHETIC.replace("IADD3 R5, R5, 0x1, RZ", "CALL.REL.NOINC `($__internal_0_$sync)")
+    with pytest.raises(KernelIRError, match="calls another"):
+        map_blocks(parse_listing(text), {3: "trav_step"}, "k.cu")
+
+
+# ------------------------------------------------------------------------ committed IR
+
+
+def test_every_kernel_and_arch_is_committed() -> None:
+    assert KERNELS == tuple(sorted(p.stem for p in CUDA_DIR.glob("*.cu")))
+    assert available() == [(k, a) for k in KERNELS for a in ARCHS]
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_committed_ir_has_required_blocks_and_is_current(kernel: str) -> None:
+    sha = source_sha256(kernel)
+    marked = parse_markers((CUDA_DIR / f"{kernel}.cu").read_text(), f"{kernel}.cu")
+    for arch in ARCHS:
+        text = (IR_DIR / f"{kernel}.{arch}.json").read_text()
+        assert dumps(json.loads(text)) == text, "not in canonical form"
+        ir = load(kernel, arch)
+        assert ir.source_sha256 == sha, "sources changed: run `python -m kernels_ir build`"
+        for block in set(marked.values()):
+            assert ir.cost(block) > 0, f"{kernel} {arch}: marked block {block} is empty"
+        assert set(ir.blocks) <= set(BLOCKS)
+        assert ir.compiler.startswith("nvcc V13.")
+        assert f"-arch={arch}" in ir.flags and "-lineinfo" in ir.flags
+        assert 0 < ir.registers <= 255
+        total = int(ir.notes["total_instructions"])
+        assert total == sum(ir.cost(b) for b in ir.blocks) + int(
+            ir.notes["unattributed_instructions"]
+        )
+        assert int(ir.notes["unattributed_instructions"]) <= max(25, total // 10)
+
+
+def test_trav_diverged_is_the_traversal_vote_fallback() -> None:
+    # sm_75: the speculative step's __any_sync has a BRA.DIV fallback; sm_90 inlines it
+    ir75 = load("persistent_speculative_while_while", "sm_75")
+    assert ir75.cost("trav_diverged") > 0
+    assert ir75.notes["divergent_fallback_blocks"].count("trav_step=") == 1
+    assert load("persistent_speculative_while_while", "sm_90").cost("trav_diverged") == 0
+    for arch in ARCHS:  # no warp vote in these traversal steps
+        for kernel in ("while_while", "if_if", "persistent_while_while"):
+            assert load(kernel, arch).cost("trav_diverged") == 0
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_sm_90_compiles_without_spills(kernel: str) -> None:
+    ir = load(kernel, "sm_90")
+    assert ir.notes["spill_store_bytes"] == "0" and ir.notes["spill_load_bytes"] == "0"
+
+
+@pytest.mark.parametrize("block", ["trav_step", "tri_test"])
+def test_while_while_costs_agree_across_archs(block: str) -> None:
+    costs = [load("while_while", arch).cost(block) for arch in ARCHS]
+    assert max(costs) <= 2 * min(costs), dict(zip(ARCHS, costs, strict=True))
+
+
+def test_path_tracing_kernels_shade_with_sfu_and_push_with_atomics() -> None:
+    shade = load("wavefront_shade", "sm_90")
+    assert shade.blocks["queue_push"]["vote_atomic"] > 0
+    assert shade.blocks["shade"]["sfu"] > 0
+    assert load("megakernel", "sm_90").blocks["shade"]["sfu"] > 0
+    assert load("persistent_while_while", "sm_90").blocks["pool_fetch"]["vote_atomic"] > 0
+    assert load("packet", "sm_90").blocks["trav_none"]["shared"] > 0
+
+
+# ----------------------------------------------------------------------- loader, table
+
+
+def test_load_unknown_kernel_or_arch_lists_what_exists() -> None:
+    with pytest.raises(KernelIRError, match="kernels: dynamic_fetch, if_if, megakernel") as err:
+        load("while_whiel", "sm_90")
+    assert "\n" not in str(err.value)
+    with pytest.raises(KernelIRError, match="archs: sm_75, sm_80"):
+        load("while_while", "sm_61")
+
+
+def test_format_ir_table_has_totals() -> None:
+    ir = load("while_while", "sm_90")
+    table = format_ir_table(ir)
+    assert list(table.columns) == [*CLASSES, "total"]
+    assert list(table.index) == [b for b in BLOCKS if b in ir.blocks] + ["total"]
+    for block in ir.blocks:
+        assert table.loc[block, "total"] == ir.cost(block)
+    assert table.loc["total", "total"] == sum(ir.cost(b) for b in ir.blocks)
+
+
+def test_summary_table_matches_loads() -> None:
+    table = summary_table("sm_90")
+    assert list(table.index) == list(KERNELS)
+    assert table.loc["packet", "trav_step"] == load("packet", "sm_90").cost("trav_step")
+    assert table.loc["wavefront_shade", "trav_step"] == 0
+
+
+def test_cli_show_and_errors(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["show", "while_while", "--arch", "sm_90"]) == 0
+    out = capsys.readouterr().out
+    assert "trav_step" in out and "total" in out and "registers" in out
+    assert main(["show", "no_such_kernel"]) == 2
+    assert "no KernelIR" in capsys.readouterr().err
+    assert main(["summary", "--arch", "sm_90"]) == 0
+    assert capsys.readouterr().out.startswith("| kernel | ray_setup |")
+
+
+def test_package_reexports_kernel_ir() -> None:
+    assert kernels_ir.KernelIR is type(load("if_if", "sm_80"))
+
+
+# ------------------------------------------------------------- rebuild (needs toolchain)
+
+
+@pytest.mark.skipif(not toolchain_available(), reason=NO_TOOLCHAIN)
+def test_rebuild_of_one_kernel_is_byte_identical() -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        doc = build_one("while_while", "sm_90", find_toolchain(), Path(tmp))
+    assert dumps(doc) == (IR_DIR / "while_while.sm_90.json").read_text()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not toolchain_available(), reason=NO_TOOLCHAIN)
+def test_full_rebuild_check_passes() -> None:
+    assert check() == []

@@ -1,0 +1,161 @@
+"""``simt-sim plot`` through its real entry point, and the per-warp data behind it.
+
+The per-warp counters must add up to the replay's totals and one warp's timeline must
+cost exactly what the per-warp counters say, so the figures show the model, not an
+approximation of it.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+from matplotlib.image import imread
+
+import kernels_ir
+from kernels_ir.kernel_ir import BLOCKS
+from simt_sim.errors import SimtSimError
+from simt_sim.report.plots import to_image
+from simt_sim.report.warpstats import timeline_schemes, warp_counts, warp_schemes, warp_timeline
+from simt_sim.schemes import get_scheme
+from simt_sim.simt.engine import cost_vector
+from simt_sim.simt.gpus import get_gpu
+from simt_sim.simt.replay import simulate_traces
+from simt_sim.study.workload import make_workload
+from simt_sim.trace.record import record_all
+
+#: one scheme with a timeline, one with per-pixel figures only, one with neither
+SCHEMES = "persistent_speculative_while_while,packet,dynamic_fetch"
+SMALL = ["--scene", "room", "--resolution", "32x24", "--spp", "2", "--camera", "0", "--quiet"]
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ)
+    env.setdefault("NUMBA_NUM_THREADS", "2")
+    return subprocess.run(
+        [sys.executable, "-m", "simt_sim", *args], capture_output=True, text=True, env=env
+    )
+
+
+def assert_clean_error(proc: subprocess.CompletedProcess[str], needle: str) -> None:
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert needle in lines[0], lines[0]
+
+
+@pytest.fixture(scope="module")
+def figures(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("plot") / "figs"
+    proc = run_cli("plot", *SMALL, "--rays", "primary,ao", "--schemes", SCHEMES, "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    return out
+
+
+def test_plot_writes_every_figure(figures: Path) -> None:
+    stems = ["active_lanes_primary", "active_lanes_ao", "mrays"]
+    stems += [
+        "pixels_persistent_speculative_while_while",
+        "pixels_packet",
+        "timeline_persistent_speculative_while_while",
+    ]
+    expected = {f"{s}.{ext}" for s in stems for ext in ("png", "svg")}
+    assert {p.name for p in figures.iterdir()} == expected
+
+
+def test_pngs_are_real_pictures(figures: Path) -> None:
+    for png in figures.glob("*.png"):
+        assert png.stat().st_size > 10_000, png
+        img = (imread(png) * 255).astype(np.uint8)
+        assert img.shape[-1] == 4, png
+        colours = np.unique(img.reshape(-1, 4).view(np.uint32))
+        assert len(colours) > 50, f"{png.name}: {len(colours)} colours"
+
+
+def test_svgs_parse(figures: Path) -> None:
+    for svg in figures.glob("*.svg"):
+        root = ET.parse(svg).getroot()
+        assert root.tag.endswith("svg"), svg
+        assert len(list(root.iter())) > 100, svg
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--scene", "no-such-scene"], "no-such-scene"),
+        (["--camera", "0,1"], "one camera"),
+        (["--schemes", "while_while,bogus"], "bogus"),
+        (["--resolution", "32by24"], "WxH"),
+        (["--schemes", "while_while", "--rays", "primary", "--warp", "9999"], "warp 9999"),
+    ],
+)
+def test_plot_bad_input_leaves_nothing(tmp_path: Path, args: list[str], needle: str) -> None:
+    out = tmp_path / "figs"
+    proc = run_cli("plot", *SMALL, *args, "--out", str(out))
+    assert_clean_error(proc, needle)
+    assert not out.exists()
+
+
+def test_plot_out_parent_must_exist(tmp_path: Path) -> None:
+    out = tmp_path / "missing" / "figs"
+    proc = run_cli("plot", *SMALL, "--out", str(out))
+    assert_clean_error(proc, "does not exist")
+    assert not out.parent.exists()
+
+
+@pytest.fixture(scope="module")
+def primary():
+    wl = make_workload("room", "primary", cameras="0", resolution=(32, 24))
+    return wl, record_all(wl.bvh, wl.rays)
+
+
+@pytest.mark.parametrize("scheme", warp_schemes())
+def test_warp_counts_add_up_to_the_replay(primary, scheme: str) -> None:
+    _, trace = primary
+    gpu = get_gpu("gtx285")
+    ir = kernels_ir.load(scheme, gpu.ir_arch)
+    wc = warp_counts(trace, get_scheme(scheme), cost_vector(ir), gpu.warp_size)
+    r = simulate_traces([trace], get_scheme(scheme), ir, gpu)
+    assert wc.warp_instructions.shape == (trace.n_rays // 32,)
+    assert wc.warp_instructions.sum() == r.warp_instructions
+    assert wc.lane_instructions.sum() == int(np.dot(r.counts.active, r.costs))
+    assert np.all((wc.efficiency > 0) & (wc.efficiency <= 1))
+
+
+@pytest.mark.parametrize("scheme", timeline_schemes())
+def test_timeline_costs_what_the_warp_counts_say(primary, scheme: str) -> None:
+    _, trace = primary
+    ir = kernels_ir.load(scheme, "sm_75")
+    wc = warp_counts(trace, get_scheme(scheme), cost_vector(ir), 32)
+    costs = {b: ir.cost(b) for b in BLOCKS}
+    for warp in (0, int(np.argmax(wc.warp_instructions))):
+        events = warp_timeline(trace, warp, get_scheme(scheme), costs, 32)
+        assert sum(costs[b] for b, _ in events) == wc.warp_instructions[warp]
+        assert sum(costs[b] * n for b, n in events) == wc.lane_instructions[warp]
+        assert all(1 <= n <= 32 for _, n in events)
+
+
+def test_per_warp_views_refuse_schemes_without_fixed_warps(primary) -> None:
+    _, trace = primary
+    costs = cost_vector(kernels_ir.load("dynamic_fetch", "sm_75"))
+    with pytest.raises(SimtSimError, match="dynamic_fetch"):
+        warp_counts(trace, get_scheme("dynamic_fetch"), costs, 32)
+    with pytest.raises(SimtSimError, match="packet"):
+        warp_timeline(trace, 0, get_scheme("packet"), {b: 1 for b in BLOCKS}, 32)
+    with pytest.raises(SimtSimError, match="warp 24 does not exist"):
+        warp_timeline(trace, 24, get_scheme("while_while"), {b: 1 for b in BLOCKS}, 32)
+
+
+def test_primary_rays_fill_the_image(primary) -> None:
+    wl, trace = primary
+    img = to_image(trace.counts()[:, 0], wl.rays.pixel, 32, 24)
+    assert img.shape == (24, 32) and not np.isnan(img).any()
+    ray = int(np.argmax(trace.counts()[:, 0]))
+    y, x = divmod(int(wl.rays.pixel[ray]), 32)
+    assert img[y, x] == trace.counts()[ray, 0]

@@ -1,0 +1,357 @@
+"""Scheme semantics: hand-computed warps, the pure-Python reference, conservation, coherence."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import kernels_ir
+from kernels_ir.kernel_ir import BLOCKS, KernelIR
+from simt_sim import schemes
+from simt_sim.errors import SimtSimError
+from simt_sim.oracles.reference import reference_replay
+from simt_sim.schemes import SCHEMES, get_scheme
+from simt_sim.simt.engine import Counts
+from simt_sim.simt.gpus import GpuConfig
+from simt_sim.simt.replay import simulate_traces
+from simt_sim.simt.result import SimResult, check_ir
+from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
+from simt_sim.simt.synth import synthetic_trace, trace_from_lists
+from simt_sim.study.run import run_study
+from simt_sim.study.spec import StudySpec
+from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS, OpTrace
+
+COSTS = {b: i + 1 for i, b in enumerate(BLOCKS)}  # small distinct costs per block
+TRACE_SCHEMES = schemes.names(TRACE)
+CONSERVING = [s for s in TRACE_SCHEMES if s != "packet"]
+
+
+def ir_for(scheme: str) -> KernelIR:
+    return KernelIR(scheme, "sm_75", {b: {"int": c} for b, c in COSTS.items()})
+
+
+def gpu_for(warp_size: int, resident_warps: int = 4) -> GpuConfig:
+    return GpuConfig("test", "test", 1, 1000.0, 1.0, warp_size, resident_warps, 0, 0, "sm_75", "")
+
+
+def run(trace: OpTrace, scheme: str, warp_size: int, **kw: object) -> SimResult:
+    return simulate_traces([trace], get_scheme(scheme), ir_for(scheme), gpu_for(warp_size), **kw)
+
+
+def random_streams(
+    rng: np.random.Generator, n: int, any_hit: bool = False
+) -> tuple[list[list[int]], list[list[int]]]:
+    """Well-formed random streams: TRAV runs, LEAF + 1-8 TRI; also empty and leaf-first."""
+    ops: list[list[int]] = []
+    for _ in range(n):
+        o: list[int] = []
+        if rng.random() < 0.05:
+            ops.append(o)
+            continue
+        for seg in range(int(rng.integers(1, 6))):
+            if not (seg == 0 and rng.random() < 0.05):  # sometimes the stream starts at a leaf
+                o += [int(x) for x in rng.integers(0, 3, int(rng.integers(1, 8)))]
+            for _ in range(int(rng.integers(0, 3))):
+                tris = [
+                    TRI_HIT if rng.random() < 0.2 else TRI_MISS for _ in range(rng.integers(1, 9))
+                ]
+                if any_hit and TRI_HIT in tris:
+                    o += [LEAF] + tris[: tris.index(TRI_HIT) + 1]
+                    break
+                o += [LEAF] + tris
+            if any_hit and o and o[-1] == TRI_HIT:
+                break
+        ops.append(o)
+    addrs = [[int(a) for a in rng.integers(0, 40, len(o))] for o in ops]
+    return ops, addrs
+
+
+def counters(r: SimResult) -> dict[str, tuple[int, int, list[int]]]:
+    return {
+        b: (r.executions[b], r.active_sum[b], [int(x) for x in r.counts.hist[i]])
+        for i, b in enumerate(BLOCKS)
+    }
+
+
+def expect(r: SimResult, table: dict[str, tuple[int, int]]) -> None:
+    """Executions / active sums of every block (blocks not listed: never issued)."""
+    got = {b: (r.executions[b], r.active_sum[b]) for b in BLOCKS if r.executions[b]}
+    assert got == table
+
+
+# ---- hand-computed warps: one table, every scheme's rules worked out by hand ---------------
+CASE_A = [
+    [TRAV_ONE, TRAV_BOTH, LEAF, TRI_MISS, TRI_HIT, TRAV_NONE],
+    [TRAV_NONE],
+]
+CASE_B = [
+    [TRAV_ONE, LEAF, TRI_MISS, TRI_MISS, TRI_MISS],
+    [TRAV_BOTH, TRAV_ONE, LEAF, TRI_HIT],
+]
+CASE_SPECULATIVE = [
+    [TRAV_BOTH, LEAF, TRI_MISS, TRAV_ONE, LEAF, TRI_HIT],
+    [TRAV_ONE, TRAV_ONE, TRAV_ONE, LEAF, TRI_MISS],
+]
+CASE_DYNAMIC = [[TRAV_NONE], [TRAV_ONE, TRAV_NONE], [TRAV_NONE]]
+CASE_PACKET = [[TRAV_BOTH, TRAV_ONE, LEAF, TRI_MISS, TRI_HIT], [TRAV_ONE, TRAV_NONE]]
+PACKET_ADDRS = [[1, 2, 10, 10, 13], [1, 3]]  # LEAF 10 and TRI 10 are different things
+
+#: (scheme, op lists, addresses, warp size, resident warps, params, block -> (executions,
+#: active lanes summed)); blocks not listed are never issued
+BY_HAND = [
+    ("while_while", CASE_A, None, 2, 4, {}, {
+        "ray_setup": (1, 2), "loop_control": (2, 3), "trav_step": (3, 4), "trav_none": (2, 2),
+        "trav_one": (1, 1), "trav_both": (1, 1), "leaf_entry": (1, 1), "tri_test": (2, 2),
+        "tri_hit": (1, 1), "finish": (1, 2)}),
+    ("while_while", CASE_B, None, 2, 4, {}, {
+        "ray_setup": (1, 2), "loop_control": (1, 2), "trav_step": (2, 3), "trav_one": (2, 2),
+        "trav_both": (1, 1), "leaf_entry": (1, 2), "tri_test": (3, 4), "tri_hit": (1, 1),
+        "finish": (1, 2)}),
+    ("if_if", CASE_A, None, 2, 4, {}, {
+        "ray_setup": (1, 2), "loop_control": (4, 5), "trav_step": (3, 4), "trav_none": (2, 2),
+        "trav_one": (1, 1), "trav_both": (1, 1), "leaf_entry": (1, 1), "tri_test": (2, 2),
+        "tri_hit": (1, 1), "finish": (1, 2)}),
+    ("if_if", CASE_B, None, 2, 4, {}, {
+        "ray_setup": (1, 2), "loop_control": (3, 5), "trav_step": (2, 3), "trav_one": (2, 2),
+        "trav_both": (1, 1), "leaf_entry": (2, 2), "tri_test": (3, 4), "tri_hit": (1, 1),
+        "finish": (1, 2)}),
+    # the third step has one of the two lanes: the vote takes its divergent fallback
+    ("persistent_speculative_while_while", CASE_SPECULATIVE, None, 2, 4, {}, {
+        "pool_fetch": (1, 2), "ray_setup": (1, 2), "loop_control": (1, 2),
+        "trav_step": (3, 5), "trav_one": (3, 4), "trav_both": (1, 1), "trav_diverged": (1, 1),
+        "postpone": (2, 2), "leaf_entry": (2, 3), "tri_test": (2, 3), "tri_hit": (1, 1),
+        "finish": (1, 2)}),
+    ("dynamic_fetch", CASE_DYNAMIC, None, 2, 1, {"threshold": 2}, {
+        "pool_fetch": (2, 3), "ray_setup": (2, 3), "loop_control": (2, 3), "trav_step": (3, 4),
+        "trav_none": (3, 3), "trav_one": (1, 1), "finish": (2, 3)}),
+    ("packet", CASE_PACKET, PACKET_ADDRS, 2, 4, {}, {
+        "ray_setup": (1, 2), "loop_control": (4, 8), "trav_step": (3, 4), "trav_none": (1, 1),
+        "trav_one": (1, 1), "trav_both": (1, 2), "leaf_entry": (1, 1), "tri_test": (2, 2),
+        "tri_hit": (1, 1), "finish": (1, 2)}),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("scheme", "ops", "addrs", "warp_size", "resident", "params", "table"),
+    BY_HAND,
+    ids=[f"{case[0]}-{k}" for k, case in enumerate(BY_HAND)],
+)
+def test_by_hand(scheme, ops, addrs, warp_size, resident, params, table) -> None:
+    """The numba replay and the plain reference both give the hand-computed counters."""
+    trace = trace_from_lists(ops, addrs)
+    r = simulate_traces(
+        [trace], get_scheme(scheme), ir_for(scheme), gpu_for(warp_size, resident), **params
+    )
+    expect(r, table)
+    ref = reference_replay(
+        ops, addrs or [list(range(len(o))) for o in ops], get_scheme(scheme), COSTS, warp_size,
+        resident_warps=resident, **params,
+    )  # fmt: skip
+    assert {b: (ref.executions[b], ref.active[b]) for b in BLOCKS if ref.executions[b]} == table
+    if r.warp_totals is not None:
+        assert int(r.warp_totals.sum()) == r.warp_instructions
+    if resident == 1:
+        assert r.makespan == r.warp_instructions
+
+
+# ---- the numba replay against the plain reference ----------------------------------------
+@pytest.mark.parametrize("scheme", TRACE_SCHEMES)
+@pytest.mark.parametrize(("warp_size", "any_hit"), [(32, False), (4, True)])
+def test_numba_replay_matches_reference(scheme: str, warp_size: int, any_hit: bool) -> None:
+    rng = np.random.default_rng(7 + warp_size)
+    ops, addrs = random_streams(rng, 200 * warp_size + 5, any_hit)
+    launch = 64 * warp_size
+    r = run(trace_from_lists(ops, addrs), scheme, warp_size, launch_size=launch)
+    ref = reference_replay(
+        ops, addrs, get_scheme(scheme), COSTS, warp_size, resident_warps=4, launch_size=launch
+    )
+    assert counters(r) == {b: (ref.executions[b], ref.active[b], ref.hist[b]) for b in BLOCKS}
+    if ref.warp_totals is None:
+        assert r.warp_totals is None
+    else:
+        assert r.warp_totals.tolist() == ref.warp_totals
+        assert r.makespan == ref.makespan
+
+
+@pytest.mark.parametrize(
+    ("warp_size", "resident", "threshold", "scale"),
+    [(8, 3, 5, 1), (8, 40, 20, 1), (4, 2, 9, 1), (8, 5, 3, 0), (1, 7, 1, 1)],
+)
+def test_dynamic_fetch_matches_reference(
+    warp_size: int, resident: int, threshold: int, scale: int
+) -> None:
+    """The parallel event replay is the one-event-at-a-time simulation: few and many
+    resident warps (more than the rays fill), thresholds above the warp size, zero costs
+    (every bound on a refill point is then its own time)."""
+    rng = np.random.default_rng(warp_size * 100 + resident)
+    ops, addrs = random_streams(rng, 90 * warp_size + 3)
+    costs = {b: c * scale for b, c in COSTS.items()}
+    ir = KernelIR("dynamic_fetch", "sm_75", {b: {"int": c} for b, c in costs.items()})
+    r = simulate_traces(
+        [trace_from_lists(ops, addrs)],
+        get_scheme("dynamic_fetch"),
+        ir,
+        gpu_for(warp_size, resident),
+        threshold=threshold,
+    )
+    ref = reference_replay(
+        ops, addrs, get_scheme("dynamic_fetch"), costs, warp_size, resident_warps=resident,
+        threshold=threshold,
+    )  # fmt: skip
+    assert counters(r) == {b: (ref.executions[b], ref.active[b], ref.hist[b]) for b in BLOCKS}
+    assert r.warp_totals.tolist() == ref.warp_totals
+    assert r.makespan == ref.makespan
+
+
+@pytest.mark.parametrize("scheme", [s for s in TRACE_SCHEMES if SCHEMES[s].warp_counts])
+def test_warp_counts_are_the_replay_warp_by_warp(scheme: str) -> None:
+    """Each warp's instructions from ``warp_counts`` equal a replay of that warp alone."""
+    rng = np.random.default_rng(5)
+    ops, addrs = random_streams(rng, 32 * 12 + 7)
+    trace = trace_from_lists(ops, addrs)
+    costs = np.array([COSTS[b] for b in BLOCKS], np.int64)
+    per_warp = SCHEMES[scheme].warp_counts(trace.offsets, trace.op, trace.addr, costs, 32)
+    assert per_warp.shape == (13, 2)
+    for w in range(13):
+        alone = run(
+            trace_from_lists(ops[32 * w : 32 * w + 32], addrs[32 * w : 32 * w + 32]), scheme, 32
+        )
+        lanes = int(np.dot(alone.counts.active, alone.costs))
+        assert per_warp[w].tolist() == [alone.warp_instructions, lanes]
+
+
+# ---- the registry ----------------------------------------------------------------------------
+def test_every_scheme_module_is_registered_with_its_record() -> None:
+    package = Path(schemes.__file__).parent
+    modules = {p.stem for p in package.glob("*.py") if p.stem != "__init__"}
+    assert {m.__name__.rsplit(".", 1)[1] for m in schemes.MODULES} == modules
+    assert set(SCHEMES) == {m.SCHEME.name for m in schemes.MODULES}
+    for name, s in SCHEMES.items():
+        assert s.name == name and s.description and "\n" not in s.description
+        assert s.kind in (TRACE, PATH)
+        if s.kind == TRACE:
+            assert list(s.kernels) == [name] and s.replay is not None
+        else:
+            assert s.replay_paths is not None and s.replay is None
+
+
+def test_every_kernel_a_scheme_names_is_compiled_with_the_blocks_it_charges() -> None:
+    """The records and the committed IR agree: each kernel of each scheme has an IR for
+    every target, with every block the replay charges, and every ``.cu`` serves a scheme."""
+    for s in SCHEMES.values():
+        for kernel, blocks in s.kernels.items():
+            for arch in kernels_ir.ARCHS:
+                ir = kernels_ir.load(kernel, arch)
+                check_ir(ir, kernel, blocks)
+                assert all(ir.cost(b) > 0 for b in blocks), (kernel, arch)
+    assert {k for s in SCHEMES.values() for k in s.kernels} == set(kernels_ir.KERNELS)
+
+
+def test_trace_and_path_calls_refuse_the_other_kind() -> None:
+    trace = synthetic_trace(64, seed=1)
+    with pytest.raises(SimtSimError, match=r"path scheme: replay it with simulate_paths"):
+        simulate_traces([trace], get_scheme("wavefront"), ir_for("wavefront"), gpu_for(32))
+    with pytest.raises(SimtSimError, match="known schemes: while_while, if_if"):
+        get_scheme("nonsense")
+
+
+def _toy_replay(offsets, op, addr, costs, params):
+    """A toy scheme: every ray alone, each op one ``trav_step`` with one lane."""
+    n_ops = int(offsets[-1])
+    executions = np.zeros(len(BLOCKS), np.int64)
+    executions[BLOCKS.index("trav_step")] = n_ops
+    hist = np.zeros((len(BLOCKS), params.warp_size + 1), np.int64)
+    hist[BLOCKS.index("trav_step"), 1] = n_ops
+    return Counts(executions, executions.copy(), hist)
+
+
+def test_a_toy_scheme_added_through_the_registry_alone() -> None:
+    """A scheme of one's own: a record with a replay, registered, then run by name through the
+    study (table row, model card) like the packaged ones."""
+    toy = SchemeInfo(
+        name="toy_serial",
+        description="each ray alone: one lane per op",
+        kind=TRACE,
+        kernels={"while_while": ("trav_step",)},
+        approximations=("a toy",),
+        replay=_toy_replay,
+    )
+    schemes.register(toy)
+    try:
+        with pytest.raises(SimtSimError, match="exists already"):
+            schemes.register(toy)
+        trace = synthetic_trace(96, seed=3)
+        ir = ir_for("while_while")
+        r = simulate_traces([trace], get_scheme("toy_serial"), ir, gpu_for(32))
+        assert r.simd_efficiency == 1 / 32
+        assert r.warp_instructions == int(trace.offsets[-1]) * COSTS["trav_step"]
+        assert r.model_card["approximations"] == ["a toy"]
+        spec = StudySpec(
+            scene="room", ray_types=("primary",), schemes=("while_while", "toy_serial"),
+            cameras="0", resolution=(16, 12),
+        )  # fmt: skip
+        _, table = run_study(spec, progress=False)
+        assert list(table["scheme"]) == ["while_while", "toy_serial"]
+        toy_row, ww_row = table.iloc[1], table.iloc[0]
+        assert toy_row["mean_trav"] == ww_row["mean_trav"]
+        assert toy_row["simd_efficiency"] == 1 / 32
+    finally:
+        schemes.unregister("toy_serial")
+    assert "toy_serial" not in SCHEMES
+
+
+# ---- properties ------------------------------------------------------------------------------
+@pytest.mark.parametrize("scheme", CONSERVING)
+def test_each_lane_work_is_conserved(scheme: str) -> None:
+    rng = np.random.default_rng(3)
+    ops, addrs = random_streams(rng, 32 * 50 + 9, any_hit=False)
+    trace = trace_from_lists(ops, addrs)
+    r = run(trace, scheme, 32)
+    flat = np.concatenate([np.asarray(o, np.int64) for o in ops])
+    by_code = np.bincount(flat, minlength=6)
+    a = r.active_sum
+    assert a["trav_step"] == by_code[:3].sum() == r.n_trav
+    assert (a["trav_none"], a["trav_one"], a["trav_both"]) == tuple(by_code[:3])
+    assert a["leaf_entry"] == by_code[LEAF] == r.n_leaf
+    assert a["tri_test"] == by_code[TRI_MISS] + by_code[TRI_HIT] == r.n_tri
+    assert a["tri_hit"] == by_code[TRI_HIT]
+    assert a["ray_setup"] == a["finish"] == r.rays == len(ops)
+    if scheme != "while_while" and scheme != "if_if":
+        assert a["pool_fetch"] == len(ops)
+    assert r.mean_trav == pytest.approx(by_code[:3].sum() / len(ops))
+
+
+@pytest.mark.parametrize("scheme", TRACE_SCHEMES)
+def test_identical_rays_in_a_warp_are_fully_efficient(scheme: str) -> None:
+    trace = synthetic_trace(32 * 40, seed=5, coherence=32, divergence=0.0)
+    r = run(trace, scheme, 32)
+    assert r.simd_efficiency_traversal == 1.0
+    assert r.simd_efficiency_intersection == 1.0
+    assert r.simd_efficiency == 1.0
+
+
+@pytest.mark.parametrize("scheme", TRACE_SCHEMES)
+def test_warp_size_one_is_fully_efficient(scheme: str) -> None:
+    r = run(synthetic_trace(300, seed=2), scheme, 1)
+    assert r.simd_efficiency == r.simd_efficiency_traversal == 1.0
+    assert r.active_lanes_hist[0] == 0 and r.active_lanes_hist[1] == r.warp_instructions
+
+
+@pytest.mark.parametrize("scheme", TRACE_SCHEMES)
+def test_divergent_rays_lose_efficiency_within_bounds(scheme: str) -> None:
+    r = run(synthetic_trace(32 * 60, seed=9), scheme, 32)
+    for eff in (r.simd_efficiency, r.simd_efficiency_traversal, r.simd_efficiency_intersection):
+        assert 1 / 32 <= eff < 1.0
+    assert int(r.active_lanes_hist.sum()) == r.warp_instructions
+    assert r.active_lanes_hist[0] == 0
+
+
+def test_speculation_keeps_lanes_traversing() -> None:
+    """Postponing a leaf fills the traversal loop: speculative traversal is more efficient."""
+    trace = synthetic_trace(32 * 200, seed=11, coherence=32, divergence=0.3)
+    plain = run(trace, "persistent_while_while", 32)
+    spec = run(trace, "persistent_speculative_while_while", 32)
+    assert spec.simd_efficiency_traversal > plain.simd_efficiency_traversal
+    assert spec.executions["postpone"] > 0

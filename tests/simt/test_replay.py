@@ -1,0 +1,280 @@
+"""Replay engine: metrics and upper bound, streaming, determinism, merge, recost, bad input."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import pytest
+
+from kernels_ir.kernel_ir import BLOCKS, KernelIR
+from simt_sim.errors import SimtSimError
+from simt_sim.schemes import get_scheme, names
+from simt_sim.simt.engine import scan_trace
+from simt_sim.simt.gpus import GpuConfig, get_gpu
+from simt_sim.simt.replay import simulate_traces
+from simt_sim.simt.result import SimResult, merge
+from simt_sim.simt.synth import synthetic_trace, trace_from_lists
+from simt_sim.types.optrace import LEAF, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS, OpTrace
+
+TRACE_SCHEMES = names("trace")
+COSTS = {b: i + 1 for i, b in enumerate(BLOCKS)}
+INDEPENDENT = ("while_while", "if_if", "packet")
+
+
+def ir_for(scheme: str, scale: int = 1, arch: str = "sm_75") -> KernelIR:
+    return KernelIR(scheme, arch, {b: {"int": c * scale, "fp32": c % 3} for b, c in COSTS.items()})
+
+
+def gpu_for(warp_size: int = 32, resident_warps: int = 4) -> GpuConfig:
+    return GpuConfig("test", "test", 1, 1000.0, 1.0, warp_size, resident_warps, 0, 0, "sm_75", "")
+
+
+def split(trace: OpTrace, sizes: list[int]) -> list[OpTrace]:
+    """The trace cut into consecutive batches of the given ray counts."""
+    out, start = [], 0
+    for n in sizes:
+        o = trace.offsets[start : start + n + 1]
+        lo, hi = int(o[0]), int(o[-1])
+        hits = type(trace.hits)(trace.hits.tri[start : start + n], trace.hits.t[start : start + n])
+        out.append(
+            OpTrace(o - lo, trace.op[lo:hi], trace.addr[lo:hi], hits, trace.query, trace.ray_type)
+        )
+        start += n
+    assert start == trace.n_rays
+    return out
+
+
+def same(a: SimResult, b: SimResult) -> None:
+    assert np.array_equal(a.counts.executions, b.counts.executions)
+    assert np.array_equal(a.counts.active, b.counts.active)
+    assert np.array_equal(a.counts.hist, b.counts.hist)
+    assert a.rays == b.rays and (a.n_trav, a.n_leaf, a.n_tri) == (b.n_trav, b.n_leaf, b.n_tri)
+
+
+# ---- metrics -------------------------------------------------------------------------------
+def test_metrics_from_counters_by_hand() -> None:
+    ops = [[TRAV_ONE, LEAF, TRI_HIT], [TRAV_NONE]]
+    costs = {b: 0 for b in BLOCKS} | {"trav_step": 10, "trav_one": 1, "trav_none": 2}
+    costs |= {"leaf_entry": 4, "tri_test": 6, "tri_hit": 3}
+    ir = KernelIR("while_while", "sm_75", {b: {"int": c} for b, c in costs.items()})
+    gpu = GpuConfig("g", "g", 3, 1000.0, 2.0, 2, 1, 0, 0, "sm_75", "")
+    r = simulate_traces([trace_from_lists(ops)], get_scheme("while_while"), ir, gpu)
+    # trav_step 1x2 lanes, trav_one 1x1, trav_none 1x1, leaf 1x1, tri 1x1, hit 1x1
+    assert r.warp_instructions == 10 + 1 + 2 + 4 + 6 + 3
+    assert r.simd_efficiency_traversal == (20 + 1 + 2) / (2 * 13)
+    assert r.simd_efficiency_intersection == 0.5
+    assert r.simd_efficiency == (23 + 13) / (2 * 26)
+    assert r.active_lanes_hist.tolist() == [0, 16, 10]
+    assert r.mrays_upper == 2 * 3 * 1e9 * 2.0 / 26 / 1e6
+    assert r.block_instructions["trav_step"] == 10
+    assert r.blocks_table().loc["trav_step", "lane_instructions"] == 20
+    assert (r.mean_trav, r.mean_leaf, r.mean_tri) == (1.0, 0.5, 0.5)
+    row = r.to_row()
+    for key in (
+        "scene",
+        "ray_type",
+        "scheme",
+        "gpu",
+        "rays",
+        "simd_efficiency",
+        "simd_efficiency_traversal",
+        "simd_efficiency_intersection",
+        "warp_instructions",
+        "mrays_upper",
+    ):
+        assert key in row
+    assert row["gpu"] == "g" and row["rays"] == 2
+
+
+def test_upper_bound_on_gtx285() -> None:
+    """MRays/s = rays x SMs x clock x issue rate / warp instructions."""
+    trace = synthetic_trace(32 * 10, seed=1)
+    gpu = get_gpu("gtx285")
+    r = simulate_traces([trace], get_scheme("while_while"), ir_for("while_while"), gpu)
+    assert r.mrays_upper == pytest.approx(320 * 30 * 1476e6 * 0.5 / r.warp_instructions / 1e6)
+    assert r.model_card["gpu"]["sms"] == 30
+
+
+def test_partial_last_warp_counts_only_real_rays() -> None:
+    trace = synthetic_trace(32 * 3 + 5, seed=4)
+    r = simulate_traces([trace], get_scheme("while_while"), ir_for("while_while"), gpu_for())
+    assert r.rays == 101
+    assert r.executions["ray_setup"] == 4 and r.active_sum["ray_setup"] == 101
+    assert r.counts.hist[BLOCKS.index("finish")][5] == 1
+
+
+def test_scan_counts_match_optrace_counts() -> None:
+    trace = synthetic_trace(500, seed=3, query="any")
+    n_trav, n_leaf, n_tri, bad = scan_trace(trace.offsets, trace.op)
+    assert (n_trav, n_leaf, n_tri) == tuple(trace.counts().sum(axis=0)) and bad == -1
+
+
+# ---- streaming and determinism ---------------------------------------------------------------
+@pytest.mark.parametrize("scheme", list(TRACE_SCHEMES))
+def test_results_do_not_depend_on_batch_split(scheme: str) -> None:
+    trace = synthetic_trace(32 * 70 + 3, seed=8)
+    kw = {"launch_size": 32 * 20}
+    whole = simulate_traces([trace], get_scheme(scheme), ir_for(scheme), gpu_for(), **kw)
+    parts = simulate_traces(
+        split(trace, [32 * 5, 32 * 33, 32 * 32 + 3]),
+        get_scheme(scheme),
+        ir_for(scheme),
+        gpu_for(),
+        **kw,
+    )
+    same(whole, parts)
+    if whole.warp_totals is not None:
+        assert np.array_equal(whole.warp_totals, parts.warp_totals)
+        assert whole.makespan == parts.makespan
+    if scheme != "dynamic_fetch":  # launches cut elsewhere: only dynamic fetch's counts move
+        per_batch = simulate_traces(
+            split(trace, [32 * 5, 32 * 65 + 3]), get_scheme(scheme), ir_for(scheme), gpu_for()
+        )
+        same(whole, per_batch)
+        assert per_batch.model_card.get("launches", 2) == 2
+
+
+@pytest.mark.parametrize("scheme", list(TRACE_SCHEMES))
+def test_results_do_not_depend_on_thread_count(scheme: str) -> None:
+    trace = synthetic_trace(32 * 300, seed=6, coherence=32, divergence=0.3)
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = simulate_traces(
+            [trace], get_scheme(scheme), ir_for(scheme), gpu_for(resident_warps=60)
+        )
+        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+        two = simulate_traces(
+            [trace], get_scheme(scheme), ir_for(scheme), gpu_for(resident_warps=60)
+        )
+    finally:
+        numba.set_num_threads(before)
+    same(one, two)
+    assert one.warp_instructions == two.warp_instructions
+    if one.warp_totals is not None:
+        assert np.array_equal(one.warp_totals, two.warp_totals)
+
+
+def test_dynamic_fetch_depends_on_launch_size() -> None:
+    trace = synthetic_trace(32 * 64, seed=12)
+    ir = ir_for("dynamic_fetch")
+    big = simulate_traces([trace], get_scheme("dynamic_fetch"), ir, gpu_for(), launch_size=32 * 64)
+    small = simulate_traces([trace], get_scheme("dynamic_fetch"), ir, gpu_for(), launch_size=32 * 2)
+    assert big.model_card["launches"] == 1 and small.model_card["launches"] == 32
+    assert not np.array_equal(big.counts.hist, small.counts.hist)
+
+
+def test_persistent_schedule_is_ideal() -> None:
+    trace = synthetic_trace(32 * 50, seed=13)
+    r = simulate_traces(
+        [trace],
+        get_scheme("persistent_while_while"),
+        ir_for("persistent_while_while"),
+        gpu_for(resident_warps=4),
+    )
+    assert int(r.warp_totals.sum()) == r.warp_instructions
+    assert r.makespan == int(r.warp_totals.max())
+    assert 0 < r.warp_balance <= 1
+
+
+# ---- merge and recost ------------------------------------------------------------------------
+@pytest.mark.parametrize("scheme", ["while_while", "persistent_while_while", "dynamic_fetch"])
+def test_merge_sums_counters(scheme: str) -> None:
+    a, b = synthetic_trace(32 * 20, seed=1), synthetic_trace(32 * 30, seed=2)
+    ra = simulate_traces([a], get_scheme(scheme), ir_for(scheme), gpu_for(), scene="s")
+    rb = simulate_traces([b], get_scheme(scheme), ir_for(scheme), gpu_for(), scene="s")
+    both = simulate_traces([a, b], get_scheme(scheme), ir_for(scheme), gpu_for(), scene="s")
+    m = merge([ra, rb])
+    same(m, both)
+    assert m.warp_instructions == ra.warp_instructions + rb.warp_instructions
+    assert m.mrays_upper == pytest.approx(
+        m.rays * 1e9 / (ra.warp_instructions + rb.warp_instructions) / 1e6
+    )
+    assert m.scene == "s" and m.model_card["merged_results"] == 2
+    if m.warp_totals is not None:
+        assert np.array_equal(m.warp_totals, ra.warp_totals + rb.warp_totals)
+        assert m.makespan == ra.makespan + rb.makespan
+
+
+def test_merge_refuses_unlike_results() -> None:
+    t = synthetic_trace(64, seed=1)
+    ww = simulate_traces([t], get_scheme("while_while"), ir_for("while_while"), gpu_for())
+    ii = simulate_traces([t], get_scheme("if_if"), ir_for("if_if"), gpu_for())
+    with pytest.raises(SimtSimError, match="cannot merge"):
+        merge([ww, ii])
+    with pytest.raises(SimtSimError, match="different KernelIRs"):
+        merge([ww, ww.recost(ir_for("while_while", scale=2))])
+    with pytest.raises(SimtSimError, match="at least one"):
+        merge([])
+
+
+@pytest.mark.parametrize("scheme", [s for s in TRACE_SCHEMES if s != "dynamic_fetch"])
+def test_recost_equals_replay_with_the_other_ir(scheme: str) -> None:
+    trace = synthetic_trace(32 * 40, seed=3)
+    other = ir_for(scheme, scale=3, arch="sm_90")
+    recosted = simulate_traces([trace], get_scheme(scheme), ir_for(scheme), gpu_for()).recost(other)
+    direct = simulate_traces([trace], get_scheme(scheme), other, gpu_for())
+    same(recosted, direct)
+    assert recosted.warp_instructions == direct.warp_instructions
+    assert recosted.simd_efficiency == direct.simd_efficiency
+    assert recosted.model_card["ir_arch"] == "sm_90"
+    assert recosted.warp_totals is None
+
+
+def test_dynamic_fetch_refuses_recost() -> None:
+    r = simulate_traces(
+        [synthetic_trace(64, seed=1)],
+        get_scheme("dynamic_fetch"),
+        ir_for("dynamic_fetch"),
+        gpu_for(),
+    )
+    with pytest.raises(SimtSimError, match="cannot be re-costed"):
+        r.recost(ir_for("dynamic_fetch", scale=2))
+
+
+# ---- bad input ---------------------------------------------------------------------------
+def test_malformed_streams_are_refused() -> None:
+    bad = trace_from_lists([[TRAV_ONE, LEAF, TRI_MISS], [TRAV_ONE, TRI_HIT]])
+    with pytest.raises(SimtSimError, match="ray 1: malformed op stream \\(TRI_HIT at op 1"):
+        simulate_traces([bad], get_scheme("while_while"), ir_for("while_while"), gpu_for())
+    unknown = trace_from_lists([[TRAV_ONE, 9]])
+    with pytest.raises(SimtSimError, match="unknown op code 9"):
+        simulate_traces([unknown], get_scheme("if_if"), ir_for("if_if"), gpu_for())
+    first = trace_from_lists([[TRI_MISS]])
+    with pytest.raises(SimtSimError, match="ray 0"):
+        simulate_traces([first], get_scheme("packet"), ir_for("packet"), gpu_for())
+
+
+def test_bad_requests_say_what_to_do() -> None:
+    t = synthetic_trace(64, seed=1)
+    ir = ir_for("while_while")
+    with pytest.raises(SimtSimError, match="unknown scheme 'zigzag'.*while_while"):
+        simulate_traces([t], get_scheme("zigzag"), ir, gpu_for())
+    with pytest.raises(SimtSimError, match="KernelIR is for kernel 'while_while'"):
+        simulate_traces([t], get_scheme("if_if"), ir, gpu_for())
+    lacking = KernelIR("while_while", "sm_75", {"ray_setup": {"int": 1}})
+    with pytest.raises(SimtSimError, match="lacks block"):
+        simulate_traces([t], get_scheme("while_while"), lacking, gpu_for())
+    with pytest.raises(SimtSimError, match="launch_size"):
+        simulate_traces(
+            [t], get_scheme("dynamic_fetch"), ir_for("dynamic_fetch"), gpu_for(), launch_size=33
+        )
+    with pytest.raises(SimtSimError, match="threshold"):
+        simulate_traces(
+            [t], get_scheme("dynamic_fetch"), ir_for("dynamic_fetch"), gpu_for(), threshold=0
+        )
+    short, rest = split(synthetic_trace(64, seed=1), [20, 44])
+    with pytest.raises(SimtSimError, match="only the last batch may be partial"):
+        simulate_traces([short, rest], get_scheme("while_while"), ir, gpu_for())
+    ao = OpTrace(t.offsets, t.op, t.addr, t.hits, "any", "ao")
+    with pytest.raises(SimtSimError, match="mix ray types"):
+        simulate_traces([t, ao], get_scheme("while_while"), ir, gpu_for())
+
+
+def test_empty_input_gives_an_empty_result() -> None:
+    r = simulate_traces(
+        [trace_from_lists([[], []])], get_scheme("while_while"), ir_for("while_while"), gpu_for()
+    )
+    assert r.rays == 2 and r.executions["trav_step"] == 0
+    assert r.executions["ray_setup"] == r.executions["finish"] == 1
+    assert simulate_traces([], get_scheme("if_if"), ir_for("if_if"), gpu_for()).rays == 0
