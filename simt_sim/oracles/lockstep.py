@@ -737,6 +737,7 @@ def execute(
         g,
         approximations=(),
         recostable=scheme.recostable,
+        blocks=scheme.kernels[scheme.kernel],
         executor="exact lockstep execution over the BVH (simt_sim.oracles.lockstep)",
         **extra,
     )

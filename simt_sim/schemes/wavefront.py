@@ -167,6 +167,7 @@ def simulate_kernels(
             gpu,
             approximations=APPROXIMATIONS,
             recostable=True,
+            blocks=KERNEL_BLOCKS[k],
             launches=1 if k == "wavefront_generate" else pt.n_bounces,
         )
         out[k] = SimResult(

@@ -25,13 +25,15 @@ def model_card(
     *,
     approximations: Sequence[str],
     recostable: bool,
+    blocks: Sequence[str] = (),
     **extra: Any,
 ) -> dict[str, Any]:
     """The card of a result of ``scheme`` costed with ``irs`` on ``gpu``.
 
     ``ir_kernel``, ``ir_arch`` and ``ir_compiler`` join the IRs' values (one each for a
-    one-kernel scheme); ``ir_arch_note`` says when the IR is not the GPU's own; ``extra``
-    entries follow in the order given.
+    one-kernel scheme); ``ir_blocks`` are the blocks the replay charges, which an IR the
+    result is re-costed with must have (``blocks``); ``ir_arch_note`` says when the IR is
+    not the GPU's own; ``extra`` entries follow in the order given.
     """
     card: dict[str, Any] = {
         "scheme": scheme,
@@ -42,6 +44,7 @@ def model_card(
         "ir_arch": _joined([ir.arch for ir in irs]),
         "ir_compiler": _joined([ir.compiler for ir in irs]),
         "recostable": recostable,
+        "ir_blocks": list(blocks),
     }
     foreign = _joined([ir.arch for ir in irs if ir.arch != gpu.ir_arch])
     if foreign:

@@ -190,6 +190,7 @@ def simulate_traces(
         gpu,
         approximations=scheme.approximations,
         recostable=scheme.recostable,
+        blocks=scheme.kernels[scheme.kernel],
         **extra,
         **values,
     )
@@ -269,6 +270,7 @@ def simulate_paths(
         gpu,
         approximations=out.approximations,
         recostable=out.recostable,
+        blocks=scheme.kernels[scheme.kernel] if out.recostable else (),
         **values,
         **out.card,
         **path_card(pt),

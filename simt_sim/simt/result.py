@@ -200,17 +200,19 @@ class SimResult:
         """The same counts costed with another KernelIR of the same kernel, without replaying.
 
         Valid for every result whose card says ``recostable`` (all schemes but dynamic
-        fetch, whose pool order follows the costs). The IR must have every block the counts
-        charged. The per-warp totals of persistent schemes follow the costs too, so they
-        are dropped.
+        fetch, whose pool order follows the costs). The IR must have the blocks the card's
+        ``ir_blocks`` name; a block it lacks otherwise costs nothing (as ``trav_diverged``
+        on a GPU without a divergent-warp fallback). The per-warp totals of persistent
+        schemes follow the costs too, so they are dropped.
         """
         if not self.model_card.get("recostable", False):
             raise SimtSimError(
                 f"{self.scheme} results cannot be re-costed (its schedule depends on the block "
                 "costs); replay it again with the new KernelIR"
             )
-        charged = [b for b, n in zip(BLOCKS, self.counts.executions, strict=True) if n]
-        check_ir(ir, self.model_card.get("ir_kernel", self.scheme), charged)
+        check_ir(
+            ir, self.model_card.get("ir_kernel", self.scheme), self.model_card.get("ir_blocks", ())
+        )
         c = self.counts
         counts = Counts(c.executions, c.active, c.hist, None, 0)
         card = dict(self.model_card)

@@ -6,6 +6,7 @@ import numba
 import numpy as np
 import pytest
 
+import kernels_ir
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
 from simt_sim.errors import SimtSimError
 from simt_sim.schemes import get_scheme, names
@@ -219,6 +220,21 @@ def test_recost_equals_replay_with_the_other_ir(scheme: str) -> None:
     assert recosted.simd_efficiency == direct.simd_efficiency
     assert recosted.model_card["ir_arch"] == "sm_90"
     assert recosted.warp_totals is None
+
+
+def test_recost_to_a_target_without_the_divergent_fallback() -> None:
+    """sm_75 speculative code has a divergent-warp fallback (trav_diverged), sm_90 code has
+    none: re-costed with sm_90's IR, those executions cost nothing, as replaying does."""
+    spec = get_scheme("persistent_speculative_while_while")
+    trace = synthetic_trace(32 * 40, seed=3, coherence=32, divergence=0.3)
+    sm75, sm90 = (kernels_ir.load(spec.kernel, arch) for arch in ("sm_75", "sm_90"))
+    assert sm75.cost("trav_diverged") > 0 and "trav_diverged" not in sm90.blocks
+    old = simulate_traces([trace], spec, sm75, gpu_for())
+    assert old.executions["trav_diverged"] > 0
+    recosted = old.recost(sm90)
+    direct = simulate_traces([trace], spec, sm90, gpu_for())
+    assert recosted.warp_instructions == direct.warp_instructions
+    assert recosted.block_instructions["trav_diverged"] == 0
 
 
 def test_dynamic_fetch_refuses_recost() -> None:
