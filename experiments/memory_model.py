@@ -28,11 +28,10 @@ import pandas as pd
 import kernels_ir
 from simt_sim.report.tables import FORMATS, emit
 from simt_sim.schemes import get_scheme
+from simt_sim.simt.footprint import decide, footprint_bytes
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.memory import (
     MemoryCounts,
-    decide,
-    footprint_bytes,
     memory_columns,
     memory_counts,
 )

@@ -18,8 +18,8 @@ from kernels_ir.errors import KernelIRError
 from simt_sim.errors import SimtSimError
 from simt_sim.report.tables import DETAIL_COLUMNS, FORMATS, emit
 from simt_sim.scene.load import DEFAULT_SCENE
+from simt_sim.simt.footprint import MODES as MEMORY_MODES
 from simt_sim.simt.gpus import DEFAULT_GPU
-from simt_sim.simt.memory import MODES as MEMORY_MODES
 
 
 class _Parser(argparse.ArgumentParser):

@@ -42,21 +42,19 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
-from simt_sim.bvh.layout import NODE_BYTES, WOOP_FLOAT4_PER_TRI
+from simt_sim.bvh.layout import FLOAT4_BYTES, NODE_BYTES, WOOP_FLOAT4_PER_TRI
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.engine import MAX_MASK_LANES, N_CHUNKS, chunk_bounds, scan_trace
 from simt_sim.simt.gpus import GpuConfig
 from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS, OpTrace
 
 LINE_BYTES = 128
-FLOAT4_BYTES = 16
 TRI_BYTES = WOOP_FLOAT4_PER_TRI * FLOAT4_BYTES
 SENTINEL_BYTES = FLOAT4_BYTES
 #: DRAM bytes per ray outside the scene: origin and direction float4 in, hit index and t out
 RAY_IO_BYTES = 2 * FLOAT4_BYTES + 4 + 4
 #: associativity of the modelled L1 and L2
 CACHE_WAYS = 16
-MODES = ("auto", "on", "off")
 
 # per-warp counter columns written by the walker
 _NODE_FETCH, _TRI_FETCH, _SENT_FETCH, _NODE_STEPS, _TRI_STEPS, _NODE_LINES, _TRI_LINES = range(7)
@@ -134,45 +132,6 @@ class MemoryCounts:
             if f.name != "cache_gpu"
         }
         return MemoryCounts(cache_gpu=gpu, **summed)
-
-
-def footprint_bytes(n_nodes: int, n_woop_float4: int) -> int:
-    """Scene bytes a traversal can read: BVH nodes plus Woop triangles (with sentinels)."""
-    if n_nodes < 0 or n_woop_float4 < 0:
-        raise SimtSimError(
-            f"footprint needs non-negative sizes, got {n_nodes} nodes and "
-            f"{n_woop_float4} float4; pass bvh.nodes.shape[0] and bvh.woop.shape[0]"
-        )
-    return NODE_BYTES * int(n_nodes) + FLOAT4_BYTES * int(n_woop_float4)
-
-
-def _size(n: float) -> str:
-    for unit, scale in (("MiB", 2**20), ("KiB", 2**10)):
-        if n >= scale:
-            return f"{n / scale:.1f} {unit}"
-    return f"{n:.0f} B"
-
-
-def decide(mode: str, footprint: int, gpu: GpuConfig) -> tuple[bool, str]:
-    """Whether the memory model applies, and why (a sentence for the model card).
-
-    ``auto`` turns it on when the scene's footprint exceeds the GPU's L2 (memory then
-    cannot be free); ``on`` and ``off`` force it.
-    """
-    if mode not in MODES:
-        raise SimtSimError(f"memory model mode {mode!r} is unknown; use one of {', '.join(MODES)}")
-    if footprint < 0:
-        raise SimtSimError(f"scene footprint must be >= 0 bytes, got {footprint}")
-    l2 = gpu.l2_kib * 1024
-    size = f"scene footprint {_size(footprint)} (BVH nodes + Woop triangles)"
-    cache = f"the {gpu.id} L2 of {_size(l2)}"
-    if mode == "on":
-        return True, f"memory model forced on; {size}, {cache}"
-    if mode == "off":
-        return False, f"memory model forced off (memory is free); {size}, {cache}"
-    if footprint > l2:
-        return True, f"memory model on (auto): {size} exceeds {cache}"
-    return False, f"memory model off (auto): {size} fits in {cache}; memory is free"
 
 
 # ---- the walker: while-while warp steps of one warp --------------------------------------

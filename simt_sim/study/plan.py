@@ -18,8 +18,8 @@ from simt_sim.bvh.build import build_bvh
 from simt_sim.bvh.layout import BVH
 from simt_sim.errors import SimtSimError
 from simt_sim.scene.load import load_scene
+from simt_sim.simt.footprint import decide, footprint_bytes
 from simt_sim.simt.gpus import GpuConfig, get_gpu
-from simt_sim.simt.memory import decide, footprint_bytes
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
 from simt_sim.study.spec import StudySpec
 from simt_sim.study.workload import Workload, make_workload, parse_cameras

@@ -14,8 +14,8 @@ from simt_sim import schemes
 from simt_sim.errors import SimtSimError
 from simt_sim.rays.generate import LAUNCH_SIZE
 from simt_sim.scene.load import DEFAULT_SCENE
+from simt_sim.simt.footprint import MODES as MEMORY_MODES
 from simt_sim.simt.gpus import DEFAULT_GPU
-from simt_sim.simt.memory import MODES as MEMORY_MODES
 from simt_sim.study.sampling import check_fraction
 from simt_sim.types.raybatch import RAY_TYPES, TRACE_RAY_TYPES
 

@@ -14,12 +14,11 @@ from kernels_ir.kernel_ir import BLOCKS, KernelIR
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.lockstep import execute
 from simt_sim.schemes import get_scheme
+from simt_sim.simt.footprint import decide, footprint_bytes
 from simt_sim.simt.gpus import get_gpu, load_gpus
 from simt_sim.simt.memory import (
     RAY_IO_BYTES,
     MemoryCounts,
-    decide,
-    footprint_bytes,
     memory_columns,
     memory_counts,
 )
