@@ -203,8 +203,6 @@ def cmd_table(args: argparse.Namespace) -> int:
     from simt_sim.study.run import run_study
     from simt_sim.study.sampling import check_fraction
 
-    if args.spp < 1:
-        raise SimtSimError(f"--spp must be at least 1, got {args.spp}")
     spec = _spec(
         args,
         cameras=args.camera,
