@@ -83,6 +83,7 @@ from simt_sim.simt.engine import (
     TRI_TEST,
     Counts,
     charge,
+    class_mix,
     cost_vector,
     schedule_groups,
 )
@@ -751,6 +752,7 @@ def execute(
         warp_size=g.warp_size,
         counts=counts,
         costs=costs,
+        mix=class_mix(counts.executions, ir),
         n_trav=int(n_ops[_C_TRAV]),
         n_leaf=int(n_ops[_C_LEAF]),
         n_tri=int(n_ops[_C_TRI]),

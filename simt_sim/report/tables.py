@@ -12,10 +12,14 @@ from simt_sim.errors import SimtSimError
 
 FORMATS = ("md", "csv", "json")
 #: columns the terminal (markdown) table leaves out; CSV and JSON keep them: the load
-#: balance, the IR's architecture and the memory model's detail
+#: balance, the IR's architecture, the roofline's separate limits (the table shows the
+#: lowest, ``mrays_upper``, and its ``limit``) and the memory model's detail
 DETAIL_COLUMNS = (
     "makespan",
     "ir_arch",
+    "issue_bound",
+    "pipe_bound",
+    "busiest_pipe",
     "lines_per_warp_step",
     "line_bytes_per_ray",
     "working_set_kib",

@@ -53,6 +53,7 @@ from simt_sim.simt.engine import (
     check_warp_size,
     chunk_bounds,
     chunk_counts,
+    class_mix,
     cost_vector,
 )
 from simt_sim.simt.gpus import GpuConfig
@@ -259,7 +260,10 @@ def replay_paths(
     costs = cost_vector(irs["megakernel"])
     counts = path_counts(pt, costs, gpu.warp_size, order=order)
     n_trav, n_leaf, n_tri = replayed_ops(counts)
-    return PathReplay(counts, costs, n_trav, n_leaf, n_tri, APPROXIMATIONS[order], recostable=True)
+    mix = class_mix(counts.executions, irs["megakernel"])
+    return PathReplay(
+        counts, costs, mix, n_trav, n_leaf, n_tri, APPROXIMATIONS[order], recostable=True
+    )
 
 
 SCHEME = SchemeInfo(

@@ -44,6 +44,7 @@ from simt_sim.simt.engine import (
     check_warp_size,
     chunk_bounds,
     chunk_counts,
+    class_mix,
     cost_vector,
     empty_counts,
 )
@@ -173,6 +174,7 @@ def simulate_kernels(
         out[k] = SimResult(
             scene=scene, ray_type="path", scheme=k, gpu=gpu, rays=int(rays),
             warp_size=gpu.warp_size, counts=counts[k], costs=costs[k],
+            mix=class_mix(counts[k].executions, ir),
             n_trav=int(ops[0]), n_leaf=int(ops[1]), n_tri=int(ops[2]), model_card=card,
         )  # fmt: skip
     return out
@@ -198,6 +200,7 @@ def replay_paths(pt: PathTrace, irs: dict[str, KernelIR], gpu: GpuConfig) -> Pat
     return PathReplay(
         total,
         np.ones(N_BLOCKS, np.int64),
+        sum(r.mix for r in kernels.values()),
         ext.n_trav + con.n_trav,
         ext.n_leaf + con.n_leaf,
         ext.n_tri + con.n_tri,

@@ -33,7 +33,9 @@ def model_card(
     ``ir_kernel``, ``ir_arch`` and ``ir_compiler`` join the IRs' values (one each for a
     one-kernel scheme); ``ir_blocks`` are the blocks the replay charges, which an IR the
     result is re-costed with must have (``blocks``); ``ir_arch_note`` says when the IR is
-    not the GPU's own; ``extra`` entries follow in the order given.
+    not the GPU's own; ``bounds_in_force`` names the roofline's limits (issue and pipe; a
+    study adds bandwidth where the memory model runs); ``extra`` entries follow in the
+    order given.
     """
     card: dict[str, Any] = {
         "scheme": scheme,
@@ -45,6 +47,7 @@ def model_card(
         "ir_compiler": _joined([ir.compiler for ir in irs]),
         "recostable": recostable,
         "ir_blocks": list(blocks),
+        "bounds_in_force": ["issue", "pipe"],
     }
     foreign = _joined([ir.arch for ir in irs if ir.arch != gpu.ir_arch])
     if foreign:

@@ -22,7 +22,7 @@ from llvmlite import ir as llvm_ir
 from numba import njit, prange, types
 from numba.extending import intrinsic
 
-from kernels_ir.kernel_ir import BLOCKS, KernelIR
+from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR
 from simt_sim.errors import SimtSimError
 from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS, OpTrace
 
@@ -162,6 +162,20 @@ def empty_counts(warp_size: int, resident_warps: int | None) -> Counts:
 def cost_vector(ir: KernelIR) -> np.ndarray:
     """Instructions per block in ``BLOCKS`` order (int64), as the numba kernels take them."""
     return np.array([ir.cost(b) for b in BLOCKS], dtype=np.int64)
+
+
+def class_costs(ir: KernelIR) -> np.ndarray:
+    """Instructions per block execution by class: (N_BLOCKS, N_CLASSES) int64, ``BLOCKS``
+    by ``CLASSES``; its rows sum to :func:`cost_vector`."""
+    return np.array(
+        [[ir.blocks.get(b, {}).get(c, 0) for c in CLASSES] for b in BLOCKS], dtype=np.int64
+    )
+
+
+def class_mix(executions: np.ndarray, ir: KernelIR) -> np.ndarray:
+    """Warp instructions issued by class (N_CLASSES int64) for block ``executions``: what
+    the pipe bound divides by each pipe's rate."""
+    return np.asarray(executions, np.int64) @ class_costs(ir)
 
 
 def chunk_counts(cnt: np.ndarray, hist: np.ndarray) -> Counts:

@@ -20,27 +20,63 @@ from simt_sim.errors import SimtSimError
 #: paper's GTX 285
 DEFAULT_GPU = "gtx285"
 
+#: the pipes of an SM the pipe bound counts, each with the KernelIR instruction classes it
+#: executes. ``fp32_int`` is the lanes fp32 and int instructions share where one set of
+#: cores runs both (Fermi, Kepler, GA10x/Ada); ``ld_st`` the load/store units, which serve
+#: global, local and shared memory. Control and "other" instructions are bounded by issue.
+PIPES: dict[str, tuple[str, ...]] = {
+    "fp32": ("fp32",),
+    "int": ("int",),
+    "fp32_int": ("fp32", "int"),
+    "sfu": ("sfu",),
+    "ld_st": ("ld_global", "st_global", "local", "shared"),
+    "vote_atomic": ("vote_atomic",),
+}
+
+#: the clocks a GPU's rates may be counted at: the shader clock of Tesla and Fermi, at
+#: which a lane retires one result per clock, or the SM clock of Kepler and later
+CLOCKS = ("shader", "sm")
+
+#: relative tolerance between a GPU's lanes x clock and its published peak FP32 rate
+PEAK_TOLERANCE = 0.01
+
 _FIELDS: dict[str, type | tuple[type, ...]] = {
     "id": str,
     "name": str,
     "sms": int,
     "clock_mhz": (int, float),
-    "issue_rate": (int, float),
+    "clock": str,
+    "schedulers": int,
+    "dispatch": (int, float),
+    "lanes": dict,
+    "fp32_fma_lanes": int,
+    "peak_fp32_gflops": (int, float),
     "warp_size": int,
+    "max_blocks_per_sm": int,
+    "max_warps_per_sm": int,
+    "registers_per_sm": int,
+    "register_unit": int,
+    "shared_kib_per_sm": (int, float),
     "resident_warps_per_sm": int,
     "l1_kib": int,
     "l2_kib": int,
     "dram_gbps": (int, float),
+    "arch": str,
     "ir_arch": str,
     "source": str,
 }
 
-_FLOAT_FIELDS = ("clock_mhz", "issue_rate", "dram_gbps")
+_FLOAT_FIELDS = ("clock_mhz", "dispatch", "peak_fp32_gflops", "shared_kib_per_sm", "dram_gbps")
+_POSITIVE = (
+    "sms", "clock_mhz", "schedulers", "dispatch", "fp32_fma_lanes", "peak_fp32_gflops",
+    "warp_size", "max_blocks_per_sm", "max_warps_per_sm", "registers_per_sm", "register_unit",
+    "resident_warps_per_sm", "dram_gbps",
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
 class GpuConfig:
-    """One GPU as the SIMT model sees it.
+    """One GPU as the SIMT model sees it: what bounds its issue, its pipes, its occupancy.
 
     Attributes
     ----------
@@ -49,18 +85,39 @@ class GpuConfig:
     sms : int
         Streaming multiprocessors.
     clock_mhz : float
-        Clock that warp instructions issue at (the shader clock on GT200 and Fermi).
-    issue_rate : float
-        Warp instructions issued per SM per clock under ideal scheduling.
+        The clock every rate below is counted at (``clock``: the shader clock on Tesla and
+        Fermi, the SM clock on Kepler and later).
+    schedulers : int
+        Warp schedulers per SM.
+    dispatch : float
+        Warp instructions one scheduler issues per clock at best: 0.5 on GT200 (one every
+        two clocks, alternating between the SPs and the SFUs: the MAD+MUL dual issue the
+        paper assumed) and on Fermi (a warp instruction takes two clocks on 16 lanes), 2 on
+        Kepler (dual issue), 1 on Maxwell and later.
+    lanes : tuple of (pipe, int)
+        Results per SM per clock of each pipe in :data:`PIPES` the source gives (the
+        fastest instruction of the class, so the pipe bound stays a bound); a pipe left out
+        is limited by issue alone.
+    fp32_fma_lanes : int
+        FP32 lanes that fuse a multiply-add (2 flops); the others of ``lanes["fp32"]``
+        multiply only (GT200's SFUs).
+    peak_fp32_gflops : float
+        The published peak FP32 rate, which lanes x clock must reproduce.
     warp_size : int
         Lanes per warp.
+    max_blocks_per_sm, max_warps_per_sm, registers_per_sm, register_unit, shared_kib_per_sm
+        Occupancy limits: resident blocks and warps, 32-bit registers, the registers a
+        warp's allocation is rounded up to, shared memory (KiB).
     resident_warps_per_sm : int
-        Warps a persistent launch keeps resident per SM.
+        Warps per SM a persistent launch keeps when the kernel's own occupancy is not known
+        (the IR is another architecture's code), and the memory model's resident set.
     l1_kib, l2_kib : int
         Data cache sizes (per SM, per GPU) for the optional memory model.
     dram_gbps : float
-        DRAM bandwidth in GB/s (10^9 bytes/s), the optional memory model's bandwidth
-        bound; NaN (unknown) for a config built in code without it.
+        DRAM bandwidth in GB/s (10^9 bytes/s), the bandwidth bound.
+    arch : str
+        The GPU's own architecture (``sm_13`` for GT200): where a KernelIR is of this
+        architecture, its registers give the kernel's occupancy.
     ir_arch : str
         Architecture of the KernelIR the GPU is costed with.
     source : str
@@ -71,27 +128,79 @@ class GpuConfig:
     name: str
     sms: int
     clock_mhz: float
-    issue_rate: float
+    clock: str
+    schedulers: int
+    dispatch: float
+    lanes: tuple[tuple[str, int], ...]
+    fp32_fma_lanes: int
+    peak_fp32_gflops: float
     warp_size: int
+    max_blocks_per_sm: int
+    max_warps_per_sm: int
+    registers_per_sm: int
+    register_unit: int
+    shared_kib_per_sm: float
     resident_warps_per_sm: int
     l1_kib: int
     l2_kib: int
+    dram_gbps: float
+    arch: str
     ir_arch: str
     source: str
-    dram_gbps: float = float("nan")
 
     @property
     def clock_hz(self) -> float:
         return self.clock_mhz * 1e6
 
     @property
+    def issue_rate(self) -> float:
+        """Warp instructions an SM issues per clock at best (schedulers x dispatch)."""
+        return self.schedulers * self.dispatch
+
+    def pipe_rates(self) -> dict[str, float]:
+        """Warp instructions per SM per clock of each pipe the GPU's figures give."""
+        return {p: n / self.warp_size for p, n in self.lanes}
+
+    @property
+    def lanes_peak_gflops(self) -> float:
+        """Peak FP32 GFLOPS from the lanes: 2 flops per FMA lane, 1 per multiply-only lane."""
+        fp32 = dict(self.lanes)["fp32"]
+        per_clock = 2 * self.fp32_fma_lanes + (fp32 - self.fp32_fma_lanes)
+        return per_clock * self.sms * self.clock_mhz / 1e3
+
+    @property
     def resident_warps(self) -> int:
-        """Warps a persistent launch keeps busy on the whole GPU (720 on GTX 285)."""
+        """Warps a persistent launch keeps on the whole GPU when the kernel's own occupancy
+        is not known (720 on GTX 285, the paper's launch)."""
         return self.sms * self.resident_warps_per_sm
 
     def figures(self) -> dict[str, Any]:
-        """The figures as a plain dict (for model cards and tables)."""
-        return {name: getattr(self, name) for name in _FIELDS}
+        """The figures as a plain dict (for model cards and tables), ``issue_rate`` added
+        and the lanes flattened (``lanes_fp32`` ...)."""
+        out: dict[str, Any] = {}
+        for name in _FIELDS:
+            if name == "lanes":
+                lanes = dict(self.lanes)
+                out.update({f"lanes_{p}": lanes.get(p) for p in PIPES})
+            else:
+                out[name] = getattr(self, name)
+            if name == "dispatch":
+                out["issue_rate"] = self.issue_rate
+        return out
+
+
+def _lanes(value: dict, label: str) -> tuple[tuple[str, int], ...]:
+    unknown = sorted(set(value) - set(PIPES))
+    if unknown:
+        raise SimtSimError(
+            f"{label}: unknown pipe(s) {', '.join(unknown)} in lanes; allowed: {', '.join(PIPES)}"
+        )
+    if "fp32" not in value:
+        raise SimtSimError(f"{label}: lanes needs fp32 (the FP32 lanes per SM); add it")
+    for pipe, n in value.items():
+        if isinstance(n, bool) or not isinstance(n, int) or n <= 0:
+            raise SimtSimError(f"{label}: lanes.{pipe} must be a positive integer, got {n!r}")
+    return tuple((p, value[p]) for p in PIPES if p in value)
 
 
 def _parse(entry: Any, where: str) -> GpuConfig:
@@ -111,20 +220,26 @@ def _parse(entry: Any, where: str) -> GpuConfig:
         value = entry[key]
         if isinstance(value, bool) or not isinstance(value, kind):
             raise SimtSimError(f"{label}: field {key} has the wrong type ({value!r}); fix it")
-    for key in (
-        "sms",
-        "clock_mhz",
-        "issue_rate",
-        "warp_size",
-        "resident_warps_per_sm",
-        "dram_gbps",
-    ):
+    for key in _POSITIVE:
         if not 0 < entry[key] < math.inf:
             raise SimtSimError(f"{label}: field {key} must be positive, got {entry[key]!r}")
-    for key in ("l1_kib", "l2_kib"):
+    for key in ("l1_kib", "l2_kib", "shared_kib_per_sm"):
         if entry[key] < 0:
             raise SimtSimError(f"{label}: field {key} must be >= 0, got {entry[key]!r}")
-    return GpuConfig(**{k: float(entry[k]) if k in _FLOAT_FIELDS else entry[k] for k in _FIELDS})
+    if entry["clock"] not in CLOCKS:
+        raise SimtSimError(f"{label}: clock must be one of {', '.join(CLOCKS)}")
+    values = {k: float(entry[k]) if k in _FLOAT_FIELDS else entry[k] for k in _FIELDS}
+    values["lanes"] = _lanes(entry["lanes"], label)
+    gpu = GpuConfig(**values)
+    if not gpu.fp32_fma_lanes <= entry["lanes"]["fp32"]:
+        raise SimtSimError(f"{label}: fp32_fma_lanes exceeds lanes.fp32; fix one of them")
+    peak = gpu.lanes_peak_gflops
+    if abs(peak - gpu.peak_fp32_gflops) > PEAK_TOLERANCE * gpu.peak_fp32_gflops:
+        raise SimtSimError(
+            f"{label}: lanes x SMs x clock give {peak:.1f} GFLOPS but peak_fp32_gflops is "
+            f"{gpu.peak_fp32_gflops:g}; check lanes, fp32_fma_lanes, sms and clock_mhz"
+        )
+    return gpu
 
 
 def _read(text: str, where: str) -> dict[str, GpuConfig]:
@@ -173,3 +288,29 @@ def get_gpu(gpu_id: str, extra: Path | None = None) -> GpuConfig:
     if gpu_id not in gpus:
         raise SimtSimError(f"unknown GPU {gpu_id!r}; known GPUs: {', '.join(gpus)}")
     return gpus[gpu_id]
+
+
+def issue_limited(
+    gpu_id: str,
+    *,
+    sms: int,
+    clock_mhz: float,
+    issue_rate: float,
+    warp_size: int = 32,
+    resident_warps_per_sm: int = 1,
+    ir_arch: str = "sm_75",
+) -> GpuConfig:
+    """A GPU built in code whose only limit is issue: one scheduler issuing ``issue_rate``
+    warp instructions per clock, FP32 lanes to match (so no pipe binds before issue), no
+    caches, no known bandwidth, no architecture of its own (persistent launches keep
+    ``resident_warps_per_sm``). For hand-worked examples and tests."""
+    lanes = max(1, round(issue_rate * warp_size))
+    return GpuConfig(
+        id=gpu_id, name=gpu_id, sms=sms, clock_mhz=float(clock_mhz), clock="sm",
+        schedulers=1, dispatch=float(issue_rate), lanes=(("fp32", lanes),),
+        fp32_fma_lanes=lanes, peak_fp32_gflops=2 * lanes * sms * clock_mhz / 1e3,
+        warp_size=warp_size, max_blocks_per_sm=resident_warps_per_sm,
+        max_warps_per_sm=resident_warps_per_sm, registers_per_sm=65536, register_unit=256,
+        shared_kib_per_sm=0.0, resident_warps_per_sm=resident_warps_per_sm, l1_kib=0,
+        l2_kib=0, dram_gbps=math.nan, arch="", ir_arch=ir_arch, source="built in code",
+    )  # fmt: skip

@@ -480,7 +480,7 @@ def memory_columns(counts: MemoryCounts, gpu: GpuConfig, on: bool) -> dict[str, 
     ``lines_per_warp_step`` (distinct 128-byte lines per step), ``line_bytes_per_ray``
     (bytes of those lines: what the L1 serves), ``working_set_kib`` (distinct lines per
     resident set), ``l1_hit_rate``, ``l2_hit_rate``, ``dram_bytes_per_ray`` (L2 misses plus
-    :data:`RAY_IO_BYTES`) and ``mrays_bandwidth`` (DRAM bandwidth / DRAM bytes per ray).
+    :data:`RAY_IO_BYTES`) and ``bandwidth_bound`` (DRAM bandwidth / DRAM bytes per ray).
     """
     c = counts
     cols: dict[str, Any] = {
@@ -491,7 +491,7 @@ def memory_columns(counts: MemoryCounts, gpu: GpuConfig, on: bool) -> dict[str, 
     }
     nan = math.nan
     cached = {k: nan for k in ("working_set_kib", "l1_hit_rate", "l2_hit_rate")}
-    cached.update(dram_bytes_per_ray=nan, mrays_bandwidth=nan)
+    cached.update(dram_bytes_per_ray=nan, bandwidth_bound=nan)
     if on and c.rays:
         if c.cache_gpu != gpu.id:
             raise SimtSimError(
@@ -505,7 +505,7 @@ def memory_columns(counts: MemoryCounts, gpu: GpuConfig, on: bool) -> dict[str, 
             l1_hit_rate=1.0 - _ratio(c.l1_misses, c.lines),
             l2_hit_rate=1.0 - _ratio(c.l2_misses, c.l1_misses),
             dram_bytes_per_ray=dram,
-            mrays_bandwidth=gpu.dram_gbps * 1e9 / dram / 1e6,
+            bandwidth_bound=gpu.dram_gbps * 1e9 / dram / 1e6,
         )
     cols.update(cached)
     return cols

@@ -28,12 +28,14 @@ from simt_sim.simt.engine import (
     Counts,
     ReplayParams,
     check_warp_size,
+    class_mix,
     cost_vector,
     empty_counts,
     replay_arrays,
     scan_trace,
 )
 from simt_sim.simt.gpus import GpuConfig
+from simt_sim.simt.occupancy import kernel_occupancy
 from simt_sim.simt.result import SimResult, check_ir, merge
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
 from simt_sim.types.optrace import OP_NAMES, OpTrace
@@ -116,7 +118,8 @@ def simulate_traces(
         Persistent schemes: rays per launch (a multiple of the warp size); default: each
         batch is one launch. Only dynamic fetch's counters depend on it.
     resident_warps : int, optional
-        Persistent schemes: override ``gpu.resident_warps`` (SMs x warps per SM).
+        Persistent schemes: override the resident warps (default: SMs x the kernel's
+        occupancy, :func:`~simt_sim.simt.occupancy.kernel_occupancy`).
     **params
         The scheme's own parameters (``scheme.params``: dynamic fetch's ``threshold``).
     """
@@ -125,7 +128,8 @@ def simulate_traces(
     values = scheme.with_params(params)
     w = gpu.warp_size
     check_warp_size(w)
-    r = gpu.resident_warps if resident_warps is None else resident_warps
+    occupancy = kernel_occupancy(gpu, ir, scheme.launch)
+    r = gpu.sms * occupancy.warps_per_sm if resident_warps is None else resident_warps
     if r < 1:
         raise SimtSimError(f"resident_warps must be >= 1, got {r}")
     if launch_size is not None and (launch_size < 1 or launch_size % w):
@@ -181,6 +185,7 @@ def simulate_traces(
     if scheme.persistent:
         extra.update(
             resident_warps=r,
+            **(occupancy.card() if resident_warps is None else {}),
             launch_size=launch_size if launch_size is not None else "one launch per batch",
             launches=launches,
         )
@@ -203,6 +208,7 @@ def simulate_traces(
         warp_size=w,
         counts=counts,
         costs=costs,
+        mix=class_mix(counts.executions, ir),
         n_trav=int(totals[0]),
         n_leaf=int(totals[1]),
         n_tri=int(totals[2]),
@@ -220,6 +226,8 @@ class PathReplay:
     costs : int64 (N_BLOCKS,)
         Instructions per block execution the counts are costed with (unit costs where the
         counts are already instructions, as the wavefront's sum over its kernels).
+    mix : int64 (N_CLASSES,)
+        Warp instructions issued by instruction class (summed over the kernels).
     n_trav, n_leaf, n_tri : int
         Ops replayed, by kind.
     approximations : tuple of str
@@ -230,6 +238,7 @@ class PathReplay:
 
     counts: Counts
     costs: np.ndarray
+    mix: np.ndarray
     n_trav: int
     n_leaf: int
     n_tri: int
@@ -284,6 +293,7 @@ def simulate_paths(
         warp_size=gpu.warp_size,
         counts=out.counts,
         costs=out.costs,
+        mix=out.mix,
         n_trav=out.n_trav,
         n_leaf=out.n_leaf,
         n_tri=out.n_tri,

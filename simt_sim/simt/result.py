@@ -16,9 +16,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from kernels_ir.kernel_ir import BLOCKS, KernelIR
+from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR
 from simt_sim.errors import SimtSimError
-from simt_sim.simt.engine import Counts, cost_vector
+from simt_sim.simt.bounds import issue_bound, pipe_bound, roofline
+from simt_sim.simt.engine import Counts, class_mix, cost_vector
 from simt_sim.simt.gpus import GpuConfig
 
 TRAVERSAL_BLOCKS = ("trav_step", "trav_none", "trav_one", "trav_both", "trav_diverged")
@@ -55,10 +56,16 @@ class SimResult:
         Integer counters per block in ``BLOCKS`` order (see ``engine.Counts``).
     costs : int64 (N_BLOCKS,)
         Instructions per block execution the counts are costed with.
+    mix : int64 (N_CLASSES,)
+        Warp instructions issued by instruction class (``kernels_ir.CLASSES``); sums to
+        ``warp_instructions``. The pipe bound divides it by the GPU's pipe rates.
     n_trav, n_leaf, n_tri : int
         Ops in the replayed traces, by kind (all rays).
     model_card : dict
         Scheme, approximations in force, GPU figures, IR, launch parameters.
+    bandwidth_bound : float
+        The memory model's bandwidth bound, NaN where the model is off (a study sets it
+        from the memory counts of the result's rays).
     """
 
     scene: str
@@ -69,10 +76,19 @@ class SimResult:
     warp_size: int
     counts: Counts
     costs: np.ndarray
+    mix: np.ndarray
     n_trav: int
     n_leaf: int
     n_tri: int
     model_card: dict[str, Any] = field(default_factory=dict)
+    bandwidth_bound: float = float("nan")
+
+    def __post_init__(self) -> None:
+        if int(self.mix.sum()) != self.warp_instructions:
+            raise SimtSimError(
+                f"{self.scheme}: the instruction mix sums to {int(self.mix.sum())}, not the "
+                f"{self.warp_instructions} warp instructions counted; build it with class_mix"
+            )
 
     # ---- per block ---------------------------------------------------------------------
     @property
@@ -148,13 +164,43 @@ class SimResult:
         return self.n_tri / self.rays if self.rays else float("nan")
 
     @property
+    def issue_bound(self) -> float:
+        """MRays/s if every SM issued at the GPU's best rate every clock."""
+        return issue_bound(self.rays, self.warp_instructions, self.gpu)
+
+    @property
+    def pipe_bound(self) -> float:
+        """MRays/s if the busiest pipe for this instruction mix ran every clock."""
+        return pipe_bound(self.rays, self.mix, self.gpu)[0]
+
+    @property
+    def busiest_pipe(self) -> str:
+        """The pipe the pipe bound is set by (``fp32``, ``fp32_int`` ...)."""
+        return pipe_bound(self.rays, self.mix, self.gpu)[1]
+
+    @property
+    def bounds(self) -> dict[str, float]:
+        """Every limit of the roofline, MRays/s (NaN: not in force)."""
+        return {
+            "issue": self.issue_bound,
+            "pipe": self.pipe_bound,
+            "bandwidth": self.bandwidth_bound,
+        }
+
+    @property
     def mrays_upper(self) -> float:
-        """Upper bound MRays/s: all SMs issue at full rate, memory is free."""
-        total = self.warp_instructions
-        if total == 0:
-            return float("nan")
-        g = self.gpu
-        return self.rays * g.sms * g.clock_hz * g.issue_rate / total / 1e6
+        """Upper bound MRays/s: the lowest limit in force (:mod:`simt_sim.simt.bounds`)."""
+        return roofline(self.bounds)[0]
+
+    @property
+    def limit(self) -> str:
+        """The limit that sets ``mrays_upper``: issue, pipe or bandwidth."""
+        return roofline(self.bounds)[1]
+
+    @property
+    def instruction_mix(self) -> dict[str, int]:
+        """Warp instructions issued by class."""
+        return {c: int(v) for c, v in zip(CLASSES, self.mix, strict=True)}
 
     # ---- persistent schemes ----------------------------------------------------------------
     @property
@@ -189,6 +235,10 @@ class SimResult:
             "simd_efficiency_intersection": self.simd_efficiency_intersection,
             "warp_instructions": self.warp_instructions,
             "mrays_upper": self.mrays_upper,
+            "limit": self.limit,
+            "issue_bound": self.issue_bound,
+            "pipe_bound": self.pipe_bound,
+            "busiest_pipe": self.busiest_pipe,
             "mean_trav": self.mean_trav,
             "mean_leaf": self.mean_leaf,
             "mean_tri": self.mean_tri,
@@ -219,14 +269,21 @@ class SimResult:
         card.update(ir_kernel=ir.kernel, ir_arch=ir.arch, ir_compiler=ir.compiler, recosted=True)
         if c.warp_totals is not None:
             card["schedule"] = "dropped on re-costing (warp loads follow the costs)"
-        return replace(self, counts=counts, costs=cost_vector(ir), model_card=card)
+        return replace(
+            self,
+            counts=counts,
+            costs=cost_vector(ir),
+            mix=class_mix(c.executions, ir),
+            model_card=card,
+        )
 
 
 def merge(results: Sequence[SimResult]) -> SimResult:
     """Combine results of several cameras or launches: sum the counters, recompute metrics.
 
     MRays/s of the merged result is total rays x ... / total instructions, as the paper
-    averages over cameras. All results must share scheme, GPU, warp size and costs.
+    averages over cameras. The bandwidth bound is left unset (NaN): the memory model counts
+    the merged rays anew. All results must share scheme, GPU, warp size and costs.
     """
     if not results:
         raise SimtSimError("merge() needs at least one SimResult")
@@ -259,8 +316,10 @@ def merge(results: Sequence[SimResult]) -> SimResult:
         ray_type=joined([r.ray_type for r in results]),
         rays=sum(r.rays for r in results),
         counts=counts,
+        mix=sum((r.mix for r in results[1:]), first.mix),
         n_trav=sum(r.n_trav for r in results),
         n_leaf=sum(r.n_leaf for r in results),
         n_tri=sum(r.n_tri for r in results),
         model_card=card,
+        bandwidth_bound=float("nan"),
     )

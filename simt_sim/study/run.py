@@ -150,8 +150,21 @@ def _with_memory(
     columns of its row (summed over the ray type's batches; NaN where the model is off)."""
     on, why = plan.memory[gpu.id]
     counts = sum((b.memory[gpu.id] for b in batches), MemoryCounts()) if on else MemoryCounts()
+    cols = memory_columns(counts, gpu, on)
     card = {**r.model_card, "memory_model": why}
-    return replace(r, model_card=card), memory_columns(counts, gpu, on)
+    if on:
+        card["bounds_in_force"] = [*r.model_card.get("bounds_in_force", ()), "bandwidth"]
+    return replace(r, model_card=card, bandwidth_bound=cols["bandwidth_bound"]), cols
+
+
+def _roofline_columns(r: SimResult, row: dict) -> dict:
+    """The upper bound and its limit once the bandwidth bound is known; a sampled row's
+    interval follows (the bound is a monotone function of the compute bound)."""
+    cols: dict[str, Any] = {"mrays_upper": r.mrays_upper, "limit": r.limit}
+    for end in ("mrays_upper_ci_low", "mrays_upper_ci_high"):
+        if end in row and r.limit == "bandwidth":
+            cols[end] = min(row[end], r.bandwidth_bound)
+    return cols
 
 
 def _finish(plan: StudyPlan, r: SimResult) -> SimResult:
@@ -183,6 +196,7 @@ def trace_rows(
                 row = _full_row(merged, False)
             merged, mem = _with_memory(plan, merged, batches, g)
             row.update(mem)
+            row.update(_roofline_columns(merged, row))
             merged = _finish(plan, merged)
             results.append(merged)
             if spec.actual:

@@ -14,7 +14,7 @@ from simt_sim.errors import SimtSimError
 from simt_sim.oracles.reference import reference_replay
 from simt_sim.schemes import SCHEMES, get_scheme
 from simt_sim.simt.engine import Counts
-from simt_sim.simt.gpus import GpuConfig
+from simt_sim.simt.gpus import GpuConfig, issue_limited
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult, check_ir
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
@@ -33,7 +33,10 @@ def ir_for(scheme: str) -> KernelIR:
 
 
 def gpu_for(warp_size: int, resident_warps: int = 4) -> GpuConfig:
-    return GpuConfig("test", "test", 1, 1000.0, 1.0, warp_size, resident_warps, 0, 0, "sm_75", "")
+    return issue_limited(
+        "test", sms=1, clock_mhz=1000.0, issue_rate=1.0, warp_size=warp_size,
+        resident_warps_per_sm=resident_warps,
+    )  # fmt: skip
 
 
 def run(trace: OpTrace, scheme: str, warp_size: int, **kw: object) -> SimResult:

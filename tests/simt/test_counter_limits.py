@@ -116,8 +116,9 @@ def test_totals_of_a_billion_rays_are_exact():
     k = 10**9 // r.rays  # 312,500: 1e9 rays
     c = r.counts
     counts = Counts(c.executions * k, c.active * k, c.hist * k)
-    scaled = dataclasses.replace(r, rays=r.rays * k, counts=counts, n_trav=r.n_trav * k,
-                                 n_leaf=r.n_leaf * k, n_tri=r.n_tri * k)  # fmt: skip
+    scaled = dataclasses.replace(r, rays=r.rays * k, counts=counts, mix=r.mix * k,
+                                 n_trav=r.n_trav * k, n_leaf=r.n_leaf * k,
+                                 n_tri=r.n_tri * k)  # fmt: skip
     assert scaled.rays == 10**9
     assert scaled.counts.executions.max() > 2**32 and scaled.counts.active.max() > 2**32
     assert scaled.warp_instructions == k * r.warp_instructions  # exact, > 2^32

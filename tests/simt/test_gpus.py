@@ -20,15 +20,55 @@ id = "{id}"
 name = "Test GPU"
 sms = 10
 clock_mhz = 1000
-issue_rate = 1.0
+clock = "sm"
+schedulers = 1
+dispatch = 1.0
+fp32_fma_lanes = 32
+peak_fp32_gflops = 640.0
 warp_size = 32
+max_blocks_per_sm = 16
+max_warps_per_sm = 16
+registers_per_sm = 65536
+register_unit = 256
+shared_kib_per_sm = 48
 resident_warps_per_sm = 16
 l1_kib = 64
 l2_kib = 1024
 dram_gbps = 100.0
+arch = "sm_80"
 ir_arch = "sm_80"
 source = "made up for a test"
+
+[gpu.lanes]
+fp32 = 32
 """
+
+#: the published peak FP32 rate of each packaged GPU in GFLOPS, from its maker's
+#: specifications and whitepapers (docs/model_card.md), which lanes x SMs x clock must give
+WHITEPAPER_PEAK_GFLOPS = {
+    "gtx285": 1062.7,  # GTX 285 specifications: 240 cores at 1476 MHz, MAD + MUL
+    "gtx480": 1345.0,  # GTX 480 specifications
+    "gtx680": 3090.4,  # GeForce GTX 680 whitepaper
+    "titan": 4500.0,  # GTX Titan specifications (base clock)
+    "rtx2080ti": 13447.7,  # Turing whitepaper (reference boost 1545 MHz)
+    "a100": 19500.0,  # A100 whitepaper
+    "rtx4090": 82600.0,  # Ada whitepaper
+    "h100": 66900.0,  # H100 SXM5 datasheet
+    "h200": 66900.0,  # H200 datasheet
+}
+
+#: warp instructions per SM per clock: schedulers x dispatch (GpuConfig's docstring)
+ISSUE_RATES = {
+    "gtx285": 0.5,  # 1 issue unit, a warp instruction every 2 shader clocks (MAD+MUL)
+    "gtx480": 1.0,  # 2 schedulers, 2 shader clocks per warp instruction each
+    "gtx680": 8.0,  # 4 schedulers, dual issue
+    "titan": 8.0,
+    "rtx2080ti": 4.0,
+    "a100": 4.0,
+    "rtx4090": 4.0,
+    "h100": 4.0,
+    "h200": 4.0,
+}
 
 
 def test_packaged_table_has_every_gpu_with_sane_figures() -> None:
@@ -38,14 +78,28 @@ def test_packaged_table_has_every_gpu_with_sane_figures() -> None:
         assert gpu.warp_size == 32
         assert gpu.sms > 0 and gpu.clock_mhz > 0 and gpu.issue_rate > 0
         assert gpu.ir_arch in ("sm_75", "sm_80", "sm_89", "sm_90")
+        assert gpu.resident_warps_per_sm <= gpu.max_warps_per_sm
         assert gpu.source
+
+
+@pytest.mark.parametrize("gpu_id", IDS)
+def test_lanes_and_clock_give_the_published_peak_fp32_rate(gpu_id: str) -> None:
+    g = get_gpu(gpu_id)
+    assert g.lanes_peak_gflops == pytest.approx(WHITEPAPER_PEAK_GFLOPS[gpu_id], rel=1e-3)
+    assert g.issue_rate == ISSUE_RATES[gpu_id]
+    rates = g.pipe_rates()
+    # no pipe retires more warp instructions per clock than the SM can issue
+    assert max(rates.values()) <= g.issue_rate
+    assert rates["fp32"] == dict(g.lanes)["fp32"] / 32
 
 
 def test_gtx285_matches_the_paper() -> None:
     g = get_gpu("gtx285")
     assert (g.sms, g.clock_mhz, g.issue_rate, g.resident_warps) == (30, 1476.0, 0.5, 720)
-    assert g.clock_hz == 1476e6
-    assert get_gpu("gtx480").issue_rate == 2.0 and get_gpu("titan").issue_rate == 4.0
+    assert g.clock_hz == 1476e6 and g.clock == "shader"
+    # Fermi: 32 lanes, one warp instruction per shader clock; Kepler dual-issues
+    assert get_gpu("gtx480").issue_rate == 1.0 and get_gpu("gtx480").clock == "shader"
+    assert get_gpu("titan").issue_rate == 8.0 and get_gpu("titan").pipe_rates()["fp32"] == 6.0
 
 
 def test_user_file_adds_and_replaces(tmp_path: Path) -> None:
@@ -69,9 +123,17 @@ def test_unknown_id_lists_known_ids() -> None:
         (USER_GPU.format(id="x").replace("sms = 10\n", ""), "missing field.*sms"),
         (USER_GPU.format(id="x").replace("sms = 10", 'sms = "10"'), "wrong type"),
         (USER_GPU.format(id="x").replace("sms = 10", "sms = 0"), "must be positive"),
+        (USER_GPU.format(id="x").replace("sms = 10", "sms = 11"), "640 GFLOPS|give 704"),
+        (USER_GPU.format(id="x").replace("fp32 = 32", "fp32 = 32\nalu = 8"), "unknown pipe"),
+        (USER_GPU.format(id="x").replace("fp32 = 32", "int = 32"), "lanes needs fp32"),
+        (USER_GPU.format(id="x").replace("fp32 = 32", "fp32 = 0"), "positive integer"),
+        (USER_GPU.format(id="x").replace('clock = "sm"', 'clock = "hot"'), "clock must be"),
         (USER_GPU.format(id="x").replace("dram_gbps = 100.0", "dram_gbps = nan"), "positive"),
         (USER_GPU.format(id="x").replace("dram_gbps = 100.0\n", ""), "missing.*dram_gbps"),
-        (USER_GPU.format(id="x") + "colour = 'green'\n", "unknown field.*colour"),
+        (
+            USER_GPU.format(id="x").replace("source =", "colour = 'green'\nsource ="),
+            "unknown field.*colour",
+        ),
         (USER_GPU.format(id="x") * 2, "appears twice"),
         ("[[gpu]\n", "not valid TOML"),
         ("title = 'no gpus'\n", "no \\[\\[gpu\\]\\] entries"),
@@ -94,8 +156,12 @@ def test_cli_gpus_file_adds_a_gpu_to_table_and_gpus(tmp_path: Path) -> None:
     issue rate) gets twice its upper bound from the same replay."""
     entry = USER_GPU.format(id="gtx285x2").replace("sms = 10", "sms = 60")
     entry = entry.replace("clock_mhz = 1000", "clock_mhz = 1476.0")
-    entry = entry.replace("issue_rate = 1.0", "issue_rate = 0.5")
+    entry = entry.replace("dispatch = 1.0", "dispatch = 0.5")
+    entry = entry.replace("fp32_fma_lanes = 32", "fp32_fma_lanes = 16")
+    entry = entry.replace("peak_fp32_gflops = 640.0", "peak_fp32_gflops = 2833.92")
+    entry = entry.replace("fp32 = 32", "fp32 = 16")
     entry = entry.replace('ir_arch = "sm_80"', 'ir_arch = "sm_75"')
+    entry = entry.replace('arch = "sm_80"', 'arch = "sm_13"')
     path = tmp_path / "mine.toml"
     path.write_text(entry)
     args = ["table", *SMALL, "--rays", "primary", "--schemes", "while_while", "--spp", "1"]

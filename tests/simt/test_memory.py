@@ -308,7 +308,7 @@ def test_room_numbers_are_sane(room) -> None:
     assert c.resident_sets == 1 and c.l2_misses >= c.working_set_lines  # cold caches
     assert cols["working_set_kib"] * 1024 <= fp
     assert cols["dram_bytes_per_ray"] < cols["bytes_per_ray"]
-    assert cols["mrays_bandwidth"] == pytest.approx(159.0e3 / cols["dram_bytes_per_ray"])
+    assert cols["bandwidth_bound"] == pytest.approx(159.0e3 / cols["dram_bytes_per_ray"])
     assert memory_counts(primary, 32, gpu) == c  # deterministic
 
 
@@ -364,7 +364,7 @@ def test_columns_off_on_and_missing_cache() -> None:
     gpu = get_gpu("gtx480")
     off = memory_columns(memory_counts(tr, 32), gpu, False)
     assert off["mem_model"] == "off" and off["bytes_per_ray"] == 64 + 48 + 16
-    assert math.isnan(off["mrays_bandwidth"]) and math.isnan(off["l2_hit_rate"])
+    assert math.isnan(off["bandwidth_bound"]) and math.isnan(off["l2_hit_rate"])
     with pytest.raises(SimtSimError, match="no cache model for GPU 'gtx480'"):
         memory_columns(memory_counts(tr, 32), gpu, True)
     on = memory_columns(memory_counts(tr, 32, gpu), gpu, True)
@@ -372,7 +372,7 @@ def test_columns_off_on_and_missing_cache() -> None:
     # triangle and again for the sentinel (an L1 hit)
     assert on["lines_per_warp_step"] == 1.0 and on["l1_hit_rate"] == pytest.approx(1 / 3)
     assert on["dram_bytes_per_ray"] == 2 * 128 / 3 + RAY_IO_BYTES
-    assert on["mrays_bandwidth"] == pytest.approx(177.4e3 / on["dram_bytes_per_ray"])
+    assert on["bandwidth_bound"] == pytest.approx(177.4e3 / on["dram_bytes_per_ray"])
 
 
 @pytest.mark.parametrize(

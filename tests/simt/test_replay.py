@@ -11,7 +11,7 @@ from kernels_ir.kernel_ir import BLOCKS, KernelIR
 from simt_sim.errors import SimtSimError
 from simt_sim.schemes import get_scheme, names
 from simt_sim.simt.engine import scan_trace
-from simt_sim.simt.gpus import GpuConfig, get_gpu
+from simt_sim.simt.gpus import GpuConfig, get_gpu, issue_limited
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult, merge
 from simt_sim.simt.synth import synthetic_trace, trace_from_lists
@@ -27,7 +27,10 @@ def ir_for(scheme: str, scale: int = 1, arch: str = "sm_75") -> KernelIR:
 
 
 def gpu_for(warp_size: int = 32, resident_warps: int = 4) -> GpuConfig:
-    return GpuConfig("test", "test", 1, 1000.0, 1.0, warp_size, resident_warps, 0, 0, "sm_75", "")
+    return issue_limited(
+        "test", sms=1, clock_mhz=1000.0, issue_rate=1.0, warp_size=warp_size,
+        resident_warps_per_sm=resident_warps,
+    )  # fmt: skip
 
 
 def split(trace: OpTrace, sizes: list[int]) -> list[OpTrace]:
@@ -58,7 +61,7 @@ def test_metrics_from_counters_by_hand() -> None:
     costs = {b: 0 for b in BLOCKS} | {"trav_step": 10, "trav_one": 1, "trav_none": 2}
     costs |= {"leaf_entry": 4, "tri_test": 6, "tri_hit": 3}
     ir = KernelIR("while_while", "sm_75", {b: {"int": c} for b, c in costs.items()})
-    gpu = GpuConfig("g", "g", 3, 1000.0, 2.0, 2, 1, 0, 0, "sm_75", "")
+    gpu = issue_limited("g", sms=3, clock_mhz=1000.0, issue_rate=2.0, warp_size=2)
     r = simulate_traces([trace_from_lists(ops)], get_scheme("while_while"), ir, gpu)
     # trav_step 1x2 lanes, trav_one 1x1, trav_none 1x1, leaf 1x1, tri 1x1, hit 1x1
     assert r.warp_instructions == 10 + 1 + 2 + 4 + 6 + 3
@@ -92,7 +95,15 @@ def test_upper_bound_on_gtx285() -> None:
     trace = synthetic_trace(32 * 10, seed=1)
     gpu = get_gpu("gtx285")
     r = simulate_traces([trace], get_scheme("while_while"), ir_for("while_while"), gpu)
-    assert r.mrays_upper == pytest.approx(320 * 30 * 1476e6 * 0.5 / r.warp_instructions / 1e6)
+    issue = 320 * 30 * 1476e6 * 0.5 / r.warp_instructions / 1e6
+    assert r.issue_bound == pytest.approx(issue)
+    # the test IR is mostly int: GT200 retires 10 int results per SM per clock (0.3125
+    # warp instructions), so the int pipe binds before issue
+    mix = r.instruction_mix
+    assert sum(mix.values()) == r.warp_instructions
+    pipe = 320 * 30 * 1476e6 / max(mix["int"] / (10 / 32), mix["fp32"] / 0.5) / 1e6
+    assert r.pipe_bound == pytest.approx(pipe) and r.busiest_pipe == "int"
+    assert r.mrays_upper == min(issue, pipe) == r.pipe_bound and r.limit == "pipe"
     assert r.model_card["gpu"]["sms"] == 30
 
 

@@ -28,9 +28,9 @@ def test_auto_turns_the_model_on_only_where_the_scene_outgrows_the_l2():
     assert set(by_gpu.xs("gtx285", level="gpu")["mem_model"]) == {"on"}
     assert set(by_gpu.xs("h100", level="gpu")["mem_model"]) == {"off"}
     on = by_gpu.loc[("while_while", "gtx285")]
-    assert on["mrays_bandwidth"] > 0 and math.isfinite(on["mrays_bandwidth"])
+    assert on["bandwidth_bound"] > 0 and math.isfinite(on["bandwidth_bound"])
     assert 0.0 <= on["l1_hit_rate"] <= 1.0 and on["dram_bytes_per_ray"] > 0
-    assert math.isnan(by_gpu.loc[("while_while", "h100")]["mrays_bandwidth"])
+    assert math.isnan(by_gpu.loc[("while_while", "h100")]["bandwidth_bound"])
     cards = {(r.scheme, r.gpu.id): r.model_card["memory_model"] for r in results}
     assert "exceeds" in cards[("while_while", "gtx285")]
     assert "fits" in cards[("while_while", "h100")]
@@ -40,7 +40,7 @@ def test_auto_turns_the_model_on_only_where_the_scene_outgrows_the_l2():
 def test_forced_modes(mode):
     _, df = _table(gpus=("h100",), memory=mode)
     assert set(df["mem_model"]) == {mode}
-    assert (df["mrays_bandwidth"].notna().all()) == (mode == "on")
+    assert (df["bandwidth_bound"].notna().all()) == (mode == "on")
 
 
 def test_memory_model_leaves_the_issue_bound_figures_alone():

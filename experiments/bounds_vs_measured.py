@@ -1,0 +1,89 @@
+"""Judge the upper bound against every published measurement; write docs/model_card.md's tables.
+
+Simulates Conference at the paper's protocol (a 1/32 sample of the warps) for every
+measured scheme on every measured GPU (``simt_sim.study.published``), puts each published
+MRays/s next to the bound of its scheme, and replaces two generated blocks of
+docs/model_card.md: the packaged GPUs' figures, and the bound / measured table.
+
+    python experiments/bounds_vs_measured.py            # about 3 minutes
+    python experiments/bounds_vs_measured.py --sample 1/8
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+
+from simt_sim.atomic import write_atomic
+from simt_sim.simt.gpus import PIPES, load_gpus
+from simt_sim.study.published import check_published
+from simt_sim.study.sampling import check_fraction
+
+REPO = Path(__file__).resolve().parents[1]
+MODEL_CARD = REPO / "docs" / "model_card.md"
+
+
+def gpu_table() -> str:
+    rows = []
+    for g in load_gpus().values():
+        lanes = dict(g.lanes)
+        rows.append(
+            {
+                "gpu": g.id,
+                "arch": g.arch,
+                "SMs": g.sms,
+                "clock MHz": f"{g.clock_mhz:g} ({g.clock})",
+                "issue / SM clk": f"{g.schedulers} x {g.dispatch:g} = {g.issue_rate:g}",
+                **{p: lanes.get(p, "") for p in PIPES},
+                "peak GFLOPS": f"{g.peak_fp32_gflops:g}",
+                "max warps": g.max_warps_per_sm,
+                "registers": g.registers_per_sm,
+                "DRAM GB/s": f"{g.dram_gbps:g}",
+                "IR": g.ir_arch,
+            }
+        )
+    return pd.DataFrame(rows).to_markdown(index=False)
+
+
+def bound_table(check: pd.DataFrame) -> str:
+    out = check[["gpu", "kernel", "ray_type", "measured", "bound", "limit", "ratio", "best"]]
+    out = out.assign(
+        holds=check["holds"].map({True: "yes", False: "**no**"}),
+        best=check["best"].map({True: "best", False: ""}),
+    )
+    return out.to_markdown(index=False, floatfmt=".3g")
+
+
+def splice(text: str, name: str, block: str) -> str:
+    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
+    head, rest = text.split(start)
+    _, tail = rest.split(end)
+    return f"{head}{start}\n{block}\n{end}{tail}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sample", type=check_fraction, default=1 / 32)
+    ap.add_argument("--out", type=Path, default=MODEL_CARD)
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    check = check_published(args.sample, progress=sys.stderr.isatty())
+    secs = time.perf_counter() - t0
+    print(check.to_string(), file=sys.stderr)
+    stamp = (
+        f"Made by `python experiments/bounds_vs_measured.py` (Conference, paper protocol, "
+        f"{args.sample:g} of the warps) in {secs:.0f} s."
+    )
+    text = args.out.read_text(encoding="utf-8")
+    text = splice(text, "gpus", gpu_table())
+    text = splice(text, "bounds", f"{stamp}\n\n{bound_table(check)}")
+    write_atomic(args.out, text)
+    return 0 if check["holds"].all() else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

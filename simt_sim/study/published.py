@@ -1,0 +1,130 @@
+"""Published measurements, and whether the upper bound holds against each of them.
+
+An upper bound is a promise that no real run beats it, so it is judged against every
+measurement published for the paper's setup: Aila & Laine 2009 (GTX 285, each scheme) and
+the best kernels of the 2012 addendum and of Guthe 2014 (GTX 480, GTX 680, GTX Titan), all
+on Conference (``shared/reference``). Each measured kernel is matched to the scheme of the
+same class simt-sim models; :func:`bound_check` puts the two side by side.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+
+from simt_sim.errors import SimtSimError
+from simt_sim.scene.load import scenes_dir
+from simt_sim.study.run import run_study
+from simt_sim.study.spec import StudySpec
+
+#: the published tables, in the reference folder beside the scenes
+PAPER_CSV = "aila-laine-2009-conference.csv"
+LATER_CSV = "later-gpus-conference.csv"
+
+#: GPU names of the later-GPU table -> packaged GPU ids
+GPU_IDS = {
+    "GTX 285 (Tesla)": "gtx285",
+    "GTX 480 (Fermi)": "gtx480",
+    "GTX 680 (Kepler)": "gtx680",
+    "GTX Titan (Kepler)": "titan",
+}
+
+#: measured kernels of the later-GPU table -> the scheme of the same class. The 2012
+#: addendum's Fermi kernel is speculative while-while (persistent or not, the instructions
+#: per ray are the speculative ones); Guthe 2014 is dynamic fetch with a shallower tree,
+#: unrolled loops and batched loads.
+SCHEME_OF = {
+    "persistent_speculative_while_while": "persistent_speculative_while_while",
+    "speculative_while_while": "persistent_speculative_while_while",
+    "dynamic_fetch": "dynamic_fetch",
+    "dynamic_fetch (Aila-Laine 2009 kernels)": "dynamic_fetch",
+    "Guthe 2014 (shallower hierarchy; unrolled loops; batched loads)": "dynamic_fetch",
+}
+
+RAY_TYPES = ("primary", "ao", "diffuse")
+
+
+def reference_dir() -> Path:
+    """``shared/reference``: beside the scenes folder (``$SIMT_SIM_SCENES`` moves both)."""
+    return scenes_dir().parent / "reference"
+
+
+def _read(path: Path) -> pd.DataFrame:
+    try:
+        return pd.read_csv(path, comment="#")
+    except OSError as exc:
+        raise SimtSimError(
+            f"cannot read the published table {path}: {exc.strerror}; set SIMT_SIM_SCENES "
+            "to the shared scenes folder (the reference folder is beside it)"
+        ) from None
+
+
+def published_measurements(folder: Path | None = None) -> pd.DataFrame:
+    """Every published measured MRays/s: one row per GPU x measured kernel x ray type.
+
+    Columns: ``gpu`` (packaged id), ``kernel`` (as published), ``scheme`` (the class
+    simt-sim models), ``ray_type``, ``measured``, ``source``.
+    """
+    folder = reference_dir() if folder is None else Path(folder)
+    rows = []
+    paper = _read(folder / PAPER_CSV)
+    for r in paper.itertuples():
+        rows.append(("gtx285", r.scheme, r.scheme, r.ray_type, float(r.actual), PAPER_CSV))
+    later = _read(folder / LATER_CSV)
+    for r in later.itertuples():
+        gpu = GPU_IDS.get(r.gpu)
+        scheme = SCHEME_OF.get(r.kernel)
+        if gpu is None or scheme is None:
+            raise SimtSimError(f"{LATER_CSV}: no GPU id or scheme for {r.gpu!r} / {r.kernel!r}")
+        for rt in RAY_TYPES:
+            rows.append((gpu, r.kernel, scheme, rt, float(getattr(r, rt)), LATER_CSV))
+    out = pd.DataFrame(rows, columns=["gpu", "kernel", "scheme", "ray_type", "measured", "source"])
+    # the GTX 285 row of the later table repeats the paper's measurement
+    return out.drop_duplicates(["gpu", "kernel", "ray_type", "measured"], ignore_index=True)
+
+
+def bound_check(table: pd.DataFrame, measured: pd.DataFrame) -> pd.DataFrame:
+    """Each measurement next to the simulated bound of its scheme on its GPU.
+
+    ``table`` is a study's table (rows with ``gpu``, ``scheme``, ``ray_type``,
+    ``mrays_upper``, ``limit``). Adds ``bound``, ``limit``, ``ratio`` (bound / measured)
+    and ``holds`` (bound >= measured), and ``best`` marking the fastest measured kernel of
+    each GPU and ray type (the one tightness is judged on).
+    """
+    sim = table[["gpu", "scheme", "ray_type", "mrays_upper", "limit"]]
+    out = measured.merge(sim, on=["gpu", "scheme", "ray_type"], how="left")
+    missing = out[out["mrays_upper"].isna()]
+    if len(missing):
+        first = missing.iloc[0]
+        raise SimtSimError(
+            f"the table has no {first.scheme} row for {first.gpu} {first.ray_type}; run the "
+            "study with every measured scheme and GPU"
+        )
+    out = out.rename(columns={"mrays_upper": "bound"})
+    out["ratio"] = out["bound"] / out["measured"]
+    out["holds"] = out["bound"] >= out["measured"]
+    fastest = out.groupby(["gpu", "ray_type"])["measured"].transform("max")
+    out["best"] = out["measured"] == fastest
+    return out
+
+
+def published_spec(sample: float = 1 / 32) -> StudySpec:
+    """The study that simulates every published measurement: Conference at the paper's
+    protocol (all cameras, 1024x768, 32 secondary rays per hit), each measured scheme on
+    each measured GPU, a ``sample`` of the warps (the bound's 95% interval is well under
+    1% at 1/32)."""
+    measured = published_measurements()
+    return StudySpec(
+        scene="conference",
+        ray_types=RAY_TYPES,
+        schemes=tuple(dict.fromkeys(measured["scheme"])),
+        gpus=tuple(dict.fromkeys(measured["gpu"])),
+        sample=sample,
+    )
+
+
+def check_published(sample: float = 1 / 32, *, progress: bool = False) -> pd.DataFrame:
+    """:func:`bound_check` of a fresh :func:`published_spec` study."""
+    _, table = run_study(published_spec(sample), progress=progress)
+    return bound_check(table, published_measurements())
