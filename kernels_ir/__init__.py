@@ -15,7 +15,7 @@ import pandas as pd
 
 from kernels_ir.build import ARCHS, KERNELS
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR
+from kernels_ir.kernel_ir import BLOCKS, CLASSES, DEFAULT_TESTS, TESTS, KernelIR
 
 __all__ = [
     "ARCHS",
@@ -24,6 +24,7 @@ __all__ = [
     "KERNELS",
     "KernelIR",
     "KernelIRError",
+    "TESTS",
     "available",
     "format_ir_table",
     "load",
@@ -31,13 +32,15 @@ __all__ = [
 ]
 
 
-def _ir_files() -> dict[tuple[str, str], Traversable]:
+def _ir_files(tests: str = DEFAULT_TESTS) -> dict[tuple[str, str], Traversable]:
     found = {}
     for entry in resources.files("kernels_ir").joinpath("ir").iterdir():
-        name = entry.name
-        if name.endswith(".json") and name.count(".") == 2:
-            kernel, arch, _ = name.split(".")
-            found[(kernel, arch)] = entry
+        parts = entry.name.split(".")
+        if parts[-1] != "json" or len(parts) not in (3, 4):
+            continue
+        kind = parts[2] if len(parts) == 4 else DEFAULT_TESTS
+        if kind == tests:
+            found[(parts[0], parts[1])] = entry
     return found
 
 
@@ -48,20 +51,24 @@ def _order(pair: tuple[str, str]) -> tuple[int, int, str, str]:
     return (k, a, kernel, arch)
 
 
-def available() -> list[tuple[str, str]]:
-    """Every committed (kernel, arch) pair, kernels and archs in their canonical order."""
-    return sorted(_ir_files(), key=_order)
+def available(tests: str = DEFAULT_TESTS) -> list[tuple[str, str]]:
+    """Every committed (kernel, arch) pair built with ``tests``, kernels and archs in their
+    canonical order."""
+    return sorted(_ir_files(tests), key=_order)
 
 
-def load(kernel: str, arch: str = "sm_90") -> KernelIR:
-    """The committed KernelIR of ``kernel`` compiled for ``arch``.
+def load(kernel: str, arch: str = "sm_90", tests: str = DEFAULT_TESTS) -> KernelIR:
+    """The committed KernelIR of ``kernel`` compiled for ``arch`` with the box and triangle
+    ``tests`` (``"watertight"`` or ``"published"``, :data:`kernels_ir.kernel_ir.TESTS`).
 
     Raises
     ------
     KernelIRError
         If no IR exists for that pair (the message lists the kernels and archs that do).
     """
-    files = _ir_files()
+    if tests not in TESTS:
+        raise KernelIRError(f"unknown tests {tests!r}; use one of {', '.join(TESTS)}")
+    files = _ir_files(tests)
     entry = files.get((kernel, arch))
     if entry is None:
         kernels = sorted({k for k, _ in files}, key=lambda k: _order((k, "")))
@@ -85,6 +92,7 @@ def load(kernel: str, arch: str = "sm_90") -> KernelIR:
         registers=int(doc["registers"]),
         source_sha256=doc["source_sha256"],
         notes=notes,
+        tests=doc.get("tests", DEFAULT_TESTS),
     )
 
 

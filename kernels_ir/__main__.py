@@ -11,6 +11,7 @@ import pandas as pd
 from kernels_ir import format_ir_table, load, summary_table
 from kernels_ir.build import ARCHS, IR_DIR, KERNELS, build_all, check
 from kernels_ir.errors import KernelIRError
+from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 
 
 def to_markdown(table: pd.DataFrame) -> str:
@@ -35,11 +36,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     b.add_argument("--kernel", action="append", choices=KERNELS, help="only this kernel")
     b.add_argument("--arch", action="append", choices=ARCHS, help="only this arch")
+    b.add_argument("--tests", action="append", choices=TESTS, help="only these box/triangle tests")
     b.add_argument("--out", type=Path, default=IR_DIR, help="output directory")
     b.add_argument("--jobs", type=int, default=2, help="parallel compiles")
     s = sub.add_parser("show", help="print one kernel's blocks x classes table")
     s.add_argument("kernel")
     s.add_argument("--arch", default="sm_90")
+    s.add_argument("--tests", choices=TESTS, default=DEFAULT_TESTS)
     t = sub.add_parser("summary", help="print kernels x blocks for one arch (markdown)")
     t.add_argument("--arch", default="sm_90")
     args = parser.parse_args(argv)
@@ -53,12 +56,15 @@ def main(argv: list[str] | None = None) -> int:
                 return 1 if problems else 0
             kernels = tuple(args.kernel or KERNELS)
             archs = tuple(args.arch or ARCHS)
-            paths = build_all(args.out, kernels, archs, jobs=args.jobs)
+            tests = tuple(args.tests or TESTS)
+            paths = build_all(args.out, kernels, archs, jobs=args.jobs, tests=tests)
             print(f"wrote {len(paths)} files to {args.out}")
             return 0
         if args.cmd == "show":
-            ir = load(args.kernel, args.arch)
-            print(f"{ir.kernel} {ir.arch}: {ir.registers} registers, {ir.compiler}")
+            ir = load(args.kernel, args.arch, args.tests)
+            print(
+                f"{ir.kernel} {ir.arch} ({ir.tests} tests): {ir.registers} registers, {ir.compiler}"
+            )
             print(
                 f"unattributed: {ir.notes.get('unattributed_instructions', '?')} instructions "
                 f"({ir.notes.get('unattributed_classes', '')})"

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from kernels_ir.blocks import UNATTRIBUTED, map_blocks, parse_markers
 from kernels_ir.errors import KernelIRError
+from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 from kernels_ir.sass import parse_listing
 
 PACKAGE_DIR = Path(__file__).resolve().parent
@@ -41,6 +42,8 @@ FLAGS = (
     "-Xptxas=-v,-warn-spills,-warn-double-usage",
     "-Werror=all-warnings",
 )
+#: the preprocessor flags of each set of tests (kernel_ir.TESTS)
+TEST_DEFINES = {"watertight": (), "published": ("-DSIMT_PUBLISHED_TESTS",)}
 _INSTALL_HINT = "install the toolchain with `pip install -e '.[cuda-toolchain]'`"
 
 
@@ -117,16 +120,26 @@ def _ptxas_info(log: str, kernel: str) -> tuple[int, dict[str, str]]:
     return int(regs.group(1)), notes
 
 
-def build_one(kernel: str, arch: str, tools: Toolchain, workdir: Path) -> dict:
-    """Compile, disassemble and map one kernel for one arch; return its JSON document.
+def ir_filename(kernel: str, arch: str, tests: str = DEFAULT_TESTS) -> str:
+    """``<kernel>.<arch>.json`` for the watertight tests, ``<kernel>.<arch>.<tests>.json``
+    for another set."""
+    return f"{kernel}.{arch}.json" if tests == DEFAULT_TESTS else f"{kernel}.{arch}.{tests}.json"
+
+
+def build_one(
+    kernel: str, arch: str, tools: Toolchain, workdir: Path, tests: str = DEFAULT_TESTS
+) -> dict:
+    """Compile, disassemble and map one kernel for one arch with the box and triangle
+    ``tests`` (:data:`TEST_DEFINES`); return its JSON document.
 
     Raises
     ------
     KernelIRError
         On a compiler warning or error, or when a marked block gets no instruction.
     """
-    cubin = workdir / f"{kernel}.{arch}.cubin"
-    cmd = [str(tools.nvcc), f"-arch={arch}", *FLAGS, "-o", str(cubin), f"{kernel}.cu"]
+    cubin = workdir / f"{kernel}.{arch}.{tests}.cubin"
+    flags = [f"-arch={arch}", *FLAGS, *TEST_DEFINES[tests]]
+    cmd = [str(tools.nvcc), *flags, "-o", str(cubin), f"{kernel}.cu"]
     proc = _run(cmd, CUDA_DIR)
     log = proc.stdout + proc.stderr
     warnings = [ln for ln in log.splitlines() if "warning" in ln.lower()]
@@ -162,9 +175,10 @@ def build_one(kernel: str, arch: str, tools: Toolchain, workdir: Path) -> dict:
         "unattributed": unattributed,
         "divergent_fallback": fallback_sizes,
         "compiler": tools.version,
-        "flags": [f"-arch={arch}", *FLAGS],
+        "flags": flags,
         "registers": registers,
         "source_sha256": source_sha256(kernel),
+        "tests": tests,
         "notes": notes,
     }
 
@@ -179,21 +193,23 @@ def build_all(
     kernels: tuple[str, ...] = KERNELS,
     archs: tuple[str, ...] = ARCHS,
     jobs: int = 2,
+    tests: tuple[str, ...] = TESTS,
 ) -> list[Path]:
-    """Build every (kernel, arch) into ``out_dir/<kernel>.<arch>.json``; return the paths."""
+    """Build every (kernel, arch, tests) into ``out_dir`` (:func:`ir_filename`); return the
+    paths."""
     tools = find_toolchain()
     out_dir.mkdir(parents=True, exist_ok=True)
-    pairs = [(k, a) for k in kernels for a in archs]
+    units = [(k, a, t) for k in kernels for a in archs for t in tests]
     with tempfile.TemporaryDirectory(prefix="kernels_ir_") as tmp:
 
-        def work(pair: tuple[str, str]) -> Path:
-            kernel, arch = pair
-            path = out_dir / f"{kernel}.{arch}.json"
-            path.write_text(dumps(build_one(kernel, arch, tools, Path(tmp))))
+        def work(unit: tuple[str, str, str]) -> Path:
+            kernel, arch, test = unit
+            path = out_dir / ir_filename(kernel, arch, test)
+            path.write_text(dumps(build_one(kernel, arch, tools, Path(tmp), test)))
             return path
 
         with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
-            return list(pool.map(work, pairs))
+            return list(pool.map(work, units))
 
 
 def check(jobs: int = 2) -> list[str]:

@@ -63,12 +63,20 @@ CLASSES = (
 )
 
 
+#: the box and triangle tests a kernel can be built with (``common.cuh``): the watertight
+#: ones simt-sim's tracers use, or the published arithmetic of Aila & Laine's kernels
+#: (one-FFMA slabs, Woop's test against 0 and 1), which the published measurements ran
+TESTS = ("watertight", "published")
+DEFAULT_TESTS = "watertight"
+
+
 @dataclass(frozen=True)
 class KernelIR:
     """Instruction counts per block, split by instruction class, for one kernel and arch.
 
     ``blocks[block][cls]`` is the number of SASS instructions of class ``cls`` that one
-    execution of ``block`` issues (for a warp: warp instructions).
+    execution of ``block`` issues (for a warp: warp instructions). ``tests`` names the box
+    and triangle tests it was built with (:data:`TESTS`).
     """
 
     kernel: str
@@ -79,6 +87,7 @@ class KernelIR:
     registers: int = 0
     source_sha256: str = ""
     notes: dict[str, str] = field(default_factory=dict)
+    tests: str = DEFAULT_TESTS
 
     def cost(self, block: str) -> int:
         """Total instructions of one execution of ``block`` (0 if the kernel lacks it)."""

@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 
 from kernels_ir.errors import KernelIRError
+from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 from simt_sim.errors import SimtSimError
 from simt_sim.report.tables import DETAIL_COLUMNS, FORMATS, emit
 from simt_sim.scene.load import DEFAULT_SCENE
@@ -70,6 +71,17 @@ def _add_output_args(p: argparse.ArgumentParser) -> None:
         "--format", choices=FORMATS, default="md", help="table format (default: %(default)s)"
     )
     p.add_argument("--out", default=None, help="write the table to this file instead of stdout")
+
+
+def _add_tests_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--tests",
+        choices=TESTS,
+        default=DEFAULT_TESTS,
+        help="box and triangle tests the kernels are costed with: watertight (simt-sim's "
+        "tracers) or published (Aila & Laine's arithmetic, which the published "
+        "measurements ran; default: %(default)s)",
+    )
 
 
 def _add_gpus_arg(p: argparse.ArgumentParser) -> None:
@@ -193,6 +205,7 @@ def _spec(args: argparse.Namespace, **fields: object):
         seed=args.seed,
         max_leaf=args.max_leaf,
         node_cost=args.node_cost,
+        tests=args.tests,
         **fields,
     )
 
@@ -354,6 +367,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="comma list of GPU ids or 'all' (see 'simt-sim gpus'; default: %(default)s)",
     )
     _add_gpus_arg(p)
+    _add_tests_arg(p)
     _add_quiet_arg(p)
     p.add_argument(
         "--actual",
@@ -415,6 +429,7 @@ def build_parser() -> argparse.ArgumentParser:
         "timeline figures (default: %(default)s)",
     )
     _add_gpus_arg(p)
+    _add_tests_arg(p)
     p.add_argument(
         "--warp",
         type=int,

@@ -16,6 +16,13 @@
 //
 // Every helper is __forceinline__, so its SASS is attributed (through the inline line
 // table) to the line of the kernel that calls it, inside that kernel's marked blocks.
+//
+// Built with -DSIMT_PUBLISHED_TESTS (the "published" tests of kernels_ir), the box and
+// triangle tests are the arithmetic of Aila & Laine's released kernels instead of the
+// watertight ones: slabs as one FFMA, lo * idir - orig * idir, with no rounding bound on
+// tfar, and Woop's test against u >= 0, v >= 0, u + v <= 1. That is what the published
+// measurements ran, so their bound is judged with it; it can miss a ray that grazes an
+// edge or a box face, which the watertight tests never do.
 #pragma once
 
 #define SIMT_STACK_SIZE 64              // per-ray traversal stack (BVH depth must be < 64)
@@ -37,6 +44,9 @@ struct Ray {
     float3 orig;
     float3 dir;
     float3 idir;
+#ifdef SIMT_PUBLISHED_TESTS
+    float3 oidir;  // orig * idir: a slab bound is one FFMA, lo * idir - oidir
+#endif
     float tmin;
     float tmax;
 };
@@ -82,6 +92,9 @@ __device__ __forceinline__ Ray simt_make_ray(float4 o, float4 d)
     r.idir.x = simt_rcp(fabsf(d.x) > ooeps ? d.x : copysignf(ooeps, d.x));
     r.idir.y = simt_rcp(fabsf(d.y) > ooeps ? d.y : copysignf(ooeps, d.y));
     r.idir.z = simt_rcp(fabsf(d.z) > ooeps ? d.z : copysignf(ooeps, d.z));
+#ifdef SIMT_PUBLISHED_TESTS
+    r.oidir = make_float3(o.x * r.idir.x, o.y * r.idir.y, o.z * r.idir.z);
+#endif
     r.tmin = o.w;
     r.tmax = d.w;
     return r;
@@ -107,6 +120,20 @@ __device__ __forceinline__ NodeHit simt_intersect_node(const float4* __restrict_
     const float4 n1 = __ldg(nodes + 4 * node + 1);
     const float4 n2 = __ldg(nodes + 4 * node + 2);
     const float4 n3 = __ldg(nodes + 4 * node + 3);
+#ifdef SIMT_PUBLISHED_TESTS
+    const float c0lox = fmaf(n0.x, r.idir.x, -r.oidir.x);
+    const float c0hix = fmaf(n0.y, r.idir.x, -r.oidir.x);
+    const float c0loy = fmaf(n0.z, r.idir.y, -r.oidir.y);
+    const float c0hiy = fmaf(n0.w, r.idir.y, -r.oidir.y);
+    const float c0loz = fmaf(n2.x, r.idir.z, -r.oidir.z);
+    const float c0hiz = fmaf(n2.y, r.idir.z, -r.oidir.z);
+    const float c1lox = fmaf(n1.x, r.idir.x, -r.oidir.x);
+    const float c1hix = fmaf(n1.y, r.idir.x, -r.oidir.x);
+    const float c1loy = fmaf(n1.z, r.idir.y, -r.oidir.y);
+    const float c1hiy = fmaf(n1.w, r.idir.y, -r.oidir.y);
+    const float c1loz = fmaf(n2.z, r.idir.z, -r.oidir.z);
+    const float c1hiz = fmaf(n2.w, r.idir.z, -r.oidir.z);
+#else
     const float c0lox = (n0.x - r.orig.x) * r.idir.x;
     const float c0hix = (n0.y - r.orig.x) * r.idir.x;
     const float c0loy = (n0.z - r.orig.y) * r.idir.y;
@@ -119,20 +146,26 @@ __device__ __forceinline__ NodeHit simt_intersect_node(const float4* __restrict_
     const float c1hiy = (n1.w - r.orig.y) * r.idir.y;
     const float c1loz = (n2.z - r.orig.z) * r.idir.z;
     const float c1hiz = (n2.w - r.orig.z) * r.idir.z;
-    // tfar carries the slabs' rounding bound, so a ray touching a box never misses it
-    // (watertight, as simt_sim.geometry.node_child_intervals).
+#endif
+    // Watertight, tfar carries the slabs' rounding bound, so a ray touching a box never
+    // misses it (as simt_sim.geometry.node_child_intervals).
+#ifdef SIMT_PUBLISHED_TESTS
+    const float rounding = 1.0f;
+#else
+    const float rounding = SIMT_BOX_ROUNDING;
+#endif
     NodeHit h;
     h.c0min = fmaxf(fmaxf(fminf(c0lox, c0hix), fminf(c0loy, c0hiy)),
                     fmaxf(fminf(c0loz, c0hiz), r.tmin));
     const float c0max =
-        fminf(SIMT_BOX_ROUNDING * fminf(fminf(fmaxf(c0lox, c0hix), fmaxf(c0loy, c0hiy)),
-                                        fmaxf(c0loz, c0hiz)),
+        fminf(rounding * fminf(fminf(fmaxf(c0lox, c0hix), fmaxf(c0loy, c0hiy)),
+                               fmaxf(c0loz, c0hiz)),
               tmax);
     h.c1min = fmaxf(fmaxf(fminf(c1lox, c1hix), fminf(c1loy, c1hiy)),
                     fmaxf(fminf(c1loz, c1hiz), r.tmin));
     const float c1max =
-        fminf(SIMT_BOX_ROUNDING * fminf(fminf(fmaxf(c1lox, c1hix), fmaxf(c1loy, c1hiy)),
-                                        fmaxf(c1loz, c1hiz)),
+        fminf(rounding * fminf(fminf(fmaxf(c1lox, c1hix), fmaxf(c1loy, c1hiy)),
+                               fmaxf(c1loz, c1hiz)),
               tmax);
     h.hit0 = c0max >= h.c0min;
     h.hit1 = c1max >= h.c1min;
@@ -147,7 +180,7 @@ __device__ __forceinline__ bool simt_is_tri_end(float4 w0)
 }
 
 // Woop test of the triangle at float4 `tri` whose first float4 `w0` is already loaded.
-// A hit needs tmin < t < tmax and (u, v) inside the triangle up to their rounding-error
+// Watertight (the default), a hit needs tmin < t < tmax and (u, v) inside the triangle up to their rounding-error
 // bounds eu, ev: u >= -eu, v >= -ev, u + v <= 1 + eu + ev (watertight; the bounds and
 // their derivation are simt_sim.geometry.woop_hit_t's). Then *t_out = t.
 __device__ __forceinline__ bool simt_intersect_woop(const float4* __restrict__ woop, int tri,
@@ -157,6 +190,24 @@ __device__ __forceinline__ bool simt_intersect_woop(const float4* __restrict__ w
     const float oz = w0.w - r.orig.x * w0.x - r.orig.y * w0.y - r.orig.z * w0.z;
     const float dz = r.dir.x * w0.x + r.dir.y * w0.y + r.dir.z * w0.z;
     const float t = oz * simt_rcp(dz);
+#ifdef SIMT_PUBLISHED_TESTS
+    if (t > r.tmin && t < tmax) {
+        const float4 w1 = __ldg(woop + tri + 1);
+        const float ox = w1.w + r.orig.x * w1.x + r.orig.y * w1.y + r.orig.z * w1.z;
+        const float dx = r.dir.x * w1.x + r.dir.y * w1.y + r.dir.z * w1.z;
+        const float u = ox + t * dx;
+        if (u >= 0.0f) {
+            const float4 w2 = __ldg(woop + tri + 2);
+            const float oy = w2.w + r.orig.x * w2.x + r.orig.y * w2.y + r.orig.z * w2.z;
+            const float dy = r.dir.x * w2.x + r.dir.y * w2.y + r.dir.z * w2.z;
+            const float v = oy + t * dy;
+            if (v >= 0.0f && u + v <= 1.0f) {
+                *t_out = t;
+                return true;
+            }
+        }
+    }
+#else
     if (t > r.tmin && t < tmax) {
         // per axis |o_i| + 2 |t d_i|; slope: the error of t over |D.w0|
         const float t2 = fabsf(t + t);
@@ -189,6 +240,7 @@ __device__ __forceinline__ bool simt_intersect_woop(const float4* __restrict__ w
             }
         }
     }
+#endif
     return false;
 }
 

@@ -30,8 +30,8 @@ def model_card(
 ) -> dict[str, Any]:
     """The card of a result of ``scheme`` costed with ``irs`` on ``gpu``.
 
-    ``ir_kernel``, ``ir_arch`` and ``ir_compiler`` join the IRs' values (one each for a
-    one-kernel scheme); ``ir_blocks`` are the blocks the replay charges, which an IR the
+    ``ir_kernel``, ``ir_arch``, ``ir_compiler`` and ``ir_tests`` join the IRs' values (one
+    each for a one-kernel scheme); ``ir_blocks`` are the blocks the replay charges, which an IR the
     result is re-costed with must have (``blocks``); ``ir_arch_note`` says when the IR is
     not the GPU's own; ``bounds_in_force`` names the roofline's limits (issue and pipe; a
     study adds bandwidth where the memory model runs); ``extra`` entries follow in the
@@ -45,6 +45,7 @@ def model_card(
         "ir_kernel": _joined([ir.kernel for ir in irs]),
         "ir_arch": _joined([ir.arch for ir in irs]),
         "ir_compiler": _joined([ir.compiler for ir in irs]),
+        "ir_tests": _joined([ir.tests for ir in irs]),
         "recostable": recostable,
         "ir_blocks": list(blocks),
         "bounds_in_force": ["issue", "pipe"],

@@ -266,7 +266,13 @@ class SimResult:
         c = self.counts
         counts = Counts(c.executions, c.active, c.hist, None, 0)
         card = dict(self.model_card)
-        card.update(ir_kernel=ir.kernel, ir_arch=ir.arch, ir_compiler=ir.compiler, recosted=True)
+        card.update(
+            ir_kernel=ir.kernel,
+            ir_arch=ir.arch,
+            ir_compiler=ir.compiler,
+            ir_tests=ir.tests,
+            recosted=True,
+        )
         if c.warp_totals is not None:
             card["schedule"] = "dropped on re-costing (warp loads follow the costs)"
         return replace(

@@ -101,7 +101,7 @@ def plan_study(spec: StudySpec) -> StudyPlan:
         )
     chosen = tuple(schemes.get_scheme(s) for s in spec.schemes)
     irs = {
-        (k, g.ir_arch): kernels_ir.load(k, g.ir_arch)
+        (k, g.ir_arch): kernels_ir.load(k, g.ir_arch, spec.tests)
         for g in gpus
         for s in chosen
         for k in s.kernels

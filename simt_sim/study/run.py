@@ -56,7 +56,7 @@ def measure_actual(plan: StudyPlan, ray_type: str) -> tuple[dict[str, float], st
     from simt_sim.tracers.cuda_tracer import CudaTracer
 
     wl = plan.workload(ray_type)
-    cu = CudaTracer(plan.bvh)
+    cu = CudaTracer(plan.bvh, tests=plan.spec.tests)
     measured = {}
     for s in plan.trace_schemes:
         if s.launch is not None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 from simt_sim import schemes
 from simt_sim.errors import SimtSimError
 from simt_sim.rays.generate import LAUNCH_SIZE
@@ -41,6 +42,8 @@ class StudySpec:
     memory: str = "auto"
     gpu_file: str | None = None
     """A TOML file of GPUs added to the packaged ones (``simt-sim table --gpus FILE``)."""
+    tests: str = DEFAULT_TESTS
+    """Box and triangle tests the kernels are costed with (``kernels_ir.kernel_ir.TESTS``)."""
 
     @property
     def sampled(self) -> bool:
@@ -60,6 +63,8 @@ class StudySpec:
                 f"memory model mode {self.memory!r} is unknown; use one of "
                 f"{', '.join(MEMORY_MODES)}"
             )
+        if self.tests not in TESTS:
+            raise SimtSimError(f"unknown tests {self.tests!r}; use one of {', '.join(TESTS)}")
         if self.spp < 1:
             raise SimtSimError(f"--spp must be at least 1, got {self.spp}")
 

@@ -27,8 +27,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from kernels_ir.build import CUDA_DIR, HEADER, KERNELS
-from kernels_ir.kernel_ir import KernelLaunch
+from kernels_ir.build import CUDA_DIR, HEADER, KERNELS, TEST_DEFINES
+from kernels_ir.kernel_ir import DEFAULT_TESTS, KernelLaunch
 from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
 from simt_sim.bvh.traverse import check_bvh, ray_arrays
 from simt_sim.errors import SimtSimError
@@ -302,11 +302,22 @@ class CudaTracer:
         CUDA device ordinal.
     block_threads : int
         Threads per block (a multiple of 32).
+    tests : str
+        Box and triangle tests the kernels are compiled with (``kernels_ir.kernel_ir.TESTS``).
     """
 
     name = "cuda"
 
-    def __init__(self, bvh: BVH, *, device: int = 0, block_threads: int = BLOCK_THREADS) -> None:
+    def __init__(
+        self,
+        bvh: BVH,
+        *,
+        device: int = 0,
+        block_threads: int = BLOCK_THREADS,
+        tests: str = DEFAULT_TESTS,
+    ) -> None:
+        if tests not in TEST_DEFINES:
+            raise SimtSimError(f"unknown tests {tests!r}; use one of {', '.join(TEST_DEFINES)}")
         packed = pack_bvh(bvh)
         check_block_threads(block_threads)
         cp = import_cupy()
@@ -316,6 +327,7 @@ class CudaTracer:
         self._cp = cp
         self._device = cp.cuda.Device(device)
         self.block_threads = block_threads
+        self._options = (*NVRTC_OPTIONS, *TEST_DEFINES[tests])
         with self._device:
             name = cp.cuda.runtime.getDeviceProperties(device)["name"]
             self.device_name = name.decode() if isinstance(name, bytes) else str(name)
@@ -330,7 +342,7 @@ class CudaTracer:
         if kernel not in self._kernels:
             cp = self._cp
             try:
-                module = cp.RawModule(code=kernel_source(kernel), options=NVRTC_OPTIONS)
+                module = cp.RawModule(code=kernel_source(kernel), options=self._options)
                 with self._device:  # compiled and loaded for this device's architecture
                     self._kernels[kernel] = module.get_function(kernel)
             except cp.cuda.compiler.CompileException as exc:

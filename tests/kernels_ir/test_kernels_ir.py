@@ -7,6 +7,7 @@ the two rebuild tests, which skip without it.
 
 from __future__ import annotations
 
+import itertools
 import json
 import tempfile
 from pathlib import Path
@@ -24,11 +25,12 @@ from kernels_ir.build import (
     check,
     dumps,
     find_toolchain,
+    ir_filename,
     source_sha256,
     toolchain_available,
 )
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kernel_ir import BLOCKS, CLASSES
+from kernels_ir.kernel_ir import BLOCKS, CLASSES, TESTS
 from kernels_ir.sass import classify, parse_listing
 
 DATA = Path(__file__).parents[1] / "data" / "sass"
@@ -228,17 +230,37 @@ def test_a_subroutine_calling_another_is_refused() -> None:
 
 def test_every_kernel_and_arch_is_committed() -> None:
     assert KERNELS == tuple(sorted(p.stem for p in CUDA_DIR.glob("*.cu")))
-    assert available() == [(k, a) for k in KERNELS for a in ARCHS]
+    for tests in TESTS:
+        assert available(tests) == [(k, a) for k in KERNELS for a in ARCHS]
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_published_tests_cost_less_in_the_tests_only(arch: str) -> None:
+    """The published arithmetic (one-FFMA slabs, Woop's test against 0 and 1) is cheaper
+    in trav_step and tri_test; the ray setup precomputes orig * idir, and elsewhere the
+    compiler's scheduling moves an instruction or two. Built with -DSIMT_PUBLISHED_TESTS."""
+    for kernel in ("while_while", "persistent_speculative_while_while", "dynamic_fetch"):
+        water, pub = load(kernel, arch), load(kernel, arch, "published")
+        assert (water.tests, pub.tests) == ("watertight", "published")
+        assert "-DSIMT_PUBLISHED_TESTS" in pub.flags
+        assert "-DSIMT_PUBLISHED_TESTS" not in water.flags
+        assert set(water.blocks) == set(pub.blocks)
+        assert pub.cost("trav_step") < water.cost("trav_step")
+        assert pub.cost("tri_test") < water.cost("tri_test")
+        for block in set(water.blocks) - {"trav_step", "tri_test"}:
+            assert abs(pub.cost(block) - water.cost(block)) <= 5, f"{kernel} {arch} {block}"
+    with pytest.raises(KernelIRError, match="unknown tests 'fast'"):
+        load("while_while", "sm_75", "fast")
 
 
 @pytest.mark.parametrize("kernel", KERNELS)
 def test_committed_ir_has_required_blocks_and_is_current(kernel: str) -> None:
     sha = source_sha256(kernel)
     marked = parse_markers((CUDA_DIR / f"{kernel}.cu").read_text(), f"{kernel}.cu")
-    for arch in ARCHS:
-        text = (IR_DIR / f"{kernel}.{arch}.json").read_text()
+    for arch, tests in itertools.product(ARCHS, TESTS):
+        text = (IR_DIR / ir_filename(kernel, arch, tests)).read_text()
         assert dumps(json.loads(text)) == text, "not in canonical form"
-        ir = load(kernel, arch)
+        ir = load(kernel, arch, tests)
         assert ir.source_sha256 == sha, "sources changed: run `python -m kernels_ir build`"
         for block in set(marked.values()):
             assert ir.cost(block) > 0, f"{kernel} {arch}: marked block {block} is empty"
