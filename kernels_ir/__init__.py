@@ -93,6 +93,7 @@ def load(kernel: str, arch: str = "sm_90", tests: str = DEFAULT_TESTS) -> Kernel
         source_sha256=doc["source_sha256"],
         notes=notes,
         tests=doc.get("tests", DEFAULT_TESTS),
+        bytes={b: {c: int(n) for c, n in row.items()} for b, row in doc.get("bytes", {}).items()},
     )
 
 

@@ -68,14 +68,30 @@ def parse_markers(source: str, name: str = "<source>") -> dict[int, str]:
 
 
 class BlockMap(NamedTuple):
-    """What :func:`map_blocks` finds: the charged counts and the divergent fallbacks.
+    """What :func:`map_blocks` finds: the charged counts, the divergent fallbacks, and the
+    global-memory bytes the charged loads and stores move.
 
     ``counts``: block (or :data:`UNATTRIBUTED`) -> class -> instructions charged.
     ``fallback``: block -> class -> instructions of its divergent-warp fallback.
+    ``bytes``: block -> ``ld_global``/``st_global`` -> bytes one lane loads or stores per
+    execution (:func:`access_bytes` of each charged instruction).
     """
 
     counts: dict[str, dict[str, int]]
     fallback: dict[str, dict[str, int]]
+    bytes: dict[str, dict[str, int]]
+
+
+#: bytes per lane of a load or store by its width modifier; without one it moves 4
+_WIDTH_BYTES = {"U8": 1, "S8": 1, "U16": 2, "S16": 2, "64": 8, "128": 16}
+#: the classes whose instructions move global memory
+MEMORY_CLASSES = ("ld_global", "st_global")
+
+
+def access_bytes(opcode: str) -> int:
+    """Bytes one lane of a load or store moves: ``LDG.E.128.CONSTANT`` -> 16, ``STG.E`` -> 4."""
+    widths = [_WIDTH_BYTES[m] for m in opcode.split(".")[1:] if m in _WIDTH_BYTES]
+    return widths[-1] if widths else 4
 
 
 def _last_returns(instructions: Sequence[SassInstruction]) -> dict[str, int]:
@@ -151,12 +167,16 @@ def map_blocks(
     fallback_idx = divergent_only(instructions)
     counts: dict[str, dict[str, int]] = {}
     fallback: dict[str, dict[str, int]] = {}
+    moved: dict[str, dict[str, int]] = {}
 
     def charge(i: int, block: str, cls: str, times: int = 1) -> None:
         row = (fallback if i in fallback_idx else counts).setdefault(
             block, dict.fromkeys(CLASSES, 0)
         )
         row[cls] += times
+        if cls in MEMORY_CLASSES and i not in fallback_idx:
+            per = moved.setdefault(block, dict.fromkeys(MEMORY_CLASSES, 0))
+            per[cls] += times * access_bytes(instructions[i].opcode)
 
     callers: dict[str, Counter[str]] = {}
     last_ret = _last_returns(instructions)
@@ -182,4 +202,4 @@ def map_blocks(
             continue
         for block, times in sites.items():
             charge(i, block, cls, times)
-    return BlockMap(counts, fallback)
+    return BlockMap(counts, fallback, moved)

@@ -152,8 +152,9 @@ def build_one(
         i for i in parse_listing(listing) if i.function == kernel or i.function.startswith("$")
     ]
     owner = parse_markers((CUDA_DIR / f"{kernel}.cu").read_text(), f"{kernel}.cu")
-    counts, fallback = map_blocks(instructions, owner, f"{kernel}.cu")
+    counts, fallback, moved = map_blocks(instructions, owner, f"{kernel}.cu")
     unattributed = counts.pop(UNATTRIBUTED, {})
+    moved.pop(UNATTRIBUTED, None)
     # a diverged warp's traversal step runs its vote's fallback (charged as trav_diverged
     # where the scheme sees a diverged warp: speculative); other fallbacks stay uncharged
     if "trav_step" in fallback:
@@ -172,6 +173,7 @@ def build_one(
         "kernel": kernel,
         "arch": arch,
         "blocks": counts,
+        "bytes": moved,
         "unattributed": unattributed,
         "divergent_fallback": fallback_sizes,
         "compiler": tools.version,

@@ -76,8 +76,14 @@ class KernelIR:
 
     ``blocks[block][cls]`` is the number of SASS instructions of class ``cls`` that one
     execution of ``block`` issues (for a warp: warp instructions). ``tests`` names the box
-    and triangle tests it was built with (:data:`TESTS`).
+    and triangle tests it was built with (:data:`TESTS`). ``bytes[block]`` holds the
+    global-memory bytes one lane loads (``ld_global``) and stores (``st_global``) per
+    execution of the block, from the width of each SASS load and store.
     """
+
+    def moved(self, block: str, cls: str) -> int:
+        """Bytes one lane moves per execution of ``block`` (``cls``: ld_global, st_global)."""
+        return int(self.bytes.get(block, {}).get(cls, 0))
 
     kernel: str
     arch: str
@@ -88,6 +94,7 @@ class KernelIR:
     source_sha256: str = ""
     notes: dict[str, str] = field(default_factory=dict)
     tests: str = DEFAULT_TESTS
+    bytes: dict[str, dict[str, int]] = field(default_factory=dict)
 
     def cost(self, block: str) -> int:
         """Total instructions of one execution of ``block`` (0 if the kernel lacks it)."""

@@ -85,6 +85,7 @@ from simt_sim.simt.engine import (
     charge,
     class_mix,
     cost_vector,
+    lane_traffic,
     schedule_groups,
 )
 from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, get_gpu
@@ -753,6 +754,7 @@ def execute(
         counts=counts,
         costs=costs,
         mix=class_mix(counts.executions, ir),
+        traffic=lane_traffic(counts.active, ir),
         n_trav=int(n_ops[_C_TRAV]),
         n_leaf=int(n_ops[_C_LEAF]),
         n_tri=int(n_ops[_C_TRI]),

@@ -55,8 +55,10 @@ from simt_sim.simt.engine import (
     chunk_counts,
     class_mix,
     cost_vector,
+    lane_traffic,
 )
 from simt_sim.simt.gpus import GpuConfig
+from simt_sim.simt.occupancy import kernel_occupancy
 from simt_sim.simt.replay import PathReplay
 from simt_sim.simt.scheme import PATH, TRACE_BLOCKS, SchemeInfo
 from simt_sim.types.paths import PathTrace
@@ -260,10 +262,13 @@ def replay_paths(
     costs = cost_vector(irs["megakernel"])
     counts = path_counts(pt, costs, gpu.warp_size, order=order)
     n_trav, n_leaf, n_tri = replayed_ops(counts)
-    mix = class_mix(counts.executions, irs["megakernel"])
+    ir = irs["megakernel"]
+    mix, traffic = class_mix(counts.executions, ir), lane_traffic(counts.active, ir)
+    card = {"occupancy": kernel_occupancy(gpu, ir, None).note}
     return PathReplay(
-        counts, costs, mix, n_trav, n_leaf, n_tri, APPROXIMATIONS[order], recostable=True
-    )
+        counts, costs, mix, traffic, n_trav, n_leaf, n_tri, APPROXIMATIONS[order],
+        recostable=True, card=card,
+    )  # fmt: skip
 
 
 SCHEME = SchemeInfo(

@@ -47,8 +47,10 @@ from simt_sim.simt.engine import (
     class_mix,
     cost_vector,
     empty_counts,
+    lane_traffic,
 )
 from simt_sim.simt.gpus import GpuConfig
+from simt_sim.simt.occupancy import kernel_occupancy
 from simt_sim.simt.replay import PathReplay
 from simt_sim.simt.result import SimResult
 from simt_sim.simt.scheme import PATH, TRACE_BLOCKS, SchemeInfo
@@ -175,6 +177,7 @@ def simulate_kernels(
             scene=scene, ray_type="path", scheme=k, gpu=gpu, rays=int(rays),
             warp_size=gpu.warp_size, counts=counts[k], costs=costs[k],
             mix=class_mix(counts[k].executions, ir),
+            traffic=lane_traffic(counts[k].active, ir),
             n_trav=int(ops[0]), n_leaf=int(ops[1]), n_tri=int(ops[2]), model_card=card,
         )  # fmt: skip
     return out
@@ -192,15 +195,25 @@ def replay_paths(pt: PathTrace, irs: dict[str, KernelIR], gpu: GpuConfig) -> Pat
             c.executions * r.costs, c.active * r.costs, c.hist * r.costs[:, None]
         )
     ext, con = kernels["wavefront_extend"], kernels["wavefront_connect"]
+    launches = {k: int(r.model_card["launches"]) for k, r in kernels.items()}
     card = {
         "counter_unit": "instructions (executions x cost, summed over the kernels); costs 1",
         "kernels": {k: r.to_row() for k, r in kernels.items()},
         "kernel_instructions": {k: r.warp_instructions for k, r in kernels.items()},
+        "launches": sum(launches.values()),
+        "launches_per_bounce": sum(n for k, n in launches.items() if k != "wavefront_generate")
+        / max(pt.n_bounces, 1),
+        "queue_bytes": {
+            k: {"loaded": int(r.traffic[0]), "stored": int(r.traffic[1])}
+            for k, r in kernels.items()
+        },
+        "occupancy": {k: kernel_occupancy(gpu, irs[k], None).note for k in kernels},
     }
     return PathReplay(
         total,
         np.ones(N_BLOCKS, np.int64),
         sum(r.mix for r in kernels.values()),
+        sum(r.traffic for r in kernels.values()),
         ext.n_trav + con.n_trav,
         ext.n_leaf + con.n_leaf,
         ext.n_tri + con.n_tri,

@@ -172,6 +172,15 @@ def class_costs(ir: KernelIR) -> np.ndarray:
     )
 
 
+def lane_traffic(active: np.ndarray, ir: KernelIR) -> np.ndarray:
+    """Global-memory bytes the active lanes load and store, (2,) int64: each block's active
+    lanes times the bytes its loads and stores move per lane (``KernelIR.bytes``)."""
+    per_lane = np.array(
+        [[ir.moved(b, "ld_global"), ir.moved(b, "st_global")] for b in BLOCKS], dtype=np.int64
+    )
+    return np.asarray(active, np.int64) @ per_lane
+
+
 def class_mix(executions: np.ndarray, ir: KernelIR) -> np.ndarray:
     """Warp instructions issued by class (N_CLASSES int64) for block ``executions``: what
     the pipe bound divides by each pipe's rate."""

@@ -31,6 +31,7 @@ from simt_sim.simt.engine import (
     class_mix,
     cost_vector,
     empty_counts,
+    lane_traffic,
     replay_arrays,
     scan_trace,
 )
@@ -209,6 +210,7 @@ def simulate_traces(
         counts=counts,
         costs=costs,
         mix=class_mix(counts.executions, ir),
+        traffic=lane_traffic(counts.active, ir),
         n_trav=int(totals[0]),
         n_leaf=int(totals[1]),
         n_tri=int(totals[2]),
@@ -228,6 +230,8 @@ class PathReplay:
         counts are already instructions, as the wavefront's sum over its kernels).
     mix : int64 (N_CLASSES,)
         Warp instructions issued by instruction class (summed over the kernels).
+    traffic : int64 (2,)
+        Global-memory bytes loaded and stored by the active lanes (summed over the kernels).
     n_trav, n_leaf, n_tri : int
         Ops replayed, by kind.
     approximations : tuple of str
@@ -239,6 +243,7 @@ class PathReplay:
     counts: Counts
     costs: np.ndarray
     mix: np.ndarray
+    traffic: np.ndarray
     n_trav: int
     n_leaf: int
     n_tri: int
@@ -294,6 +299,7 @@ def simulate_paths(
         counts=out.counts,
         costs=out.costs,
         mix=out.mix,
+        traffic=out.traffic,
         n_trav=out.n_trav,
         n_leaf=out.n_leaf,
         n_tri=out.n_tri,

@@ -19,7 +19,7 @@ import pandas as pd
 from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.bounds import issue_bound, pipe_bound, roofline
-from simt_sim.simt.engine import Counts, class_mix, cost_vector
+from simt_sim.simt.engine import Counts, class_mix, cost_vector, lane_traffic
 from simt_sim.simt.gpus import GpuConfig
 
 TRAVERSAL_BLOCKS = ("trav_step", "trav_none", "trav_one", "trav_both", "trav_diverged")
@@ -59,6 +59,9 @@ class SimResult:
     mix : int64 (N_CLASSES,)
         Warp instructions issued by instruction class (``kernels_ir.CLASSES``); sums to
         ``warp_instructions``. The pipe bound divides it by the GPU's pipe rates.
+    traffic : int64 (2,)
+        Global-memory bytes the active lanes load and store (``engine.lane_traffic``): what
+        the kernels ask of the memory system at any level, queues and path state included.
     n_trav, n_leaf, n_tri : int
         Ops in the replayed traces, by kind (all rays).
     model_card : dict
@@ -77,6 +80,7 @@ class SimResult:
     counts: Counts
     costs: np.ndarray
     mix: np.ndarray
+    traffic: np.ndarray
     n_trav: int
     n_leaf: int
     n_tri: int
@@ -239,6 +243,8 @@ class SimResult:
             "issue_bound": self.issue_bound,
             "pipe_bound": self.pipe_bound,
             "busiest_pipe": self.busiest_pipe,
+            "load_bytes_per_ray": self.traffic[0] / self.rays if self.rays else float("nan"),
+            "store_bytes_per_ray": self.traffic[1] / self.rays if self.rays else float("nan"),
             "mean_trav": self.mean_trav,
             "mean_leaf": self.mean_leaf,
             "mean_tri": self.mean_tri,
@@ -280,6 +286,7 @@ class SimResult:
             counts=counts,
             costs=cost_vector(ir),
             mix=class_mix(c.executions, ir),
+            traffic=lane_traffic(c.active, ir),
             model_card=card,
         )
 
@@ -323,6 +330,7 @@ def merge(results: Sequence[SimResult]) -> SimResult:
         rays=sum(r.rays for r in results),
         counts=counts,
         mix=sum((r.mix for r in results[1:]), first.mix),
+        traffic=sum((r.traffic for r in results[1:]), first.traffic),
         n_trav=sum(r.n_trav for r in results),
         n_leaf=sum(r.n_leaf for r in results),
         n_tri=sum(r.n_tri for r in results),

@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from simt_sim import schemes
 from simt_sim.simt.gpus import GpuConfig
-from simt_sim.simt.memory import MemoryCounts, memory_columns
+from simt_sim.simt.memory import MemoryCounts, memory_columns, memory_counts
 from simt_sim.simt.replay import simulate_paths, simulate_queues
 from simt_sim.simt.result import SimResult, merge
 from simt_sim.simt.scheme import PATH, SchemeInfo
@@ -144,13 +144,12 @@ def _sampled_row(
 
 
 def _with_memory(
-    plan: StudyPlan, r: SimResult, batches: Sequence[BatchResults], gpu: GpuConfig
+    plan: StudyPlan, r: SimResult, counts: MemoryCounts, gpu: GpuConfig
 ) -> tuple[SimResult, dict]:
-    """The result with the memory model's decision in its model card, and the memory
-    columns of its row (summed over the ray type's batches; NaN where the model is off)."""
+    """The result with the memory model's decision in its model card and its bandwidth
+    bound, and the memory columns of its row (NaN where the model is off)."""
     on, why = plan.memory[gpu.id]
-    counts = sum((b.memory[gpu.id] for b in batches), MemoryCounts()) if on else MemoryCounts()
-    cols = memory_columns(counts, gpu, on)
+    cols = memory_columns(counts if on else MemoryCounts(), gpu, on)
     card = {**r.model_card, "memory_model": why}
     if on:
         card["bounds_in_force"] = [*r.model_card.get("bounds_in_force", ()), "bandwidth"]
@@ -194,7 +193,9 @@ def trace_rows(
             else:
                 merged = merge([b.results[(s.name, g.id)][0] for b in batches])
                 row = _full_row(merged, False)
-            merged, mem = _with_memory(plan, merged, batches, g)
+            on = plan.memory[g.id][0]
+            counts = sum((b.memory[g.id] for b in batches), MemoryCounts()) if on else None
+            merged, mem = _with_memory(plan, merged, counts or MemoryCounts(), g)
             row.update(mem)
             row.update(_roofline_columns(merged, row))
             merged = _finish(plan, merged)
@@ -207,7 +208,8 @@ def trace_rows(
 
 def path_rows(plan: StudyPlan, bar: tqdm) -> tuple[list[SimResult], list[dict]]:
     """Trace one diffuse path per pixel once and replay it under every scheme x GPU: trace
-    schemes run each bounce's queue as a launch, path schemes the whole paths."""
+    schemes run each bounce's queue as a launch, path schemes the whole paths. The memory
+    model, where it runs, counts the scene traffic of every extend and shadow ray."""
     spec = plan.spec
     bar.set_description(f"{plan.scene.name} {PATH_RAYS}")
     pt = trace_paths(
@@ -228,12 +230,20 @@ def path_rows(plan: StudyPlan, bar: tqdm) -> tuple[list[SimResult], list[dict]]:
             replayed[(s.name, g.id)] = simulate_queues(pt, "all", s, ir, g, scene=name)
         for s in plan.path_schemes:
             replayed[(s.name, g.id)] = simulate_paths(pt, s, plan.irs_for(s, g), g, scene=name)
+    memory = {
+        g.id: sum((memory_counts(q, g.warp_size, g) for q in pt.queues("all")), MemoryCounts())
+        for g in plan.gpus
+        if plan.memory[g.id][0]
+    }
     bar.update(pt.n_rays)
     results, rows = [], []
     for s in plan.schemes:
         for g in plan.gpus:
             merged = merge([replayed[(s.name, g.id)]])
             row = _full_row(merged, spec.sampled)
+            merged, mem = _with_memory(plan, merged, memory.get(g.id, MemoryCounts()), g)
+            row.update(mem)
+            row.update(_roofline_columns(merged, row))
             merged = _finish(plan, merged)
             results.append(merged)
             if spec.actual:

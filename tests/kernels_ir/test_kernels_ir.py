@@ -17,7 +17,13 @@ import pytest
 import kernels_ir
 from kernels_ir import ARCHS, KERNELS, available, format_ir_table, load, summary_table
 from kernels_ir.__main__ import main
-from kernels_ir.blocks import UNATTRIBUTED, divergent_only, map_blocks, parse_markers
+from kernels_ir.blocks import (
+    UNATTRIBUTED,
+    access_bytes,
+    divergent_only,
+    map_blocks,
+    parse_markers,
+)
 from kernels_ir.build import (
     CUDA_DIR,
     IR_DIR,
@@ -143,7 +149,7 @@ def test_mapper_on_blackwell_listing_knows_every_opcode() -> None:
 
 def test_mapper_sends_other_files_to_the_catch_all() -> None:
     ins = parse_listing((DATA / "tiny.sm_90.sass").read_text())
-    counts, fallback = map_blocks(ins, parse_markers(TINY), "another.cu")
+    counts, fallback, _ = map_blocks(ins, parse_markers(TINY), "another.cu")
     assert fallback == {}
     assert set(counts) == {UNATTRIBUTED}
     assert sum(counts[UNATTRIBUTED].values()) == 30
@@ -172,7 +178,7 @@ def test_divergent_fallback_is_the_bra_div_stub_and_its_subroutine() -> None:
 
 
 def test_mapper_charges_the_converged_path_and_keeps_the_fallback_apart() -> None:
-    counts, fallback = map_blocks(
+    counts, fallback, _ = map_blocks(
         _tiny_vote(), parse_markers((DATA / "tiny_vote.cu").read_text()), "tiny_vote.cu"
     )
     assert {b: sum(row.values()) for b, row in fallback.items()} == {"trav_step": 12}
@@ -210,7 +216,7 @@ $__internal_1_$helper:
 
 def test_subroutines_count_in_their_callers_and_bra_conv_skips_are_fallback() -> None:
     owner = parse_markers("x\n// @block trav_step\na;\n// @block finish\nb;\n", "k.cu")
-    counts, fallback = map_blocks(parse_listing(SYNTHETIC), owner, "k.cu")
+    counts, fallback, _ = map_blocks(parse_listing(SYNTHETIC), owner, "k.cu")
     # line 3: IMAD, BRA.CONV, MOV, CALL + helper (IADD3, RET); line 5: CALL + helper again
     assert sum(counts["trav_step"].values()) == 6
     assert sum(counts["finish"].values()) == 4  # CALL, EXIT, helper's IADD3 and RET
@@ -363,3 +369,22 @@ def test_rebuild_of_one_kernel_is_byte_identical() -> None:
 @pytest.mark.skipif(not toolchain_available(), reason=NO_TOOLCHAIN)
 def test_full_rebuild_check_passes() -> None:
     assert check() == []
+
+
+@pytest.mark.parametrize(
+    ("opcode", "nbytes"),
+    [("LDG.E.128.CONSTANT", 16), ("LDG.E.64", 8), ("STG.E", 4), ("LDG.E.U8", 1), ("ST.E.64", 8)],
+)
+def test_access_bytes_reads_the_width(opcode: str, nbytes: int) -> None:
+    assert access_bytes(opcode) == nbytes
+
+
+def test_committed_bytes_are_the_layouts() -> None:
+    """sm_75 while-while: a traversal step loads a 64-byte node but the second half of its
+    last float4 (the padding), 56 bytes; a ray is 2 float4 (32 bytes); a hit is stored as
+    a triangle index and a t (8 bytes)."""
+    ir = load("while_while", "sm_75")
+    assert ir.moved("trav_step", "ld_global") == 56
+    assert ir.moved("ray_setup", "ld_global") == 32
+    assert ir.moved("finish", "st_global") == 8
+    assert ir.moved("trav_step", "st_global") == 0

@@ -127,3 +127,17 @@ def test_occupancy_sets_the_persistent_replay_and_its_card() -> None:
     assert r.model_card["resident_warps"] == 108 * 48
     assert r.model_card["occupancy_warps_per_sm"] == 48
     assert "registers" in r.model_card["occupancy"]
+
+
+# ---- memory traffic ------------------------------------------------------------------------
+def test_lane_traffic_is_active_lanes_times_bytes_per_lane() -> None:
+    """Every ray runs ray_setup and finish once: with 32 bytes loaded there and 8 stored
+    at finish (and nothing else), the traffic is exactly 32 and 8 bytes per ray."""
+    trace = synthetic_trace(32 * 5 + 7, seed=6)
+    ir = ir_with("while_while", "sm_75", {})
+    ir = dataclasses.replace(ir, bytes={"ray_setup": {"ld_global": 32}, "finish": {"st_global": 8}})
+    r = simulate_traces([trace], get_scheme("while_while"), ir, issue_limited("t", sms=1,
+                        clock_mhz=1.0, issue_rate=1.0))  # fmt: skip
+    assert r.traffic.tolist() == [32 * r.rays, 8 * r.rays]
+    row = r.to_row()
+    assert row["load_bytes_per_ray"] == 32 and row["store_bytes_per_ray"] == 8

@@ -117,6 +117,7 @@ def test_totals_of_a_billion_rays_are_exact():
     c = r.counts
     counts = Counts(c.executions * k, c.active * k, c.hist * k)
     scaled = dataclasses.replace(r, rays=r.rays * k, counts=counts, mix=r.mix * k,
+                                 traffic=r.traffic * k,
                                  n_trav=r.n_trav * k, n_leaf=r.n_leaf * k,
                                  n_tri=r.n_tri * k)  # fmt: skip
     assert scaled.rays == 10**9

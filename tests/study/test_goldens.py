@@ -40,8 +40,10 @@ def test_changed_instruction_cost_breaks_the_golden(golden, monkeypatch) -> None
         pytest.skip(f"shared scene {golden.scene!r} not present (set SIMT_SIM_SCENES)")
     real_load = kernels_ir.load
 
-    def one_more_int(kernel: str, arch: str = "sm_90") -> kernels_ir.KernelIR:
-        ir = real_load(kernel, arch)
+    def one_more_int(
+        kernel: str, arch: str = "sm_90", tests: str = "watertight"
+    ) -> kernels_ir.KernelIR:
+        ir = real_load(kernel, arch, tests)
         if kernel != "while_while":
             return ir
         blocks = {b: dict(c) for b, c in ir.blocks.items()}

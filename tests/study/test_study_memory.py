@@ -57,3 +57,27 @@ def test_cli_rejects_an_unknown_mode_in_one_line():
     )  # fmt: skip
     assert p.returncode == 2
     assert len(p.stderr.strip().splitlines()) == 1 and "--memory-model" in p.stderr
+
+
+def test_path_rows_carry_the_memory_columns_and_the_queue_traffic():
+    """Path rows: the memory model counts the scene traffic of every extend and shadow
+    ray (the same for every scheme, as for trace rows); the wavefront's lanes store what
+    its queues hold (a next ray and a shadow ray per shaded hit), the megakernel's almost
+    nothing, and its card gives launches per bounce and each kernel's bytes."""
+    results, df = _table(
+        ray_types=("path",), schemes=("while_while", "megakernel", "wavefront"),
+        gpus=("gtx285",), memory="on",
+    )  # fmt: skip
+    rows = df.set_index("scheme")
+    assert set(rows["mem_model"]) == {"on"} and rows["bandwidth_bound"].notna().all()
+    assert rows["dram_bytes_per_ray"].nunique() == 1
+    wave, mega = rows.loc["wavefront"], rows.loc["megakernel"]
+    assert wave["store_bytes_per_ray"] > 10 * mega["store_bytes_per_ray"] > 0
+    assert wave["load_bytes_per_ray"] > mega["load_bytes_per_ray"]
+    card = next(r.model_card for r in results if r.scheme == "wavefront")
+    assert card["launches_per_bounce"] == 3 and "bandwidth" in card["bounds_in_force"]
+    stored = sum(k["stored"] for k in card["queue_bytes"].values())
+    wf = next(r for r in results if r.scheme == "wavefront")
+    assert stored == wf.traffic[1]
+    for r in results:
+        assert r.mrays_upper == min(r.issue_bound, r.pipe_bound, r.bandwidth_bound)
