@@ -11,6 +11,7 @@ random groups and the table gets 95% confidence intervals.
 
 from __future__ import annotations
 
+import math
 import statistics
 from collections.abc import Iterable, Sequence
 from dataclasses import replace
@@ -161,7 +162,7 @@ def _roofline_columns(r: SimResult, row: dict) -> dict:
     interval follows (the bound is a monotone function of the compute bound)."""
     cols: dict[str, Any] = {"mrays_upper": r.mrays_upper, "limit": r.limit}
     for end in ("mrays_upper_ci_low", "mrays_upper_ci_high"):
-        if end in row and r.limit == "bandwidth":
+        if end in row and not math.isnan(r.bandwidth_bound):
             cols[end] = min(row[end], r.bandwidth_bound)
     return cols
 
