@@ -16,8 +16,16 @@ import pandas as pd
 
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
+from simt_sim import __version__
+from simt_sim.atomic import write_atomic
 from simt_sim.errors import SimtSimError
-from simt_sim.report.tables import DETAIL_COLUMNS, FORMATS, emit
+from simt_sim.report.tables import (
+    FORMATS,
+    emit,
+    resolve_format,
+    table_meta,
+    write_table,
+)
 from simt_sim.scene.load import DEFAULT_SCENE
 from simt_sim.simt.footprint import MODES as MEMORY_MODES
 from simt_sim.simt.gpus import DEFAULT_GPU
@@ -68,7 +76,10 @@ def _add_workload_args(
 
 def _add_output_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
-        "--format", choices=FORMATS, default="md", help="table format (default: %(default)s)"
+        "--format",
+        choices=FORMATS,
+        default=None,
+        help="table format (default: what --out's suffix says, .csv, .json or .md; else md)",
     )
     p.add_argument("--out", default=None, help="write the table to this file instead of stdout")
 
@@ -128,7 +139,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         wl = _workload(args, args.rays)
         bar.reset(total=len(wl.rays) * runs(tracers, args.repeats))
         df = bench_tracers(wl, tracers, args.rays, args.repeats, bar)
-    emit(df, args.format, args.out)
+    emit(df, resolve_format(args.format, args.out), args.out)
     return 0
 
 
@@ -182,7 +193,7 @@ def cmd_trace(args: argparse.Namespace) -> int:
             }
         ]
     )
-    emit(df, args.format, None)
+    emit(df, resolve_format(args.format, None), None)
     return 0
 
 
@@ -223,16 +234,16 @@ def cmd_table(args: argparse.Namespace) -> int:
         sample=check_fraction(args.sample),
         memory=args.memory_model,
     )
+    fmt = resolve_format(args.format, args.out)
     if args.workers is None and args.scheduler is None:
-        _, df = run_study(spec, progress=progress.wanted(args.quiet))
+        results, df = run_study(spec, progress=progress.wanted(args.quiet))
     else:
         from simt_sim.study.cluster import dask_client
 
         with dask_client(args.workers, args.scheduler) as client:
-            _, df = run_study(spec, progress=progress.wanted(args.quiet), client=client)
-    if args.format == "md":
-        df = df.drop(columns=[c for c in DETAIL_COLUMNS if c in df])
-    emit(df, args.format, args.out)
+            results, df = run_study(spec, progress=progress.wanted(args.quiet), client=client)
+    named = args.schemes.strip().lower() != "all"
+    write_table(df, table_meta(spec, results), fmt, args.out, wide=args.wide, named=named)
     return 0
 
 
@@ -273,11 +284,31 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_compare(args: argparse.Namespace) -> int:
+    """Two runs side by side: each row's bound, SIMD efficiency and instructions, both
+    values and the change."""
+    from simt_sim.report.compare import compare_tables, render_comparison
+    from simt_sim.report.tables import read_table
+
+    (a, _), (b, _) = read_table(args.first), read_table(args.second)
+    both = compare_tables(a, b)
+    fmt = resolve_format(args.format, args.out)
+    if fmt == "md":
+        text = render_comparison(both, (args.first, args.second))
+        if args.out is None:
+            sys.stdout.write(text)
+        else:
+            write_atomic(args.out, text)
+    else:
+        emit(both, fmt, args.out)
+    return 0
+
+
 def cmd_scenes(args: argparse.Namespace) -> int:
     """List the named scenes, their sizes and where they come from."""
     from simt_sim.scene import list_scenes
 
-    emit(list_scenes(), args.format, args.out)
+    emit(list_scenes(), resolve_format(args.format, args.out), args.out)
     return 0
 
 
@@ -286,7 +317,7 @@ def cmd_gpus(args: argparse.Namespace) -> int:
     from simt_sim.simt.gpus import load_gpus
 
     rows = [g.figures() for g in load_gpus(args.gpus).values()]
-    emit(pd.DataFrame(rows), args.format, args.out)
+    emit(pd.DataFrame(rows), resolve_format(args.format, args.out), args.out)
     return 0
 
 
@@ -296,7 +327,7 @@ def cmd_ir_show(args: argparse.Namespace) -> int:
 
     emit(
         kernels_ir.format_ir_table(kernels_ir.load(args.kernel, args.arch)).reset_index(),
-        args.format,
+        resolve_format(args.format, args.out),
         args.out,
     )
     return 0
@@ -307,6 +338,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="simt-sim",
         description="How efficiently does a BVH traversal kernel use a SIMT machine?",
     )
+    parser.add_argument("--version", action="version", version=f"simt-sim {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     p = sub.add_parser(
@@ -404,6 +436,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="run the launch batches on the Dask cluster at ADDRESS (tcp://host:8786)",
     )
     _add_output_args(p)
+    p.add_argument(
+        "--wide",
+        action="store_true",
+        help="every column (markdown), not the compact table; CSV and JSON always have all",
+    )
     p.set_defaults(func=cmd_table)
 
     p = sub.add_parser(
@@ -444,6 +481,17 @@ def build_parser() -> argparse.ArgumentParser:
     _add_quiet_arg(p)
     p.add_argument("--out", required=True, help="directory for the PNG and SVG files")
     p.set_defaults(func=cmd_plot)
+
+    p = sub.add_parser(
+        "compare",
+        help="two runs side by side (tables written with 'simt-sim table --out FILE.json')",
+        epilog="example: simt-sim table --out before.json; (change a kernel, rebuild its IR); "
+        "simt-sim table --out after.json; simt-sim compare before.json after.json",
+    )
+    p.add_argument("first", help="the run to compare against (A)")
+    p.add_argument("second", help="the run compared (B)")
+    _add_output_args(p)
+    p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser(
         "scenes", help="list the named scenes", epilog="example: simt-sim scenes --format csv"

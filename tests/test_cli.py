@@ -6,12 +6,14 @@ output file.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+import pandas as pd
 import pytest
 
 from simt_sim.trace.tracefile import read_meta
@@ -142,7 +144,10 @@ def test_table_json_rows_and_not_applicable(tmp_path):
         "--quiet",
     )
     assert proc.returncode == 0, proc.stderr
-    rows = json.loads(out.read_text())
+    doc = json.loads(out.read_text())
+    rows = doc["rows"]
+    assert doc["meta"]["run"]["schemes"] == ["while_while", "if_if", "wavefront"]
+    assert len(doc["meta"]["model_cards"]) == 4  # wavefront's n/a rows have no result
     assert len(rows) == 6
     for r in rows:
         for key in (
@@ -177,7 +182,7 @@ def test_table_path_rays_have_megakernel_and_wavefront():
         "--quiet",
     )
     assert proc.returncode == 0, proc.stderr
-    rows = {r["scheme"]: r for r in json.loads(proc.stdout)}
+    rows = {r["scheme"]: r for r in json.loads(proc.stdout)["rows"]}
     assert rows["wavefront"]["simd_efficiency"] > rows["megakernel"]["simd_efficiency"]
 
 
@@ -206,7 +211,7 @@ def test_bvh_builder_flags():
     def row(*flags: str) -> dict:
         proc = run_cli(*one, *flags, "--quiet")
         assert proc.returncode == 0, proc.stderr
-        return json.loads(proc.stdout)[0]
+        return json.loads(proc.stdout)["rows"][0]
 
     default, single, dear = row(), row("--max-leaf", "1"), row("--node-cost", "4")
     assert single["mean_leaf"] == pytest.approx(single["mean_tri"], rel=1e-12)
@@ -300,3 +305,66 @@ def test_progress_bar_only_on_a_terminal(command: str, small_mesh: Path, tmp_pat
     assert not any(m in silent for m in BAR_MARKS), silent
     if command != "bench":  # bench reports timings; the others print the same table
         assert quiet.stdout == piped.stdout
+
+
+# ---- the table a user reads ----------------------------------------------------------------
+def test_default_table_fits_120_columns_and_marks_one_winner_per_ray_type():
+    """No options but a small image: every line at most 120 characters, no nan or <NA>,
+    path schemes left out (they do not apply), one winner per ray type, and the winner is
+    the row at 100% of the best."""
+    proc = run_cli("table", "--resolution", "32x24", "--spp", "1", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert max(len(line) for line in lines) <= 120
+    assert "nan" not in proc.stdout and "<NA>" not in proc.stdout
+    assert lines[0].startswith("simt-sim ") and "scene room" in lines[0] and "32x24" in lines[0]
+    body = [ln.split() for ln in lines[3:] if ln.strip() and not ln.startswith("*:")]
+    assert {row[2] for row in body} == {
+        "while_while", "if_if", "persistent_while_while", "persistent_speculative_while_while",
+        "dynamic_fetch", "packet",
+    }  # fmt: skip
+    for rt in ("primary", "ao", "diffuse"):
+        rows = [row for row in body if row[0] == rt]
+        winners = [row for row in rows if row[-1] == "*"]
+        assert len(winners) == 1 and winners[0][7] == "100"
+
+
+def test_wide_table_keeps_every_column_and_named_schemes_show_not_applicable():
+    base = ["table", *SMALL, "--rays", "primary", "--spp", "1", "--quiet"]
+    wide = run_cli(*base, "--schemes", "while_while", "--wide")
+    assert wide.returncode == 0, wide.stderr
+    for col in ("warp_instructions", "mean_trav", "bandwidth_bound", "limit", "note"):
+        assert col in wide.stdout
+    named = run_cli(*base, "--schemes", "while_while,megakernel")
+    assert named.returncode == 0, named.stderr
+    mega = [ln for ln in named.stdout.splitlines() if " megakernel " in ln]
+    assert len(mega) == 1 and mega[0].split()[3:] == ["-"] * 6
+
+
+def test_out_suffix_sets_the_format_and_csv_gets_a_sidecar(tmp_path):
+    base = ["table", *SMALL, "--rays", "primary", "--schemes", "while_while", "--spp", "1"]
+    csv_out, json_out = tmp_path / "t.csv", tmp_path / "t.json"
+    assert run_cli(*base, "--out", str(csv_out), "--quiet").returncode == 0
+    df = pd.read_csv(csv_out)
+    assert list(df["scheme"]) == ["while_while"] and "limit" in df
+    meta = json.loads((tmp_path / "t.csv.meta.json").read_text())
+    assert meta["run"]["scene"] == "room" and meta["versions"]["simt_sim"]
+    assert run_cli(*base, "--out", str(json_out), "--quiet").returncode == 0
+    doc = json.loads(json_out.read_text())
+    assert set(doc) == {"meta", "rows"} and doc["rows"][0]["scheme"] == "while_while"
+    assert doc["meta"]["model_cards"][0]["model_card"]["ir_arch"] == "sm_75"
+    clash = run_cli(*base, "--out", str(tmp_path / "x.json"), "--format", "csv")
+    assert_clean_error(clash, "disagrees")
+    assert not (tmp_path / "x.json").exists()
+
+
+def test_names_ignore_case_and_suggest_and_cameras_are_not_repeated():
+    ok = run_cli("table", *SMALL, "--rays", "Primary", "--schemes", "While_While",
+                 "--gpu", "GTX285", "--spp", "1", "--quiet", "--format", "csv")  # fmt: skip
+    assert ok.returncode == 0, ok.stderr
+    assert pd.read_csv(io.StringIO(ok.stdout))["scheme"].tolist() == ["while_while"]
+    assert_clean_error(run_cli("table", *SMALL, "--schemes", "ifif"), "did you mean 'if_if'")
+    twice = ["table", "--scene", "room", "--resolution", "8x8", "--camera", "0,0"]
+    assert_clean_error(run_cli(*twice), "listed twice")
+    version = run_cli("--version")
+    assert version.returncode == 0 and version.stdout.startswith("simt-sim ")

@@ -7,6 +7,7 @@ Specs are small, hashable and picklable, so a Dask worker can rebuild the same p
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -70,13 +71,23 @@ class StudySpec:
 
 
 def parse_list(text: str, known: Sequence[str], what: str) -> tuple[str, ...]:
-    """A comma list of names (``all`` = every known name), each checked against ``known``."""
-    if text.strip() == "all":
+    """A comma list of names (``all`` = every known name), each matched to ``known``
+    ignoring case; an unknown name gets the closest known one as a suggestion."""
+    if text.strip().lower() == "all":
         return tuple(known)
-    names = tuple(dict.fromkeys(s.strip() for s in text.split(",") if s.strip()))
+    by_lower = {k.lower(): k for k in known}
+    names = []
+    for given in (s.strip() for s in text.split(",")):
+        if not given:
+            continue
+        name = by_lower.get(given.lower())
+        if name is None:
+            close = difflib.get_close_matches(given.lower(), list(by_lower), n=1)
+            hint = f"did you mean {by_lower[close[0]]!r}? " if close else ""
+            raise SimtSimError(
+                f"unknown {what} {given!r}; {hint}use any of {', '.join(known)} or 'all'"
+            )
+        names.append(name)
     if not names:
         raise SimtSimError(f"no {what} given; use a comma list of {', '.join(known)} or 'all'")
-    for name in names:
-        if name not in known:
-            raise SimtSimError(f"unknown {what} {name!r}; use any of {', '.join(known)} or 'all'")
-    return names
+    return tuple(dict.fromkeys(names))

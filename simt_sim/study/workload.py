@@ -69,6 +69,12 @@ def parse_cameras(text: str | None, scene: Scene) -> tuple[int, ...]:
         raise SimtSimError(
             f"camera {bad[0]} does not exist; scene {scene.name!r} has cameras 0..{n - 1}"
         )
+    twice = sorted({k for k in picked if picked.count(k) > 1})
+    if twice:
+        raise SimtSimError(
+            f"camera {twice[0]} is listed twice (its rays would be counted twice); list each "
+            "camera once"
+        )
     return picked
 
 

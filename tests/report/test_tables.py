@@ -9,6 +9,7 @@ import pytest
 
 from simt_sim.atomic import write_atomic
 from simt_sim.errors import SimtSimError
+from simt_sim.report.summary import NOT_APPLICABLE, WINNER, compact, sig
 from simt_sim.report.tables import render
 
 
@@ -42,3 +43,32 @@ def test_written_file_has_the_usual_mode(tmp_path):
     mask = os.umask(0)
     os.umask(mask)
     assert target.stat().st_mode & 0o777 == 0o666 & ~mask
+
+
+# ---- the compact table -----------------------------------------------------------------------
+def test_sig_gives_three_significant_figures_and_no_nan() -> None:
+    assert [sig(v) for v in (0.09946, 0.327, 1.131e4, 9252.4, 262.4, 1.5, 0.0)] == [
+        "0.0995", "0.327", "11310", "9252", "262", "1.50", "0",
+    ]  # fmt: skip
+    assert sig(float("nan")) == sig(None) == sig(pd.NA) == NOT_APPLICABLE
+
+
+def test_compact_rows_rank_each_group_and_leave_out_what_does_not_apply() -> None:
+    df = pd.DataFrame(
+        {
+            "ray_type": ["ao", "ao", "ao", "primary"],
+            "gpu": ["g"] * 4,
+            "scheme": ["a", "b", "path_only", "a"],
+            "simd_efficiency": [0.5, 0.6, float("nan"), 0.7],
+            "simd_efficiency_traversal": [0.5, 0.6, float("nan"), 0.7],
+            "simd_efficiency_intersection": [0.5, 0.6, float("nan"), 0.7],
+            "mrays_upper": [100.0, 80.0, float("nan"), 50.0],
+            "limit": ["issue", "pipe", None, "issue"],
+        }
+    )
+    rows = compact(df)
+    assert rows["scheme"].tolist() == ["a", "b", "a"]
+    assert rows["winner"].tolist() == [WINNER, "", WINNER]
+    assert rows["pct_of_best"].tolist() == [100.0, 80.0, 100.0]
+    kept = compact(df, keep_not_applicable=True)
+    assert kept.loc[kept["scheme"] == "path_only", "limit"].item() == NOT_APPLICABLE
