@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -38,12 +39,24 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
+#: the paper's protocol, which ``--paper`` selects on every command
+PAPER = {"resolution": "1024x768", "spp": 32, "camera": "all"}
+#: the scene and ray types of table and plot when none are named
+_DEFAULTS = {"scene": DEFAULT_SCENE, "rays": "primary,ao,diffuse"}
+#: the workload every command but ``plot`` runs by default (small enough for a laptop)
+DEFAULT_WORKLOAD = {"resolution": "256x192", "spp": 8, "camera": "all"}
+
+
 def _add_workload_args(
     p: argparse.ArgumentParser,
     *,
     rays_help: str,
-    camera_help: str = "'all' or camera indices, e.g. 0,2 (default: %(default)s)",
+    camera_help: str = "'all' or camera indices, e.g. 0,2 (default: {camera})",
+    resolution: str = DEFAULT_WORKLOAD["resolution"],
+    spp: int = DEFAULT_WORKLOAD["spp"],
+    camera: str = DEFAULT_WORKLOAD["camera"],
 ) -> None:
+    camera_help = camera_help.format(camera=camera)
     p.add_argument(
         "--scene",
         default=DEFAULT_SCENE,
@@ -51,11 +64,18 @@ def _add_workload_args(
         "path (default: %(default)s)",
     )
     p.add_argument("--rays", default="primary", help=rays_help)
-    p.add_argument("--camera", default="all", help=camera_help)
-    p.add_argument("--resolution", default="1024x768", help="WxH (default: %(default)s)")
+    p.add_argument("--camera", default=None, help=camera_help)
+    p.add_argument("--resolution", default=None, help=f"WxH (default: {resolution})")
     p.add_argument(
-        "--spp", type=int, default=32, help="secondary rays per primary hit (default: %(default)s)"
+        "--spp", type=int, default=None, help=f"secondary rays per primary hit (default: {spp})"
     )
+    p.add_argument(
+        "--paper",
+        action="store_true",
+        help=f"the paper's protocol: {PAPER['resolution']}, {PAPER['spp']} secondary rays per "
+        "hit, every camera (instead of --resolution, --spp and --camera)",
+    )
+    p.set_defaults(workload_defaults={"resolution": resolution, "spp": spp, "camera": camera})
     p.add_argument("--seed", type=int, default=0, help="sample seed (default: %(default)s)")
     p.add_argument(
         "--max-leaf",
@@ -143,6 +163,27 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_trace_size(first: Any, rays: int, out: str, quiet: bool) -> None:
+    """From the first recorded batch, the trace file's size: said unless ``quiet``, and
+    refused when it would not fit on the disk ``out`` is on."""
+    import shutil
+    from pathlib import Path
+
+    per_ray = (first.offsets.nbytes + first.op.nbytes + first.addr.nbytes
+               + first.hits.tri.nbytes + first.hits.t.nbytes) / max(first.n_rays, 1)  # fmt: skip
+    size = per_ray * rays
+    free = shutil.disk_usage(Path(out).resolve().parent).free
+    if size > free:
+        raise SimtSimError(
+            f"the trace would take about {size / 1e9:.2f} GB but {free / 1e9:.2f} GB are free "
+            f"where {out} goes; record fewer rays (--resolution, --spp, --camera) or write "
+            "it elsewhere"
+        )
+    if not quiet:
+        print(f"simt-sim: recording {rays} rays, about {size / 1e6:.0f} MB, to {out}",
+              file=sys.stderr)  # fmt: skip
+
+
 def cmd_trace(args: argparse.Namespace) -> int:
     """Record every ray's op sequence and save it; print the summary."""
     from simt_sim import progress
@@ -171,6 +212,8 @@ def cmd_trace(args: argparse.Namespace) -> int:
             nonlocal hits, n
             for tr in record(wl.bvh, wl.rays):
                 assert isinstance(tr, OpTrace)
+                if n == 0:
+                    _check_trace_size(tr, len(wl.rays), args.out, args.quiet)
                 totals[:] += tr.counts().sum(axis=0)
                 hits += int(np.count_nonzero(tr.hits.hit_mask))
                 n += tr.n_rays
@@ -223,19 +266,36 @@ def _spec(args: argparse.Namespace, **fields: object):
 
 def cmd_table(args: argparse.Namespace) -> int:
     """Simulate every scheme on the same recorded rays and print the efficiency table."""
-    from simt_sim import progress
+    from simt_sim import progress, schemes
+    from simt_sim.simt.gpus import load_gpus
     from simt_sim.study.run import run_study
     from simt_sim.study.sampling import check_fraction
+    from simt_sim.study.spec import parse_list
 
-    spec = _spec(
-        args,
-        cameras=args.camera,
-        actual=args.actual,
-        sample=check_fraction(args.sample),
-        memory=args.memory_model,
-    )
+    extra = {
+        "actual": args.actual,
+        "sample": check_fraction(args.sample),
+        "memory": args.memory_model,
+    }
+    if args.trace:
+        from simt_sim.study.saved import saved_spec
+
+        spec = saved_spec(
+            args.trace,
+            schemes=parse_list(args.schemes, schemes.names(), "scheme"),
+            gpus=parse_list(args.gpu, tuple(load_gpus(args.gpus)), "GPU"),
+            gpu_file=args.gpus,
+            tests=args.tests,
+            **extra,
+        )
+    else:
+        spec = _spec(args, cameras=args.camera, **extra)
     fmt = resolve_format(args.format, args.out)
-    if args.workers is None and args.scheduler is None:
+    if args.trace:
+        from simt_sim.study.saved import run_saved
+
+        results, df = run_saved(spec, args.trace)
+    elif args.workers is None and args.scheduler is None:
         results, df = run_study(spec, progress=progress.wanted(args.quiet))
     else:
         from simt_sim.study.cluster import dask_client
@@ -389,7 +449,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_workload_args(
         p, rays_help="comma list of primary, ao, diffuse, path or 'all' (default: %(default)s)"
     )
-    p.set_defaults(rays="primary,ao,diffuse", resolution="256x192", spp=8)
+    p.set_defaults(rays=_DEFAULTS["rays"])
     p.add_argument(
         "--schemes", default="all", help="comma list of schemes or 'all' (default: %(default)s)"
     )
@@ -441,6 +501,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="every column (markdown), not the compact table; CSV and JSON always have all",
     )
+    p.add_argument(
+        "--trace",
+        nargs="+",
+        metavar="FILE",
+        default=None,
+        help="replay these saved traces (simt-sim trace --out FILE, one per ray type) "
+        "instead of recording: the same numbers, without the recording",
+    )
     p.set_defaults(func=cmd_table)
 
     p = sub.add_parser(
@@ -453,9 +521,12 @@ def build_parser() -> argparse.ArgumentParser:
         p,
         rays_help="comma list of primary, ao, diffuse, path or 'all' (default: %(default)s)",
         camera_help="one camera index, e.g. 2: the per-pixel images show one view "
-        "(default: %(default)s)",
+        "(default: {camera})",
+        resolution="128x96",
+        spp=4,
+        camera="0",
     )
-    p.set_defaults(rays="primary,ao,diffuse", resolution="128x96", spp=4, camera="0")
+    p.set_defaults(rays=_DEFAULTS["rays"])
     p.add_argument(
         "--schemes", default="all", help="comma list of schemes or 'all' (default: %(default)s)"
     )
@@ -522,11 +593,42 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _resolve_workload(args: argparse.Namespace) -> None:
+    """Fill the workload flags a command was not given: the paper's protocol with
+    ``--paper`` (which refuses the flags it replaces), else the command's defaults; a
+    table of saved traces (``--trace``) takes its workload from the files."""
+    defaults = getattr(args, "workload_defaults", None)
+    if defaults is None:
+        return
+    given = [k for k in defaults if getattr(args, k) is not None]
+    if getattr(args, "trace", None):
+        fixed = given + [k for k in ("scene", "rays") if getattr(args, k) != _DEFAULTS[k]]
+        if args.paper or fixed:
+            flag = "paper" if args.paper else fixed[0]
+            raise SimtSimError(
+                f"--{flag} cannot be used with --trace: the trace files fix the scene, rays "
+                "and workload they were recorded with"
+            )
+        return
+    if args.paper:
+        if given:
+            raise SimtSimError(f"--paper sets --{given[0]}; drop one of them")
+        values = dict(PAPER)
+        if args.command == "plot":  # its per-pixel images show one view
+            values["camera"] = defaults["camera"]
+    else:
+        values = defaults
+    for key, value in values.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``simt-sim`` and ``python -m simt_sim``."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        _resolve_workload(args)
         return int(args.func(args))
     except (SimtSimError, KernelIRError) as exc:
         print(f"simt-sim: error: {exc}", file=sys.stderr)

@@ -1,0 +1,111 @@
+"""A study of saved traces: replay what ``simt-sim trace`` recorded, without recording again.
+
+A trace file holds the op streams of one ray type over one tree, recorded from the same
+rays a table makes (its header names the scene, cameras, resolution, spp, seed and tree).
+:func:`saved_spec` turns the files' headers into the study that would have recorded them;
+:func:`run_saved` replays the files' rays in the table's launches of ``launch_size`` rays,
+so every number equals the table's that records them anew, bit for bit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import replace
+from typing import Any
+
+import pandas as pd
+
+from simt_sim.errors import SimtSimError
+from simt_sim.simt.result import SimResult
+from simt_sim.study.batches import BatchResults, RecordedBatch, replay_batch
+from simt_sim.study.plan import StudyPlan, plan_study
+from simt_sim.study.run import table_frame, trace_rows
+from simt_sim.study.spec import StudySpec
+from simt_sim.trace.record import concat_traces
+from simt_sim.trace.tracefile import iter_trace, read_meta
+from simt_sim.types.optrace import OpTrace
+
+#: what every saved file of one study must share (header ``meta`` keys)
+SHARED = ("scene", "cameras", "resolution", "spp", "seed", "bvh")
+
+
+def saved_spec(paths: Sequence[str], **fields: Any) -> StudySpec:
+    """The study the trace files at ``paths`` belong to (one file per ray type, all of one
+    scene, rays and tree); ``fields`` set the rest (schemes, GPUs, tests ...)."""
+    if not paths:
+        raise SimtSimError("no trace file given; record one with `simt-sim trace --out FILE`")
+    metas = [read_meta(p)["meta"] for p in paths]
+    first = metas[0]
+    for path, meta in zip(paths[1:], metas[1:], strict=True):
+        differ = [k for k in SHARED if meta.get(k) != first.get(k)]
+        if differ:
+            raise SimtSimError(
+                f"{path} differs from {paths[0]} in {', '.join(differ)}; replay traces of "
+                "one scene, camera set and tree together"
+            )
+    ray_types = [m["ray_type"] for m in metas]
+    twice = sorted({rt for rt in ray_types if ray_types.count(rt) > 1})
+    if twice:
+        raise SimtSimError(f"two trace files hold {twice[0]} rays; give one file per ray type")
+    tree = first["bvh"]
+    return StudySpec(
+        scene=first["scene"],
+        ray_types=tuple(ray_types),
+        cameras=",".join(str(c) for c in first["cameras"]),
+        resolution=(int(first["resolution"][0]), int(first["resolution"][1])),
+        spp=int(first["spp"]),
+        seed=int(first["seed"]),
+        max_leaf=int(tree["max_leaf"]),
+        node_cost=float(tree["node_cost"]),
+        **fields,
+    )
+
+
+def _launches(path: str, size: int) -> Iterator[OpTrace]:
+    """The file's rays in consecutive launches of ``size`` (the table's batches)."""
+    held: list[OpTrace] = []
+    n = 0
+    for trace in iter_trace(path):
+        held.append(trace)
+        n += trace.n_rays
+        while n >= size:
+            joined = concat_traces(held)
+            yield joined.slice(0, size)
+            rest = joined.slice(size, joined.n_rays)
+            held, n = ([rest] if rest.n_rays else []), rest.n_rays
+    if n:
+        yield concat_traces(held)
+
+
+def _check_tree(plan: StudyPlan, path: str) -> None:
+    recorded = read_meta(path)["meta"]["bvh"]
+    built = plan.bvh.stats.card()
+    if recorded != built:
+        raise SimtSimError(
+            f"{path} was recorded on another tree than this simt-sim builds for scene "
+            f"{plan.scene.name!r} (its header: {recorded['interior_nodes']} interior nodes, "
+            f"now {built['interior_nodes']}); re-record it"
+        )
+
+
+def run_saved(spec: StudySpec, paths: Sequence[str]) -> tuple[list[SimResult], pd.DataFrame]:
+    """Replay the trace files at ``paths`` (:func:`saved_spec` of them gives ``spec``):
+    the results and table :func:`~simt_sim.study.run.run_study` gives for ``spec``."""
+    if spec.sampled:
+        raise SimtSimError(
+            "--sample replays a sample of freshly recorded warps; drop it with --trace"
+        )
+    spec = replace(spec, ray_types=tuple(read_meta(p)["meta"]["ray_type"] for p in paths))
+    plan = plan_study(spec)
+    results: list[SimResult] = []
+    rows: list[dict] = []
+    for path, rt in zip(paths, spec.ray_types, strict=True):
+        _check_tree(plan, path)
+        batches: list[BatchResults] = []
+        for k, launch in enumerate(_launches(path, spec.launch_size)):
+            recorded = RecordedBatch(rt, k, launch.n_rays, launch, (0, launch.n_rays))
+            batches.append(replay_batch(plan, recorded))
+        r, w = trace_rows(plan, rt, batches)
+        results += r
+        rows += w
+    return results, table_frame(rows)

@@ -1,0 +1,58 @@
+"""Saved traces replayed: `simt-sim trace` then `simt-sim table --trace` gives the table."""
+
+from __future__ import annotations
+
+import shutil
+from collections import namedtuple
+from pathlib import Path
+
+from test_cli import assert_clean_error, run_cli
+
+from simt_sim.cli import main
+from simt_sim.trace.tracefile import read_meta
+
+
+def test_a_saved_trace_replays_to_the_recorded_runs_numbers_exactly(tmp_path: Path) -> None:
+    """AO rays at the default workload (2.0M rays: two launches of 2^20, so persistent and
+    dynamic-fetch pools split where the table's do) and primary rays of the same run:
+    the table of the two files equals, byte for byte, the table that records them anew."""
+    ao, primary = tmp_path / "ao.trace", tmp_path / "primary.trace"
+    for rays, path in (("ao", ao), ("primary", primary)):
+        proc = run_cli("trace", "--rays", rays, "--out", str(path), "--quiet")
+        assert proc.returncode == 0, proc.stderr
+    meta = read_meta(ao)
+    assert meta["rays"] > 2**20 and meta["meta"]["resolution"] == [256, 192]  # table's defaults
+    saved = run_cli("table", "--trace", str(primary), str(ao), "--format", "csv")
+    fresh = run_cli("table", "--rays", "primary,ao", "--quiet", "--format", "csv")
+    assert saved.returncode == 0 and fresh.returncode == 0, saved.stderr + fresh.stderr
+    assert saved.stdout == fresh.stdout
+
+
+def test_traces_that_do_not_belong_together_or_clash_with_flags_are_refused(tmp_path) -> None:
+    one = tmp_path / "one.trace"
+    other = tmp_path / "other.trace"
+    small = ["--rays", "primary", "--camera", "0", "--resolution", "16x12", "--quiet"]
+    assert run_cli("trace", *small, "--out", str(one)).returncode == 0
+    assert run_cli("trace", *small, "--spp", "2", "--out", str(other)).returncode == 0
+    assert_clean_error(run_cli("table", "--trace", str(one), str(other)), "differs")
+    assert_clean_error(run_cli("table", "--trace", str(one), str(one)), "two trace files")
+    assert_clean_error(run_cli("table", "--trace", str(one), "--scene", "bunny"), "--scene")
+    assert_clean_error(run_cli("table", "--trace", str(one), "--paper"), "--paper")
+    assert_clean_error(run_cli("table", "--trace", str(one), "--sample", "1/2"), "--sample")
+    assert_clean_error(run_cli("table", "--trace", str(tmp_path / "none.trace")), "not found")
+
+
+def test_paper_selects_the_protocol_and_refuses_what_it_replaces() -> None:
+    assert_clean_error(run_cli("table", "--paper", "--spp", "4"), "--paper sets --spp")
+    assert_clean_error(run_cli("bench", "--paper", "--camera", "0"), "--paper sets --camera")
+
+
+def test_trace_refuses_a_file_the_disk_cannot_hold(tmp_path, monkeypatch, capsys) -> None:
+    out = tmp_path / "big.trace"
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda _: usage(10**6, 10**6 - 1000, 1000))
+    code = main(["trace", "--rays", "primary", "--camera", "0", "--resolution", "16x12",
+                 "--out", str(out), "--quiet"])  # fmt: skip
+    assert code == 2 and not out.exists() and not list(tmp_path.iterdir())
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "are free" in err[0]
