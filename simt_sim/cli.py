@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from kernels_ir.build import KERNELS
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 from simt_sim import __version__
@@ -151,7 +152,7 @@ def _workload(args: argparse.Namespace, ray_type: str):
 def cmd_bench(args: argparse.Namespace) -> int:
     """Measure real tracers on the same rays; agreement is against Embree's hits."""
     from simt_sim import progress
-    from simt_sim.study.bench import bench_tracers, check_bench, runs
+    from simt_sim.study.bench import bench_tracers, check_bench, runs, short_timings
 
     tracers = [t.strip() for t in args.tracers.split(",") if t.strip()]
     check_bench(tracers, args.repeats)
@@ -159,6 +160,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
         wl = _workload(args, args.rays)
         bar.reset(total=len(wl.rays) * runs(tracers, args.repeats))
         df = bench_tracers(wl, tracers, args.rays, args.repeats, bar)
+    warning = short_timings(df)
+    if warning:
+        print(f"simt-sim: warning: {warning}", file=sys.stderr)
     emit(df, resolve_format(args.format, args.out), args.out)
     return 0
 
@@ -393,6 +397,13 @@ def cmd_ir_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _gpu_ids() -> list[str]:
+    """The packaged GPUs' ids, for --help (a TOML read: no numba at start-up)."""
+    from simt_sim.simt.gpus import load_gpus
+
+    return list(load_gpus())
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="simt-sim",
@@ -456,7 +467,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--gpu",
         default=DEFAULT_GPU,
-        help="comma list of GPU ids or 'all' (see 'simt-sim gpus'; default: %(default)s)",
+        help=f"comma list of {', '.join(_gpu_ids())} or 'all' (see 'simt-sim gpus'; "
+        "default: %(default)s)",
     )
     _add_gpus_arg(p)
     _add_tests_arg(p)
@@ -533,8 +545,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--gpu",
         default=DEFAULT_GPU,
-        help="comma list of GPU ids or 'all'; the first one costs the per-pixel and "
-        "timeline figures (default: %(default)s)",
+        help=f"comma list of {', '.join(_gpu_ids())} or 'all'; the first one costs the "
+        "per-pixel and timeline figures (default: %(default)s)",
     )
     _add_gpus_arg(p)
     _add_tests_arg(p)
@@ -586,7 +598,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="per-block instruction counts of one kernel",
         epilog="example: simt-sim ir show packet --arch sm_80",
     )
-    q.add_argument("kernel", help="kernel name, e.g. while_while")
+    q.add_argument("kernel", help=f"kernel name: {', '.join(KERNELS)}")
     q.add_argument("--arch", default="sm_90", help="architecture (default: %(default)s)")
     _add_output_args(q)
     q.set_defaults(func=cmd_ir_show)

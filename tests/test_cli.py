@@ -368,3 +368,17 @@ def test_names_ignore_case_and_suggest_and_cameras_are_not_repeated():
     assert_clean_error(run_cli(*twice), "listed twice")
     version = run_cli("--version")
     assert version.returncode == 0 and version.stdout.startswith("simt-sim ")
+
+
+def test_bench_warns_when_timings_are_too_short_to_mean_anything():
+    proc = run_cli("bench", *SMALL, "--rays", "primary", "--repeats", "1", "--format", "csv")
+    assert proc.returncode == 0, proc.stderr
+    warnings = [ln for ln in proc.stderr.splitlines() if "warning" in ln]
+    assert len(warnings) == 1 and "measure noise" in warnings[0]
+    assert pd.read_csv(io.StringIO(proc.stdout))["seconds"].min() < 0.1
+
+
+def test_help_lists_the_names_it_takes():
+    table = run_cli("table", "--help").stdout
+    assert "gtx285, gtx480" in table and "watertight,published" in table
+    assert "while_while" in run_cli("ir", "show", "--help").stdout

@@ -30,6 +30,24 @@ TRACERS = ("numba", "embree", "cuda")
 CUDA_TIMED_LAUNCHES = 10
 
 
+#: a median timing shorter than this measures start-up and scheduling noise more than the
+#: tracer (2 threads can come out slower than 1), so bench warns about it
+MIN_TIMED_SECONDS = 0.1
+
+
+def short_timings(table: pd.DataFrame) -> str | None:
+    """One warning line when any of ``table``'s timings is under :data:`MIN_TIMED_SECONDS`."""
+    short = table[table["seconds"] < MIN_TIMED_SECONDS]
+    if short.empty:
+        return None
+    worst = short.loc[short["seconds"].idxmin()]
+    return (
+        f"{len(short)} of {len(table)} timings are under {MIN_TIMED_SECONDS} s (shortest "
+        f"{worst['tracer']}, {worst['seconds'] * 1e3:.1f} ms): they measure noise more than "
+        "the tracer; bench more rays (--resolution, --spp, --camera all or --paper)"
+    )
+
+
 def check_bench(names: Sequence[str], repeats: int) -> None:
     """Refuse an empty tracer list, an unknown tracer name or fewer than one timed run."""
     bad = [t for t in names if t not in TRACERS]

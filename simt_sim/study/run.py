@@ -298,7 +298,10 @@ def run_plan(
 ) -> tuple[list[SimResult], pd.DataFrame]:
     """:func:`run_study` of a spec already resolved into ``plan``."""
     spec = plan.spec
-    bar = tqdm(total=0, unit="ray", disable=not progress, dynamic_ncols=True, leave=False)
+    bar = tqdm(
+        total=0, unit="ray", unit_scale=True, disable=not progress, dynamic_ncols=True,
+        leave=False,
+    )  # fmt: skip
     results: list[SimResult] = []
     rows: list[dict] = []
     try:
