@@ -306,8 +306,22 @@ def cmd_table(args: argparse.Namespace) -> int:
 
         with dask_client(args.workers, args.scheduler) as client:
             results, df = run_study(spec, progress=progress.wanted(args.quiet), client=client)
+    meta = table_meta(spec, results)
+    if args.by_block:
+        from simt_sim.report.blocks import block_rows, render_blocks
+
+        blocks = block_rows(results)
+        if fmt == "md":
+            text = render_blocks(blocks, meta)
+            if args.out is None:
+                sys.stdout.write(text)
+            else:
+                write_atomic(args.out, text)
+        else:
+            write_table(blocks, meta, fmt, args.out)
+        return 0
     named = args.schemes.strip().lower() != "all"
-    write_table(df, table_meta(spec, results), fmt, args.out, wide=args.wide, named=named)
+    write_table(df, meta, fmt, args.out, wide=args.wide, named=named)
     return 0
 
 
@@ -512,6 +526,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--wide",
         action="store_true",
         help="every column (markdown), not the compact table; CSV and JSON always have all",
+    )
+    p.add_argument(
+        "--by-block",
+        action="store_true",
+        help="where the instructions go: each scheme's blocks (trav_step, tri_test, ...) "
+        "with executions, warp instructions, share and SIMD efficiency",
     )
     p.add_argument(
         "--trace",

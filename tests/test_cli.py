@@ -382,3 +382,19 @@ def test_help_lists_the_names_it_takes():
     table = run_cli("table", "--help").stdout
     assert "gtx285, gtx480" in table and "watertight,published" in table
     assert "while_while" in run_cli("ir", "show", "--help").stdout
+
+
+def test_by_block_breakdown_adds_up_to_the_table():
+    base = ["table", *SMALL, "--rays", "primary,ao", "--schemes", "while_while,packet",
+            "--spp", "1", "--quiet", "--format", "csv"]  # fmt: skip
+    table = pd.read_csv(io.StringIO(run_cli(*base).stdout))
+    blocks = pd.read_csv(io.StringIO(run_cli(*base, "--by-block").stdout))
+    keys = ["ray_type", "scheme"]
+    sums = blocks.groupby(keys)[["warp_instructions", "share"]].sum()
+    totals = table.set_index(keys)["warp_instructions"]
+    assert (sums["warp_instructions"] == totals.loc[sums.index]).all()
+    assert sums["share"].to_numpy() == pytest.approx(1.0)
+    assert blocks["simd_efficiency"].between(0, 1).all()
+    assert {"trav_step", "tri_test", "leaf_entry"} <= set(blocks["block"])
+    text = run_cli(*base[:-2], "--by-block").stdout
+    assert "share %" in text and max(len(ln) for ln in text.splitlines()) <= 120
