@@ -351,7 +351,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     with progress.bar("drawing", enabled=show, unit="step", total=total) as steps:
         figures = study_figures(
             spec, warp=args.warp, measured=args.measured, steps=steps, progress=show
-        )
+        ).figures
         steps.set_description("writing")
         out.mkdir(exist_ok=True)
         written = []
@@ -359,6 +359,34 @@ def cmd_plot(args: argparse.Namespace) -> int:
             written += [str(p) for p in write_figure(fig, out, stem)]
             steps.update()
     emit(pd.DataFrame({"file": written}), "md", None)
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """One self-contained HTML page of a study: table, figures, breakdown, model cards."""
+    from simt_sim import progress
+    from simt_sim.report.blocks import block_rows, render_blocks
+    from simt_sim.report.figures import figure_steps, study_figures
+    from simt_sim.report.page import render_page
+    from simt_sim.report.summary import header, render_compact
+
+    if not args.camera.strip().isdigit():
+        raise SimtSimError(f"--camera {args.camera!r} is not one camera index like 0")
+    spec = _spec(args, cameras=args.camera.strip())
+    show = progress.wanted(args.quiet)
+    with progress.bar(
+        "drawing", enabled=show, unit="step", total=figure_steps(spec, False)
+    ) as steps:
+        drawn = study_figures(spec, steps=steps, progress=show)
+    meta = table_meta(spec, drawn.results)
+    page = render_page(
+        header(meta),
+        render_compact(drawn.table, meta),
+        render_blocks(block_rows(drawn.results), meta),
+        drawn.figures,
+        meta["model_cards"],
+    )
+    write_atomic(args.out, page)
     return 0
 
 
@@ -584,6 +612,35 @@ def build_parser() -> argparse.ArgumentParser:
     _add_quiet_arg(p)
     p.add_argument("--out", required=True, help="directory for the PNG and SVG files")
     p.set_defaults(func=cmd_plot)
+
+    p = sub.add_parser(
+        "report",
+        help="one self-contained HTML page: table, figures, per-block breakdown, model cards",
+        epilog="example: simt-sim report --scene room --out room.html",
+    )
+    _add_workload_args(
+        p,
+        rays_help="comma list of primary, ao, diffuse, path or 'all' (default: %(default)s)",
+        camera_help="one camera index: the per-pixel maps show one view (default: {camera})",
+        resolution="128x96",
+        spp=4,
+        camera="0",
+    )
+    p.set_defaults(rays=_DEFAULTS["rays"])
+    p.add_argument(
+        "--schemes", default="all", help="comma list of schemes or 'all' (default: %(default)s)"
+    )
+    p.add_argument(
+        "--gpu",
+        default=DEFAULT_GPU,
+        help=f"comma list of {', '.join(_gpu_ids())} or 'all'; the first one costs the "
+        "per-pixel and timeline figures (default: %(default)s)",
+    )
+    _add_gpus_arg(p)
+    _add_tests_arg(p)
+    _add_quiet_arg(p)
+    p.add_argument("--out", required=True, help="the HTML file to write")
+    p.set_defaults(func=cmd_report)
 
     p = sub.add_parser(
         "compare",

@@ -1,17 +1,20 @@
 """The figures of ``simt-sim plot``: one study drawn every way the report module can draw it.
 
-:func:`study_figures` runs the study, then draws the active-lanes histograms of each ray
-type, the MRays/s bars (with the numba tracer's measured speed if asked) and, for the
-primary rays of the one camera, every scheme's per-pixel map and the issue timeline of
-one warp (the schemes that have per-warp figures, :mod:`simt_sim.report.warpstats`).
+:func:`study_figures` runs the study, then draws the SIMD efficiency bars and the
+active-lanes histograms of each ray type, the MRays/s bars (with the numba tracer's
+measured speed if asked) and, for the primary rays of the one camera, every scheme's
+per-pixel map and the issue timeline of one warp (the schemes that have per-warp
+figures, :mod:`simt_sim.report.warpstats`).
 Nothing is written: the caller saves the figures once all of them are drawn.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import pandas as pd
 from matplotlib.figure import Figure
 
 from kernels_ir.kernel_ir import BLOCKS
@@ -19,6 +22,7 @@ from simt_sim import schemes
 from simt_sim.report import plots
 from simt_sim.report.warpstats import has_timeline, has_warp_counts, warp_counts, warp_timeline
 from simt_sim.simt.engine import cost_vector
+from simt_sim.simt.result import SimResult
 from simt_sim.study.bench import timed
 from simt_sim.study.plan import plan_study
 from simt_sim.study.run import run_plan
@@ -39,6 +43,7 @@ def figure_steps(spec: StudySpec, measured: bool) -> int:
     chosen = [schemes.get_scheme(s) for s in spec.schemes]
     per_warp = [s for s in chosen if has_warp_counts(s)]
     n_figures = len(spec.ray_types) + 1 + len(per_warp) + sum(map(has_timeline, per_warp))
+    n_figures += len(spec.ray_types)  # the efficiency bars, drawn with the lanes
     n_measured = len([rt for rt in spec.ray_types if rt != PATH_RAYS]) if measured else 0
     return 2 * n_figures + n_measured + 2
 
@@ -49,10 +54,19 @@ def measure_numba(wl: Workload) -> float:
     return len(wl.rays) / sec / 1e6 if sec > 0 else float("nan")
 
 
+@dataclass(frozen=True)
+class StudyFigures:
+    """A study drawn: its results and table, and its figures by file stem."""
+
+    results: list[SimResult]
+    table: pd.DataFrame
+    figures: dict[str, Figure]
+
+
 def study_figures(
     spec: StudySpec, *, warp: int | None = None, measured: bool = False, steps: Any, progress: bool
-) -> dict[str, Figure]:
-    """Every figure of ``spec`` (one camera), by file stem.
+) -> StudyFigures:
+    """Every figure of ``spec`` (one camera), by file stem, with the study's results.
 
     ``warp`` picks the primary-ray warp the timelines show (default: the one issuing the
     most instructions); ``measured`` adds the numba tracer's MRays/s on this CPU; ``steps``
@@ -67,6 +81,10 @@ def study_figures(
     name = plan.scene.name
     figures: dict[str, Figure] = {}
     for rt in spec.ray_types:
+        figures[f"efficiency_{rt}"] = plots.efficiency_figure(
+            table[table["ray_type"] == rt],
+            f"{rt} rays on {name} ({setup}): SIMD efficiency per scheme",
+        )
         figures[f"active_lanes_{rt}"] = plots.active_lanes_figure(
             [r for r in results if r.ray_type == rt and r.gpu.id == gpu.id],
             f"{rt} rays on {name} ({setup}, {gpu.id}): active lanes per issued instruction",
@@ -109,4 +127,4 @@ def study_figures(
                 f"{s.name}: warp {w} of the primary rays on {name} ({setup}, {gpu.id})",
             )
             steps.update()
-    return figures
+    return StudyFigures(results, table, figures)

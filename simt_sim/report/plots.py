@@ -212,6 +212,38 @@ def mrays_figure(
     return fig
 
 
+#: the three SIMD efficiencies of a row, as the efficiency bars draw them
+EFFICIENCIES = {
+    "all blocks": "simd_efficiency",
+    "traversal": "simd_efficiency_traversal",
+    "intersection": "simd_efficiency_intersection",
+}
+
+
+def efficiency_figure(table: pd.DataFrame, title: str) -> Figure:
+    """Grouped bars of SIMD efficiency per scheme (all blocks, traversal, intersection) of
+    one ray type's rows, one panel per GPU; rows without numbers are left out."""
+    df = table[table["simd_efficiency"].notna()]
+    gpus = list(dict.fromkeys(df["gpu"])) or [""]
+    fig = Figure(figsize=(9.5, 3.0 * len(gpus)), layout="constrained")
+    axes = fig.subplots(len(gpus), 1, squeeze=False)[:, 0]
+    width = 0.8 / len(EFFICIENCIES)
+    for ax, g in zip(axes, gpus, strict=True):
+        part = df[df["gpu"] == g]
+        schemes = list(part["scheme"])
+        for i, (label, col) in enumerate(EFFICIENCIES.items()):
+            x = np.arange(len(schemes)) + (i - (len(EFFICIENCIES) - 1) / 2) * width
+            ax.bar(x, part[col].to_numpy(float), width, label=label)
+        ax.set_xticks(np.arange(len(schemes)), schemes, rotation=20, ha="right", fontsize=8)
+        ax.set_ylim(0, 1)
+        ax.set_ylabel("SIMD efficiency")
+        ax.set_title(g, fontsize=10)
+        ax.grid(axis="y", alpha=0.3)
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    fig.suptitle(title)
+    return fig
+
+
 def write_figure(fig: Figure, out_dir: str | Path, stem: str) -> list[Path]:
     """Save ``fig`` as ``stem.png`` and ``stem.svg`` in ``out_dir``, each atomically.
 
