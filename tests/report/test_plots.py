@@ -59,7 +59,13 @@ def figures(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_plot_writes_every_figure(figures: Path) -> None:
-    stems = ["active_lanes_primary", "active_lanes_ao", "mrays"]
+    stems = [
+        "active_lanes_primary",
+        "active_lanes_ao",
+        "mrays",
+        "efficiency_primary",
+        "efficiency_ao",
+    ]
     stems += [
         "pixels_persistent_speculative_while_while",
         "pixels_packet",
