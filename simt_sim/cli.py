@@ -349,15 +349,18 @@ def cmd_plot(args: argparse.Namespace) -> int:
     # every figure is drawn, then written: a step each, plus loading, measuring, recording
     total = figure_steps(spec, args.measured)
     with progress.bar("drawing", enabled=show, unit="step", total=total) as steps:
-        figures = study_figures(
+        drawn = study_figures(
             spec, warp=args.warp, measured=args.measured, steps=steps, progress=show
-        ).figures
+        )
+        figures = drawn.figures
         steps.set_description("writing")
         out.mkdir(exist_ok=True)
         written = []
         for stem, fig in figures.items():
             written += [str(p) for p in write_figure(fig, out, stem)]
             steps.update()
+    for line in drawn.skipped:
+        print(f"simt-sim: note: {line}", file=sys.stderr)
     emit(pd.DataFrame({"file": written}), "md", None)
     return 0
 
@@ -385,6 +388,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         render_blocks(block_rows(drawn.results), meta),
         drawn.figures,
         meta["model_cards"],
+        drawn.skipped,
     )
     write_atomic(args.out, page)
     return 0

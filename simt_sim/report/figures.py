@@ -38,14 +38,15 @@ MEASURE_REPEATS = 3
 
 def figure_steps(spec: StudySpec, measured: bool) -> int:
     """Steps of drawing and writing ``spec``'s figures, for a progress bar: a draw and a
-    write per figure, a measurement per trace ray type, loading and recording the primary
-    rays (:func:`study_figures` reports all but the writes)."""
+    write per figure, a measurement per trace ray type, loading, and recording each trace
+    ray type for its maps (:func:`study_figures` reports all but the writes)."""
     chosen = [schemes.get_scheme(s) for s in spec.schemes]
     per_warp = [s for s in chosen if has_warp_counts(s)]
-    n_figures = len(spec.ray_types) + 1 + len(per_warp) + sum(map(has_timeline, per_warp))
-    n_figures += len(spec.ray_types)  # the efficiency bars, drawn with the lanes
+    traced = [rt for rt in spec.ray_types if rt != PATH_RAYS]
+    n_figures = 3 * len(spec.ray_types) + 1  # efficiency, lanes and blocks; MRays/s
+    n_figures += len(per_warp) * len(traced) + sum(map(has_timeline, per_warp))
     n_measured = len([rt for rt in spec.ray_types if rt != PATH_RAYS]) if measured else 0
-    return 2 * n_figures + n_measured + 2
+    return 2 * n_figures + n_measured + 1 + len(traced)
 
 
 def measure_numba(wl: Workload) -> float:
@@ -61,6 +62,8 @@ class StudyFigures:
     results: list[SimResult]
     table: pd.DataFrame
     figures: dict[str, Figure]
+    skipped: list[str]
+    """One line per figure a scheme cannot have, and why."""
 
 
 def study_figures(
@@ -85,12 +88,14 @@ def study_figures(
             table[table["ray_type"] == rt],
             f"{rt} rays on {name} ({setup}): SIMD efficiency per scheme",
         )
+        mine = [r for r in results if r.ray_type == rt and r.gpu.id == gpu.id]
         figures[f"active_lanes_{rt}"] = plots.active_lanes_figure(
-            [r for r in results if r.ray_type == rt and r.gpu.id == gpu.id],
-            f"{rt} rays on {name} ({setup}, {gpu.id}): active lanes per issued instruction",
+            mine, f"{rt} rays on {name} ({setup}, {gpu.id}): active lanes per issued instruction"
         )
-        steps.update()
-    wl = plan.workload("primary")
+        figures[f"blocks_{rt}"] = plots.blocks_figure(
+            mine, f"{rt} rays on {name} ({setup}, {gpu.id}): where the instructions go"
+        )
+        steps.update(3)
     steps.update()
     speeds = {}
     if measured:
@@ -101,30 +106,41 @@ def study_figures(
     steps.set_description("drawing")
     figures["mrays"] = plots.mrays_figure(table, f"Upper-bound MRays/s on {name} ({setup})", speeds)
     steps.update()
-    trace = record_all(wl.bvh, wl.rays)
-    steps.update()
-    per_ray = trace.counts()
+    skipped = []
     for s in plan.schemes:
         if not has_warp_counts(s):
-            continue
-        ir = plan.irs[(s.kernel, gpu.ir_arch)]
-        wc = warp_counts(trace, s, cost_vector(ir), gpu.warp_size)
-        eff = wc.efficiency[np.arange(trace.n_rays) // gpu.warp_size]
-        images = [plots.to_image(v, wl.rays.pixel, width, height) for v in (
-            per_ray[:, 0], per_ray[:, 2], eff
-        )]  # fmt: skip
-        figures[f"pixels_{s.name}"] = plots.pixels_figure(
-            *images, f"{s.name}: primary rays on {name} ({setup}, {gpu.id})"
-        )
+            skipped.append(f"{s.name}: no per-pixel maps or timeline (its warps are not fixed "
+                           "sets of consecutive rays)")  # fmt: skip
+        elif not has_timeline(s):
+            skipped.append(f"{s.name}: no timeline (no plain-Python warp replay gives its "
+                           "issue order)")  # fmt: skip
+    for rt in plan.trace_ray_types:
+        wl = plan.workload(rt)
+        trace = record_all(wl.bvh, wl.rays)
         steps.update()
-        if has_timeline(s):
-            w = int(np.argmax(wc.warp_instructions)) if warp is None else warp
-            costs = {b: ir.cost(b) for b in BLOCKS}
-            figures[f"timeline_{s.name}"] = plots.timeline_figure(
-                warp_timeline(trace, w, s, costs, gpu.warp_size),
-                costs,
-                gpu.warp_size,
-                f"{s.name}: warp {w} of the primary rays on {name} ({setup}, {gpu.id})",
+        per_ray = trace.counts()
+        for s in plan.schemes:
+            if not has_warp_counts(s):
+                continue
+            ir = plan.irs[(s.kernel, gpu.ir_arch)]
+            wc = warp_counts(trace, s, cost_vector(ir), gpu.warp_size)
+            eff = wc.efficiency[np.arange(trace.n_rays) // gpu.warp_size]
+            images = [plots.to_image(v, wl.rays.pixel, width, height) for v in (
+                per_ray[:, 0], per_ray[:, 2], eff
+            )]  # fmt: skip
+            stem = f"pixels_{s.name}" if rt == "primary" else f"pixels_{s.name}_{rt}"
+            figures[stem] = plots.pixels_figure(
+                *images, f"{s.name}: {rt} rays on {name} ({setup}, {gpu.id}), mean per pixel"
             )
             steps.update()
-    return StudyFigures(results, table, figures)
+            if rt == "primary" and has_timeline(s):
+                w = int(np.argmax(wc.warp_instructions)) if warp is None else warp
+                costs = {b: ir.cost(b) for b in BLOCKS}
+                figures[f"timeline_{s.name}"] = plots.timeline_figure(
+                    warp_timeline(trace, w, s, costs, gpu.warp_size),
+                    costs,
+                    gpu.warp_size,
+                    f"{s.name}: warp {w} of the primary rays on {name} ({setup}, {gpu.id})",
+                )
+                steps.update()
+    return StudyFigures(results, table, figures, skipped)

@@ -14,7 +14,7 @@ import base64
 import html
 import io
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from matplotlib.figure import Figure
@@ -26,7 +26,8 @@ SECTIONS = (
     ("efficiency_", "SIMD efficiency per scheme"),
     ("active_lanes_", "Active lanes per issued instruction"),
     ("mrays", "Upper-bound MRays/s"),
-    ("pixels_", "Per-pixel cost and warp efficiency (primary rays)"),
+    ("blocks_", "Where the instructions go"),
+    ("pixels_", "Per-pixel cost and warp efficiency (the mean of a pixel's rays)"),
     ("timeline_", "One warp's issue timeline (primary rays)"),
 )
 
@@ -56,8 +57,9 @@ def render_page(
     blocks_text: str,
     figures: Mapping[str, Figure],
     cards: list[dict[str, Any]],
+    skipped: Sequence[str] = (),
 ) -> str:
-    """The page's HTML text."""
+    """The page's HTML text; ``skipped`` names the figures a scheme cannot have."""
     parts = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
         f"<title>simt-sim report</title><style>{_STYLE}</style>",
@@ -74,8 +76,11 @@ def render_page(
         parts.append(f"<h2>{html.escape(title)}</h2>")
         for stem in stems:
             parts.append(f"<img alt='{html.escape(stem)}' src='{png_data(figures[stem])}'>")
+    if skipped:
+        items = "".join(f"<li>{html.escape(line)}</li>" for line in skipped)
+        parts.append(f"<h2>Figures a scheme cannot have</h2><ul>{items}</ul>")
     parts += [
-        "<h2>Where the instructions go</h2>",
+        "<h2>Instructions block by block</h2>",
         f"<pre>{html.escape(blocks_text)}</pre>",
         "<h2>Model cards</h2>",
         f"<pre>{html.escape(json.dumps(cards, indent=1, default=str))}</pre>",

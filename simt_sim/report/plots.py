@@ -96,11 +96,38 @@ def active_lanes_figure(results: Sequence[SimResult], title: str) -> Figure:
 
 
 def to_image(values: np.ndarray, pixel: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Scatter per-ray ``values`` into a ``height x width`` image at ``pixel = y*width+x``
-    (float64, NaN where no ray landed)."""
-    img = np.full(width * height, np.nan)
-    img[pixel] = values
+    """Per-ray ``values`` as a ``height x width`` image, each pixel (``y*width+x``) the mean
+    of the rays it spawned (one primary ray, or its secondary rays); NaN where none did."""
+    n = width * height
+    total = np.bincount(pixel, weights=np.asarray(values, np.float64), minlength=n)
+    count = np.bincount(pixel, minlength=n)
+    img = np.full(n, np.nan)
+    np.divide(total, count, out=img, where=count > 0)
     return img.reshape(height, width)
+
+
+def blocks_figure(results: Sequence[SimResult], title: str) -> Figure:
+    """Where the instructions go: per scheme, a stacked bar of each block's share of its
+    warp instructions (one ray type, one GPU)."""
+    fig = Figure(figsize=(9.5, 0.5 * max(len(results), 2) + 1.6), layout="constrained")
+    ax = fig.subplots()
+    names = [r.scheme for r in results]
+    left = np.zeros(len(results))
+    issued = np.array([r.counts.executions * r.costs for r in results], np.float64)
+    issued = issued.reshape(len(results), len(BLOCKS))
+    totals = issued.sum(axis=1, keepdims=True)
+    shares = np.divide(issued, totals, out=np.zeros_like(issued), where=totals > 0)
+    for j, block in enumerate(BLOCKS):
+        if not shares[:, j].any():
+            continue
+        ax.barh(names, 100 * shares[:, j], left=100 * left, label=block)
+        left += shares[:, j]
+    ax.set_xlim(0, 100)
+    ax.set_xlabel("% of the scheme's warp instructions")
+    ax.invert_yaxis()
+    ax.legend(fontsize=8, title="block", loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    fig.suptitle(title)
+    return fig
 
 
 def pixels_figure(trav: np.ndarray, tri: np.ndarray, efficiency: np.ndarray, title: str) -> Figure:

@@ -65,10 +65,14 @@ def test_plot_writes_every_figure(figures: Path) -> None:
         "mrays",
         "efficiency_primary",
         "efficiency_ao",
+        "blocks_primary",
+        "blocks_ao",
     ]
     stems += [
         "pixels_persistent_speculative_while_while",
         "pixels_packet",
+        "pixels_persistent_speculative_while_while_ao",
+        "pixels_packet_ao",
         "timeline_persistent_speculative_while_while",
     ]
     expected = {f"{s}.{ext}" for s in stems for ext in ("png", "svg")}
@@ -165,3 +169,19 @@ def test_primary_rays_fill_the_image(primary) -> None:
     ray = int(np.argmax(trace.counts()[:, 0]))
     y, x = divmod(int(wl.rays.pixel[ray]), 32)
     assert img[y, x] == trace.counts()[ray, 0]
+
+
+def test_to_image_averages_the_rays_of_a_pixel() -> None:
+    """Secondary rays: each pixel is the mean of the rays its primary hit spawned."""
+    img = to_image(np.array([1.0, 3.0, 5.0]), np.array([0, 0, 3]), 2, 2)
+    assert img[0, 0] == 2.0 and img[1, 1] == 5.0 and np.isnan(img[0, 1])
+
+
+def test_plot_names_the_figures_a_scheme_cannot_have(tmp_path: Path) -> None:
+    out = tmp_path / "figs"
+    proc = run_cli("plot", *SMALL, "--rays", "primary", "--schemes", "dynamic_fetch,packet",
+                   "--out", str(out), "--quiet")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    notes = [ln for ln in proc.stderr.splitlines() if ln.startswith("simt-sim: note:")]
+    assert any("dynamic_fetch: no per-pixel maps or timeline" in n for n in notes)
+    assert any("packet: no timeline" in n for n in notes)
