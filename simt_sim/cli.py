@@ -268,13 +268,28 @@ def _spec(args: argparse.Namespace, **fields: object):
     )
 
 
+def _saved_spec(args: argparse.Namespace, **fields: object):
+    """The study of ``--trace`` files with the schemes, GPUs and tests the user named."""
+    from simt_sim import schemes
+    from simt_sim.simt.gpus import load_gpus
+    from simt_sim.study.saved import saved_spec
+    from simt_sim.study.spec import parse_list
+
+    return saved_spec(
+        args.trace,
+        schemes=parse_list(args.schemes, schemes.names(), "scheme"),
+        gpus=parse_list(args.gpu, tuple(load_gpus(args.gpus)), "GPU"),
+        gpu_file=args.gpus,
+        tests=args.tests,
+        **fields,
+    )
+
+
 def cmd_table(args: argparse.Namespace) -> int:
     """Simulate every scheme on the same recorded rays and print the efficiency table."""
-    from simt_sim import progress, schemes
-    from simt_sim.simt.gpus import load_gpus
+    from simt_sim import progress
     from simt_sim.study.run import run_study
     from simt_sim.study.sampling import check_fraction
-    from simt_sim.study.spec import parse_list
 
     extra = {
         "actual": args.actual,
@@ -282,16 +297,7 @@ def cmd_table(args: argparse.Namespace) -> int:
         "memory": args.memory_model,
     }
     if args.trace:
-        from simt_sim.study.saved import saved_spec
-
-        spec = saved_spec(
-            args.trace,
-            schemes=parse_list(args.schemes, schemes.names(), "scheme"),
-            gpus=parse_list(args.gpu, tuple(load_gpus(args.gpus)), "GPU"),
-            gpu_file=args.gpus,
-            tests=args.tests,
-            **extra,
-        )
+        spec = _saved_spec(args, **extra)
     else:
         spec = _spec(args, cameras=args.camera, **extra)
     fmt = resolve_format(args.format, args.out)
@@ -340,17 +346,30 @@ def cmd_plot(args: argparse.Namespace) -> int:
         raise SimtSimError(f"--out {out} is a file; give a directory for the figures")
     if not out.parent.is_dir():
         raise SimtSimError(f"the parent of --out {out} does not exist; create it first")
-    if not args.camera.strip().isdigit():
-        raise SimtSimError(f"--camera {args.camera!r} is not one camera index like 0")
     if args.warp is not None and args.warp < 0:
         raise SimtSimError(f"--warp must be a warp index >= 0, got {args.warp}")
-    spec = _spec(args, cameras=args.camera.strip())
+    if args.trace:
+        spec = _saved_spec(args)
+        if not spec.cameras.isdigit():
+            raise SimtSimError(
+                f"the traces hold cameras {spec.cameras}; plot draws one view: record one "
+                "camera (simt-sim trace --camera K)"
+            )
+    else:
+        if not args.camera.strip().isdigit():
+            raise SimtSimError(f"--camera {args.camera!r} is not one camera index like 0")
+        spec = _spec(args, cameras=args.camera.strip())
     show = progress.wanted(args.quiet)
     # every figure is drawn, then written: a step each, plus loading, measuring, recording
     total = figure_steps(spec, args.measured)
     with progress.bar("drawing", enabled=show, unit="step", total=total) as steps:
         drawn = study_figures(
-            spec, warp=args.warp, measured=args.measured, steps=steps, progress=show
+            spec,
+            warp=args.warp,
+            measured=args.measured,
+            steps=steps,
+            progress=show,
+            traces=args.trace or (),
         )
         figures = drawn.figures
         steps.set_description("writing")
@@ -602,6 +621,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_gpus_arg(p)
     _add_tests_arg(p)
+    p.add_argument(
+        "--trace",
+        nargs="+",
+        metavar="FILE",
+        default=None,
+        help="draw these saved traces of one camera (simt-sim trace --camera K --out FILE, "
+        "one per ray type) instead of recording",
+    )
     p.add_argument(
         "--warp",
         type=int,

@@ -10,6 +10,7 @@ Nothing is written: the caller saves the figures once all of them are drawn.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,9 +27,11 @@ from simt_sim.simt.result import SimResult
 from simt_sim.study.bench import timed
 from simt_sim.study.plan import plan_study
 from simt_sim.study.run import run_plan
+from simt_sim.study.saved import run_saved
 from simt_sim.study.spec import StudySpec
 from simt_sim.study.workload import Workload
 from simt_sim.trace.record import record_all
+from simt_sim.trace.tracefile import load_trace, read_meta
 from simt_sim.tracers import numba_tracer
 from simt_sim.types.raybatch import PATH_RAYS
 
@@ -67,17 +70,28 @@ class StudyFigures:
 
 
 def study_figures(
-    spec: StudySpec, *, warp: int | None = None, measured: bool = False, steps: Any, progress: bool
+    spec: StudySpec,
+    *,
+    warp: int | None = None,
+    measured: bool = False,
+    steps: Any,
+    progress: bool,
+    traces: Sequence[str] = (),
 ) -> StudyFigures:
     """Every figure of ``spec`` (one camera), by file stem, with the study's results.
 
     ``warp`` picks the primary-ray warp the timelines show (default: the one issuing the
     most instructions); ``measured`` adds the numba tracer's MRays/s on this CPU; ``steps``
     is a progress bar (``update``, ``set_description``) advanced once per step of
-    :func:`figure_steps` but the writes.
+    :func:`figure_steps` but the writes. ``traces`` are saved trace files of ``spec``
+    (:func:`~simt_sim.study.saved.saved_spec`), replayed instead of recording.
     """
     plan = plan_study(spec)
-    results, table = run_plan(plan, progress=progress)
+    saved = {read_meta(p)["meta"]["ray_type"]: p for p in traces}
+    if saved:
+        results, table = run_saved(spec, traces, plan)
+    else:
+        results, table = run_plan(plan, progress=progress)
     width, height = spec.resolution
     setup = f"{width}x{height}, camera {spec.cameras}"
     gpu = plan.gpus[0]
@@ -116,7 +130,7 @@ def study_figures(
                            "issue order)")  # fmt: skip
     for rt in plan.trace_ray_types:
         wl = plan.workload(rt)
-        trace = record_all(wl.bvh, wl.rays)
+        trace = load_trace(saved[rt])[0] if saved else record_all(wl.bvh, wl.rays)
         steps.update()
         per_ray = trace.counts()
         for s in plan.schemes:

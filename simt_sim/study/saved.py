@@ -88,15 +88,18 @@ def _check_tree(plan: StudyPlan, path: str) -> None:
         )
 
 
-def run_saved(spec: StudySpec, paths: Sequence[str]) -> tuple[list[SimResult], pd.DataFrame]:
+def run_saved(
+    spec: StudySpec, paths: Sequence[str], plan: StudyPlan | None = None
+) -> tuple[list[SimResult], pd.DataFrame]:
     """Replay the trace files at ``paths`` (:func:`saved_spec` of them gives ``spec``):
-    the results and table :func:`~simt_sim.study.run.run_study` gives for ``spec``."""
+    the results and table :func:`~simt_sim.study.run.run_study` gives for ``spec``
+    (``plan``: the spec already resolved, if the caller has it)."""
     if spec.sampled:
         raise SimtSimError(
             "--sample replays a sample of freshly recorded warps; drop it with --trace"
         )
     spec = replace(spec, ray_types=tuple(read_meta(p)["meta"]["ray_type"] for p in paths))
-    plan = plan_study(spec)
+    plan = plan_study(spec) if plan is None else plan
     results: list[SimResult] = []
     rows: list[dict] = []
     for path, rt in zip(paths, spec.ray_types, strict=True):

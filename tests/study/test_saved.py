@@ -56,3 +56,26 @@ def test_trace_refuses_a_file_the_disk_cannot_hold(tmp_path, monkeypatch, capsys
     assert code == 2 and not out.exists() and not list(tmp_path.iterdir())
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "are free" in err[0]
+
+
+def test_plot_draws_saved_traces_as_it_draws_recorded_rays(tmp_path: Path) -> None:
+    """The same figures from saved traces of one camera as from recording, and the same
+    MRays/s bars' data; traces of several cameras are refused (plot shows one view)."""
+    small = ["--camera", "0", "--resolution", "32x24", "--spp", "1", "--quiet"]
+    files = []
+    for rays in ("primary", "ao"):
+        files.append(str(tmp_path / f"{rays}.trace"))
+        assert run_cli("trace", "--rays", rays, *small, "--out", files[-1]).returncode == 0
+    schemes = ["--schemes", "while_while,packet"]
+    saved = run_cli("plot", "--trace", *files, *schemes, "--out", str(tmp_path / "saved"))
+    fresh = run_cli("plot", "--rays", "primary,ao", *small, *schemes,
+                    "--out", str(tmp_path / "fresh"))  # fmt: skip
+    assert saved.returncode == 0 and fresh.returncode == 0, saved.stderr + fresh.stderr
+    names = sorted(p.name for p in (tmp_path / "saved").iterdir())
+    assert names == sorted(p.name for p in (tmp_path / "fresh").iterdir())
+    assert "pixels_packet_ao.png" in names
+    several = tmp_path / "all.trace"
+    assert run_cli("trace", "--rays", "primary", "--resolution", "8x8", "--quiet",
+                   "--out", str(several)).returncode == 0  # fmt: skip
+    assert_clean_error(run_cli("plot", "--trace", str(several), "--out", str(tmp_path / "x")),
+                       "one view")  # fmt: skip
