@@ -48,6 +48,7 @@ def figure_steps(spec: StudySpec, measured: bool) -> int:
     traced = [rt for rt in spec.ray_types if rt != PATH_RAYS]
     n_figures = 3 * len(spec.ray_types) + 1  # efficiency, lanes and blocks; MRays/s
     n_figures += len(per_warp) * len(traced) + sum(map(has_timeline, per_warp))
+    n_figures += len(traced) if len(per_warp) > 1 else 0  # the side-by-side maps
     n_measured = len([rt for rt in spec.ray_types if rt != PATH_RAYS]) if measured else 0
     return 2 * n_figures + n_measured + 1 + len(traced)
 
@@ -133,6 +134,7 @@ def study_figures(
         trace = load_trace(saved[rt])[0] if saved else record_all(wl.bvh, wl.rays)
         steps.update()
         per_ray = trace.counts()
+        maps = {}
         for s in plan.schemes:
             if not has_warp_counts(s):
                 continue
@@ -142,6 +144,7 @@ def study_figures(
             images = [plots.to_image(v, wl.rays.pixel, width, height) for v in (
                 per_ray[:, 0], per_ray[:, 2], eff
             )]  # fmt: skip
+            maps[s.name] = images[2]
             stem = f"pixels_{s.name}" if rt == "primary" else f"pixels_{s.name}_{rt}"
             figures[stem] = plots.pixels_figure(
                 *images, f"{s.name}: {rt} rays on {name} ({setup}, {gpu.id}), mean per pixel"
@@ -157,4 +160,9 @@ def study_figures(
                     f"{s.name}: warp {w} of the primary rays on {name} ({setup}, {gpu.id})",
                 )
                 steps.update()
+        if len(maps) > 1:
+            figures[f"efficiency_maps_{rt}"] = plots.efficiency_maps_figure(
+                maps, f"{rt} rays on {name} ({setup}, {gpu.id}): warp efficiency per pixel"
+            )
+            steps.update()
     return StudyFigures(results, table, figures, skipped)

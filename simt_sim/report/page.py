@@ -23,6 +23,7 @@ from matplotlib.figure import Figure
 DPI = 72
 #: the sections the figures go to, by the prefix of their stem, in page order
 SECTIONS = (
+    ("efficiency_maps_", "Warp efficiency per pixel, scheme by scheme"),
     ("efficiency_", "SIMD efficiency per scheme"),
     ("active_lanes_", "Active lanes per issued instruction"),
     ("mrays", "Upper-bound MRays/s"),
@@ -69,8 +70,10 @@ def render_page(
         "<h2>Schemes at a glance</h2>",
         f"<pre>{html.escape(table_text)}</pre>",
     ]
-    for prefix, title in SECTIONS:
-        stems = [s for s in figures if s.startswith(prefix)]
+    placed: set[str] = set()
+    for prefix, title in SECTIONS:  # a figure goes to the first section its stem matches
+        stems = [s for s in figures if s.startswith(prefix) and s not in placed]
+        placed.update(stems)
         if not stems:
             continue
         parts.append(f"<h2>{html.escape(title)}</h2>")

@@ -106,6 +106,30 @@ def to_image(values: np.ndarray, pixel: np.ndarray, width: int, height: int) -> 
     return img.reshape(height, width)
 
 
+def efficiency_maps_figure(maps: Mapping[str, np.ndarray], title: str) -> Figure:
+    """The per-pixel warp SIMD efficiency of several schemes side by side, on one 0-100%
+    scale (``maps``: scheme -> image in [0, 1])."""
+    n = max(len(maps), 1)
+    cols = min(n, 3)
+    rows = -(-n // cols)
+    height, width = next(iter(maps.values())).shape if maps else (1, 1)
+    fig = Figure(figsize=(3.6 * cols, (3.6 * height / width + 0.6) * rows + 0.8),
+                 layout="constrained")  # fmt: skip
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    im = None
+    for ax, (name, img) in zip(axes, maps.items(), strict=False):
+        im = ax.imshow(100.0 * img, cmap="RdYlGn", vmin=0, vmax=100, interpolation="nearest")
+        ax.set_title(name, fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    for ax in axes[len(maps) :]:
+        ax.set_axis_off()
+    if im is not None:
+        fig.colorbar(im, ax=list(axes), shrink=0.8, label="SIMD efficiency of the warp (%)")
+    fig.suptitle(title)
+    return fig
+
+
 def blocks_figure(results: Sequence[SimResult], title: str) -> Figure:
     """Where the instructions go: per scheme, a stacked bar of each block's share of its
     warp instructions (one ray type, one GPU)."""

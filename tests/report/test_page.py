@@ -36,10 +36,12 @@ def test_the_page_is_self_contained_and_small(page: Path) -> None:
     assert page.stat().st_size < MAX_BYTES
     assert not re.search(r"(src|href)=['\"](https?:|//|file:)", text)  # nothing to fetch
     for section in ("Schemes at a glance", "SIMD efficiency per scheme", "Active lanes",
+                    "scheme by scheme",
                     "Upper-bound MRays/s", "Per-pixel", "issue timeline",
                     "Where the instructions go", "Model cards"):  # fmt: skip
         assert section in text
     assert text.count("<img ") >= 3 + 3 + 1 + 4  # efficiency, lanes, MRays/s, pixel maps
+    assert len(set(re.findall(r"alt='([^']+)'", text))) == text.count("<img ")  # each once
 
 
 @pytest.mark.skipif(BROWSER is None, reason="no Chromium (Debian: apt install chromium)")

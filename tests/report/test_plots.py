@@ -74,6 +74,8 @@ def test_plot_writes_every_figure(figures: Path) -> None:
         "pixels_persistent_speculative_while_while_ao",
         "pixels_packet_ao",
         "timeline_persistent_speculative_while_while",
+        "efficiency_maps_primary",
+        "efficiency_maps_ao",
     ]
     expected = {f"{s}.{ext}" for s in stems for ext in ("png", "svg")}
     assert {p.name for p in figures.iterdir()} == expected
