@@ -462,6 +462,37 @@ def cmd_ir_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_figure_args(p: argparse.ArgumentParser) -> None:
+    """What plot and report draw: one camera's workload (small by default), the schemes,
+    the GPUs (the first costs the per-pixel and timeline figures), the tests."""
+    _add_workload_args(
+        p,
+        rays_help="comma list of primary, ao, diffuse, path or 'all' (default: %(default)s)",
+        camera_help="one camera index, e.g. 2: the per-pixel maps show one view "
+        "(default: {camera})",
+        resolution="128x96",
+        spp=4,
+        camera="0",
+    )
+    _add_study_args(p, "the first one costs the per-pixel and timeline figures")
+
+
+def _add_study_args(p: argparse.ArgumentParser, gpu_note: str) -> None:
+    """The ray types' default, the schemes, the GPUs (``gpu_note`` says what the list
+    means to the command), a GPU file and the tests."""
+    p.set_defaults(rays=_DEFAULTS["rays"])
+    p.add_argument(
+        "--schemes", default="all", help="comma list of schemes or 'all' (default: %(default)s)"
+    )
+    p.add_argument(
+        "--gpu",
+        default=DEFAULT_GPU,
+        help=f"comma list of {', '.join(_gpu_ids())} or 'all'; {gpu_note} (default: %(default)s)",
+    )
+    _add_gpus_arg(p)
+    _add_tests_arg(p)
+
+
 def _gpu_ids() -> list[str]:
     """The packaged GPUs' ids, for --help (a TOML read: no numba at start-up)."""
     from simt_sim.simt.gpus import load_gpus
@@ -525,18 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_workload_args(
         p, rays_help="comma list of primary, ao, diffuse, path or 'all' (default: %(default)s)"
     )
-    p.set_defaults(rays=_DEFAULTS["rays"])
-    p.add_argument(
-        "--schemes", default="all", help="comma list of schemes or 'all' (default: %(default)s)"
-    )
-    p.add_argument(
-        "--gpu",
-        default=DEFAULT_GPU,
-        help=f"comma list of {', '.join(_gpu_ids())} or 'all' (see 'simt-sim gpus'; "
-        "default: %(default)s)",
-    )
-    _add_gpus_arg(p)
-    _add_tests_arg(p)
+    _add_study_args(p, "see 'simt-sim gpus'")
     _add_quiet_arg(p)
     p.add_argument(
         "--actual",
@@ -600,27 +620,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="example: simt-sim plot --scene room --rays primary,ao --schemes "
         "while_while,if_if --camera 0 --out figures",
     )
-    _add_workload_args(
-        p,
-        rays_help="comma list of primary, ao, diffuse, path or 'all' (default: %(default)s)",
-        camera_help="one camera index, e.g. 2: the per-pixel images show one view "
-        "(default: {camera})",
-        resolution="128x96",
-        spp=4,
-        camera="0",
-    )
-    p.set_defaults(rays=_DEFAULTS["rays"])
-    p.add_argument(
-        "--schemes", default="all", help="comma list of schemes or 'all' (default: %(default)s)"
-    )
-    p.add_argument(
-        "--gpu",
-        default=DEFAULT_GPU,
-        help=f"comma list of {', '.join(_gpu_ids())} or 'all'; the first one costs the "
-        "per-pixel and timeline figures (default: %(default)s)",
-    )
-    _add_gpus_arg(p)
-    _add_tests_arg(p)
+    _add_figure_args(p)
     p.add_argument(
         "--trace",
         nargs="+",
@@ -649,26 +649,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="one self-contained HTML page: table, figures, per-block breakdown, model cards",
         epilog="example: simt-sim report --scene room --out room.html",
     )
-    _add_workload_args(
-        p,
-        rays_help="comma list of primary, ao, diffuse, path or 'all' (default: %(default)s)",
-        camera_help="one camera index: the per-pixel maps show one view (default: {camera})",
-        resolution="128x96",
-        spp=4,
-        camera="0",
-    )
-    p.set_defaults(rays=_DEFAULTS["rays"])
-    p.add_argument(
-        "--schemes", default="all", help="comma list of schemes or 'all' (default: %(default)s)"
-    )
-    p.add_argument(
-        "--gpu",
-        default=DEFAULT_GPU,
-        help=f"comma list of {', '.join(_gpu_ids())} or 'all'; the first one costs the "
-        "per-pixel and timeline figures (default: %(default)s)",
-    )
-    _add_gpus_arg(p)
-    _add_tests_arg(p)
+    _add_figure_args(p)
     _add_quiet_arg(p)
     p.add_argument("--out", required=True, help="the HTML file to write")
     p.set_defaults(func=cmd_report)
