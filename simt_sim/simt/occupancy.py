@@ -16,10 +16,7 @@ from dataclasses import dataclass
 from kernels_ir.kernel_ir import KernelIR, KernelLaunch
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.gpus import GpuConfig
-from simt_sim.tracers.cuda_tracer import BLOCK_THREADS, STACK_SIZE
-
-#: bytes of one stack entry of the packet kernel's shared per-warp stack (an int)
-STACK_ENTRY_BYTES = 4
+from simt_sim.tracers.cuda_tracer import BLOCK_THREADS, STACK_ENTRY_BYTES, STACK_SIZE
 
 
 @dataclass(frozen=True)

@@ -44,6 +44,7 @@ POOL_PARAM = "pool_next"
 
 WARP_SIZE = 32  # SIMT_WARP_SIZE of common.cuh
 STACK_SIZE = 64  # SIMT_STACK_SIZE of common.cuh: a ray's stack holds the sentinel + depth
+STACK_ENTRY_BYTES = 4  # a stack entry is an int node index
 MAX_NODES = 2**29
 """Kernels address node ``i`` as float4 ``4 * i`` in int32 (and node indices must stay
 below SIMT_SENTINEL, 0x76543210, which this bound implies)."""
@@ -260,7 +261,7 @@ def launch_config(
         warps = min(gpu.sms * gpu.resident_warps_per_sm, -(-n_rays // WARP_SIZE))
         return -(-warps // warps_per_block), block_threads, 0
     grid = -(-n_rays // block_threads)
-    shared = warps_per_block * STACK_SIZE * 4 if launch.shared_stack else 0
+    shared = warps_per_block * STACK_SIZE * STACK_ENTRY_BYTES if launch.shared_stack else 0
     return grid, block_threads, shared
 
 
