@@ -8,6 +8,7 @@ status 2, never a traceback and never a half-written file.
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 from collections.abc import Sequence
 from typing import Any
@@ -27,6 +28,7 @@ from simt_sim.report.tables import (
     resolve_format,
     table_meta,
     write_table,
+    write_text,
 )
 from simt_sim.scene.load import DEFAULT_SCENE
 from simt_sim.simt.footprint import MODES as MEMORY_MODES
@@ -319,10 +321,7 @@ def cmd_table(args: argparse.Namespace) -> int:
         blocks = block_rows(results)
         if fmt == "md":
             text = render_blocks(blocks, meta)
-            if args.out is None:
-                sys.stdout.write(text)
-            else:
-                write_atomic(args.out, text)
+            write_text(text, args.out)
         else:
             write_table(blocks, meta, fmt, args.out)
         return 0
@@ -424,10 +423,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     fmt = resolve_format(args.format, args.out)
     if fmt == "md":
         text = render_comparison(both, (args.first, args.second))
-        if args.out is None:
-            sys.stdout.write(text)
-        else:
-            write_atomic(args.out, text)
+        write_text(text, args.out)
     else:
         emit(both, fmt, args.out)
     return 0
@@ -493,6 +489,7 @@ def _add_study_args(p: argparse.ArgumentParser, gpu_note: str) -> None:
     _add_tests_arg(p)
 
 
+@functools.cache
 def _gpu_ids() -> list[str]:
     """The packaged GPUs' ids, for --help (a TOML read: no numba at start-up)."""
     from simt_sim.simt.gpus import load_gpus

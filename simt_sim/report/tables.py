@@ -50,7 +50,11 @@ def render(df: pd.DataFrame, fmt: str) -> str:
 
 def emit(df: pd.DataFrame, fmt: str, out: str | None = None) -> None:
     """Print ``df`` to stdout, or write it atomically to ``out``."""
-    text = render(df, fmt)
+    write_text(render(df, fmt), out)
+
+
+def write_text(text: str, out: str | None) -> None:
+    """``text`` to stdout, or written atomically to ``out``."""
     if out is None:
         sys.stdout.write(text)
     else:
