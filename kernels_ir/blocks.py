@@ -7,13 +7,16 @@ A kernel source delimits its blocks with marker comments on lines of their own::
     // @end                  lines after this belong to no block
 
 A block may own several regions (re-opening ``trav_step`` after an inner branch). Each
-SASS instruction is charged to the block owning the outermost source line of its inline
-chain (see :mod:`kernels_ir.sass`), so a helper inlined from ``common.cuh`` counts where
-the kernel calls it. Instructions whose line is in no region, or in another file, go to
-the catch-all :data:`UNATTRIBUTED` (kernel prologue, parameter loads the compiler hoists
-to the function's first line). Counts are static: a region holding a loop or branches is
-counted once, instruction by instruction, whatever paths execute. Two exceptions follow the
-code that actually runs: a compiler subroutine counts in the blocks that call it, and the
+SASS instruction's *marker block* is the block owning the outermost source line of its
+inline chain (see :mod:`kernels_ir.sass`), so a helper inlined from ``common.cuh`` counts
+where the kernel calls it. The markers say which block; the SASS control flow says how
+often: :func:`by_frequency` moves code whose loop frequency differs from its marker
+block's (a rotated loop's preheader and exit test, an ``if``'s test that runs on every
+iteration) to the block that runs as often (:mod:`kernels_ir.cfg`). Instructions whose
+line is in no region, or in another file, go to the catch-all :data:`UNATTRIBUTED`
+(kernel prologue, parameter loads the compiler hoists to the function's first line).
+Within a block both sides of its inner branches count. Two exceptions follow the code that
+actually runs: a compiler subroutine counts in the blocks that call it, and the
 divergent-warp fallback of a ``_sync`` intrinsic (sm_75..sm_89), which replaces the fast
 path rather than adding to it, is counted apart (the build makes ``trav_step``'s into the
 block ``trav_diverged``, charged only where the model sees a diverged warp).
@@ -27,6 +30,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import PurePath
 from typing import NamedTuple
 
+from kernels_ir.cfg import ControlFlow, build_cfg
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import BLOCKS, CLASSES
 from kernels_ir.sass import SassInstruction, base_opcode, branch_target, classify
@@ -65,6 +69,38 @@ def parse_markers(source: str, name: str = "<source>") -> dict[int, str]:
     if not seen:
         raise KernelIRError(f"{name}: no `// @block NAME` marker; mark the kernel's blocks")
     return owner
+
+
+_LOOP = re.compile(r"^\s*(?P<close>\}\s*)?(?P<kw>while|for|do)\b")
+
+
+def parse_loops(source: str) -> dict[int, int]:
+    """Each source loop's 1-based ``while``/``for``/``do`` line -> the line of the brace
+    that closes its body (``} while (...);`` for a ``do`` loop)."""
+    spans: dict[int, int] = {}
+    opened: list[int | None] = []
+    pending: int | None = None
+    for lineno, raw in enumerate(source.splitlines(), start=1):
+        code = raw.split("//", 1)[0]
+        m = _LOOP.match(code)
+        if m and not (m.group("close") and m.group("kw") == "while"):
+            pending = lineno
+        parens = 0
+        for ch in code:
+            if ch == "(":
+                parens += 1
+            elif ch == ")":
+                parens -= 1
+            elif ch == ";" and parens == 0:
+                pending = None  # a loop statement without braces has no body to follow
+            elif ch == "{":
+                opened.append(pending)
+                pending = None
+            elif ch == "}" and opened:
+                header = opened.pop()
+                if header is not None:
+                    spans[header] = lineno
+    return spans
 
 
 class BlockMap(NamedTuple):
@@ -145,8 +181,142 @@ def divergent_only(instructions: Sequence[SassInstruction]) -> set[int]:
     return out
 
 
+#: share of a SASS loop's code that must lie in a source loop for the two to be one
+_SAME_LOOP = 0.8
+
+
+def by_frequency(
+    cfg: ControlFlow,
+    lines: Sequence[int | None],
+    owner: dict[int, str],
+    loops: dict[int, int],
+) -> list[str | None]:
+    """Each instruction's block once the control flow has decided how often it runs.
+
+    ``lines[i]`` is instruction ``i``'s kernel source line (``None``: another file),
+    ``owner`` the markers (:func:`parse_markers`), ``loops`` the source loops
+    (:func:`parse_loops`). An instruction's *marker block* is its line's. A block's
+    *home* is the SASS loop holding most of its instructions. A SASS loop's *own* block is
+    the marker block of its source loop's statement (``loop_control`` for while-while's
+    outer loop, ``trav_step`` for the traversal loop): the innermost source loop holding
+    at least :data:`_SAME_LOOP` of the SASS loop's lines that no loop nested inside it has
+    taken (a compiler spin loop, all on one line, takes none). Where that statement is in
+    no region (a ``while (true)`` before the first marker), and outside every loop, it is
+    the block with the most code run on every iteration (``pool_fetch``, ``ray_setup``).
+    Then, with ``L`` the instruction's innermost loop:
+
+    - ``L`` encloses its block's home (a loop preheader or exit, run once per entry of the
+      home loop): to ``L``'s own block if it runs on every iteration of ``L``, else to the
+      block of the branch it sits in (:func:`_branch_block`);
+    - ``L`` is its block's home, the block is conditional in ``L`` (some of its code runs
+      only on some iterations) and this instruction runs on every iteration (the ``if``'s
+      test, hoisted address arithmetic, the reconvergence after the ``if``): to ``L``'s
+      own block.
+
+    Everything else keeps its marker block.
+    """
+    line_blocks = [owner.get(line) if line is not None else None for line in lines]
+    by_loop: dict[str | None, Counter[int | None]] = {}
+    conditional: dict[str, set[int | None]] = {}
+    for i, block in enumerate(line_blocks):
+        if block is None or cfg.block_of[i] not in cfg.reachable:
+            continue
+        loop = cfg.loop_of(i)
+        by_loop.setdefault(block, Counter())[loop] += 1
+        if not cfg.runs_every_iteration(i):
+            conditional.setdefault(block, set()).add(loop)
+    home = {b: max(c, key=lambda h: (c[h], _depth(cfg, h))) for b, c in by_loop.items()}
+    own: dict[int | None, str] = {}
+    steady: dict[int | None, Counter[str]] = {}
+    for i, block in enumerate(line_blocks):
+        if block is not None and cfg.runs_every_iteration(i) and cfg.block_of[i] in cfg.reachable:
+            steady.setdefault(cfg.loop_of(i), Counter())[block] += 1
+    code: dict[int, list[int]] = {}
+    for i, line in enumerate(lines):
+        if line is not None and cfg.block_of[i] in cfg.reachable:
+            for key, loop in cfg.loops.items():
+                if cfg.block_of[i] in loop.body:
+                    code.setdefault(key, []).append(line)
+    claimed: set[int] = set()
+    for key in sorted(cfg.loops, key=lambda k: -cfg.loops[k].depth) + [None]:
+        statement = _source_loop(code.get(key, []), loops, claimed)
+        if statement is not None and len(set(code.get(key, []))) > 1:
+            # a compiler spin loop (a vote's reconvergence, an atomic's retry) is all on
+            # one source line and claims nothing: the source loop is its enclosing one's
+            claimed.add(statement)
+        block = owner.get(statement) if statement is not None else None
+        if block is None and steady.get(key):
+            block = steady[key].most_common(1)[0][0]
+        if block is not None:
+            own[key] = block
+    out: list[str | None] = list(line_blocks)
+    for i, block in enumerate(line_blocks):
+        if block is None or cfg.block_of[i] not in cfg.reachable:
+            continue
+        loop = cfg.loop_of(i)
+        if loop not in own or own[loop] == block:
+            continue
+        preheader = loop != home[block] and cfg.encloses(loop, home[block])
+        guard = (
+            loop == home[block]
+            and loop in conditional.get(block, set())
+            and cfg.runs_every_iteration(i)
+        )
+        if guard or preheader and cfg.runs_every_iteration(i):
+            out[i] = own[loop]
+        elif preheader:
+            out[i] = _branch_block(cfg, i, line_blocks, home, conditional) or block
+    return out
+
+
+def _branch_block(
+    cfg: ControlFlow,
+    i: int,
+    line_blocks: Sequence[str | None],
+    home: dict[str, int | None],
+    conditional: dict[str, set[int | None]],
+) -> str | None:
+    """The block of the branch that a conditional preheader ``i`` runs in: of the
+    instructions in its basic block, then in those dominating it within its loop, the
+    first whose marker block is conditional there (packet's ``leaf_entry`` before its
+    triangle loop)."""
+    loop = cfg.loop_of(i)
+    for j in cfg.dominating(i):
+        if loop is not None and cfg.block_of[j] not in cfg.loops[loop].body:
+            return None
+        block = line_blocks[j]
+        if (
+            block is not None
+            and home.get(block) == loop
+            and loop in conditional.get(block, set())
+            and not cfg.runs_every_iteration(j)
+        ):
+            return block
+    return None
+
+
+def _source_loop(lines: Sequence[int], loops: dict[int, int], claimed: set[int]) -> int | None:
+    """Statement line of the innermost source loop not yet ``claimed`` (by a SASS loop
+    nested deeper) that holds :data:`_SAME_LOOP` of ``lines``."""
+    best = None
+    for header, last in loops.items():
+        if header in claimed:
+            continue
+        inside = sum(header <= line <= last for line in lines)
+        if lines and inside >= _SAME_LOOP * len(lines) and (best is None or header > best):
+            best = header
+    return best
+
+
+def _depth(cfg: ControlFlow, key: int | None) -> int:
+    return 0 if key is None else cfg.loops[key].depth
+
+
 def map_blocks(
-    instructions: Iterable[SassInstruction], owner: dict[int, str], kernel_file: str
+    instructions: Iterable[SassInstruction],
+    owner: dict[int, str],
+    kernel_file: str,
+    loops: dict[int, int] | None = None,
 ) -> BlockMap:
     """Count instructions per block and class; the catch-all is :data:`UNATTRIBUTED`.
 
@@ -155,7 +325,9 @@ def map_blocks(
     subroutine (function name starting with ``$``) is charged, up to its last ``RET``, to
     every block that calls it, once per call site; what follows its last ``RET`` (the
     ``BRA`` padding loop) goes to the catch-all. Divergent-warp fallbacks
-    (:func:`divergent_only`) are counted apart, in ``fallback``.
+    (:func:`divergent_only`) are counted apart, in ``fallback``. Every other instruction
+    of the kernel is charged where :func:`by_frequency` puts it; ``loops`` is the source's
+    :func:`parse_loops` (without it a loop's own block is the one with most of its code).
 
     Raises
     ------
@@ -178,6 +350,18 @@ def map_blocks(
             per = moved.setdefault(block, dict.fromkeys(MEMORY_CLASSES, 0))
             per[cls] += times * access_bytes(instructions[i].opcode)
 
+    kernel = [i for i, ins in enumerate(instructions) if not ins.function.startswith("$")]
+    lines = [
+        instructions[i].line if PurePath(instructions[i].file).name == want else None
+        for i in kernel
+    ]
+    cfg = build_cfg([instructions[i] for i in kernel])
+    placed = by_frequency(cfg, lines, owner, loops or {})
+    line_blocks = [owner.get(line) if line is not None else None for line in lines]
+    block_at = {
+        i: (line if i in fallback_idx else freq)
+        for i, line, freq in zip(kernel, line_blocks, placed, strict=True)
+    }
     callers: dict[str, Counter[str]] = {}
     last_ret = _last_returns(instructions)
     for i, ins in enumerate(instructions):
@@ -186,8 +370,7 @@ def map_blocks(
             if base_opcode(ins.opcode) == "CALL":
                 raise KernelIRError(f"subroutine {ins.function} calls another; not supported")
             continue
-        block = owner.get(ins.line) if PurePath(ins.file).name == want else None
-        block = block or UNATTRIBUTED
+        block = block_at[i] or UNATTRIBUTED
         if base_opcode(ins.opcode) == "CALL":
             callers.setdefault(branch_target(ins) or "", Counter())[block] += 1
         if cls is not None:

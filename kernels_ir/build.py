@@ -18,7 +18,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
-from kernels_ir.blocks import UNATTRIBUTED, map_blocks, parse_markers
+from kernels_ir.blocks import UNATTRIBUTED, map_blocks, parse_loops, parse_markers
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 from kernels_ir.sass import parse_listing
@@ -151,8 +151,9 @@ def build_one(
     instructions = [
         i for i in parse_listing(listing) if i.function == kernel or i.function.startswith("$")
     ]
-    owner = parse_markers((CUDA_DIR / f"{kernel}.cu").read_text(), f"{kernel}.cu")
-    counts, fallback, moved = map_blocks(instructions, owner, f"{kernel}.cu")
+    source = (CUDA_DIR / f"{kernel}.cu").read_text()
+    owner = parse_markers(source, f"{kernel}.cu")
+    counts, fallback, moved = map_blocks(instructions, owner, f"{kernel}.cu", parse_loops(source))
     unattributed = counts.pop(UNATTRIBUTED, {})
     moved.pop(UNATTRIBUTED, None)
     # a diverged warp's traversal step runs its vote's fallback (charged as trav_diverged

@@ -88,7 +88,7 @@ from simt_sim.simt.engine import (
     lane_traffic,
     schedule_groups,
 )
-from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, get_gpu
+from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, executed_on, get_gpu
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult, check_ir
 from simt_sim.simt.scheme import SchemeInfo
@@ -716,6 +716,7 @@ def execute(
     if r < 1:
         raise SimtSimError(f"resident_warps must be >= 1, got {r}")
     origin, direction, tmin, tmax = ray_arrays(rays)
+    ir = executed_on(ir, g)
     costs = cost_vector(ir)
     cnt, hist, unit_cost, tri, t, ops, overflow = _execute(
         scheme.lockstep, persistent, bvh.nodes, bvh.woop, bvh.tri_index, bvh.root,

@@ -23,6 +23,7 @@ from simt_sim import schemes
 from simt_sim.report import plots
 from simt_sim.report.warpstats import has_timeline, has_warp_counts, warp_counts, warp_timeline
 from simt_sim.simt.engine import cost_vector
+from simt_sim.simt.gpus import executed_on
 from simt_sim.simt.result import SimResult
 from simt_sim.study.bench import timed
 from simt_sim.study.plan import plan_study
@@ -138,7 +139,7 @@ def study_figures(
         for s in plan.schemes:
             if not has_warp_counts(s):
                 continue
-            ir = plan.irs[(s.kernel, gpu.ir_arch)]
+            ir = executed_on(plan.irs[(s.kernel, gpu.ir_arch)], gpu)
             wc = warp_counts(trace, s, cost_vector(ir), gpu.warp_size)
             eff = wc.efficiency[np.arange(trace.n_rays) // gpu.warp_size]
             images = [plots.to_image(v, wl.rays.pixel, width, height) for v in (

@@ -1,8 +1,10 @@
 """if-if: ``while ray alive { if node interior: traverse one step; if leaf: intersect one }``.
 
 One outer iteration does at most one traversal step and one triangle test per lane, so
-lanes diverge less within an iteration but every iteration pays ``loop_control``. Per
-warp: ``ray_setup``; while any lane has ops left: ``loop_control`` (those lanes); lanes at
+lanes diverge less within an iteration but every iteration pays ``loop_control``, which
+holds the three ``if`` tests every live lane evaluates (the IR's CFG attribution puts them
+there). Per warp: ``ray_setup``; while any lane has ops left: ``loop_control`` (those
+lanes); lanes at
 a TRAV op: ``trav_step`` + outcome branches, advance; then lanes at a LEAF (including
 those that just stepped onto one): ``leaf_entry``, advance; then lanes at a TRI op
 (including those that just entered a leaf): one ``tri_test`` (+ ``tri_hit``), advance.

@@ -8,12 +8,14 @@ the same id), so a study can cost a GPU the package does not know.
 from __future__ import annotations
 
 import math
+import re
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from kernels_ir import KernelIR
 from simt_sim.errors import SimtSimError
 
 #: the GPU a study, the lockstep executor and the CLI cost with when none is named: the
@@ -36,6 +38,14 @@ PIPES: dict[str, tuple[str, ...]] = {
 #: the clocks a GPU's rates may be counted at: the shader clock of Tesla and Fermi, at
 #: which a lane retires one result per clock, or the SM clock of Kepler and later
 CLOCKS = ("shader", "sm")
+
+#: the first architecture with independent thread scheduling (Volta, sm_70): from it on a
+#: ``_sync`` warp vote has a divergent-warp fallback; GT200's, Fermi's and Kepler's
+#: ``__any`` was one instruction for any warp
+ITS_FIRST_ARCH = 70
+#: the blocks only a GPU with independent thread scheduling runs (the vote's fallback)
+ITS_ONLY_BLOCKS = ("trav_diverged",)
+_ARCH = re.compile(r"sm_(\d+)")
 
 #: relative tolerance between a GPU's lanes x clock and its published peak FP32 rate
 PEAK_TOLERANCE = 0.01
@@ -174,6 +184,13 @@ class GpuConfig:
         is not known (720 on GTX 285, the paper's launch)."""
         return self.sms * self.resident_warps_per_sm
 
+    @property
+    def independent_thread_scheduling(self) -> bool:
+        """Whether the GPU schedules a warp's threads independently (Volta and later), from
+        its architecture (the IR's where it has none of its own)."""
+        m = _ARCH.fullmatch(self.arch or self.ir_arch)
+        return m is not None and int(m.group(1)) >= ITS_FIRST_ARCH
+
     def figures(self) -> dict[str, Any]:
         """The figures as a plain dict (for model cards and tables), ``issue_rate`` added
         and the lanes flattened (``lanes_fp32`` ...)."""
@@ -186,7 +203,18 @@ class GpuConfig:
                 out[name] = getattr(self, name)
             if name == "dispatch":
                 out["issue_rate"] = self.issue_rate
+        out["independent_thread_scheduling"] = self.independent_thread_scheduling
         return out
+
+
+def executed_on(ir: KernelIR, gpu: GpuConfig) -> KernelIR:
+    """``ir`` as ``gpu``'s hardware runs it: without :data:`ITS_ONLY_BLOCKS` on a GPU that
+    has no independent thread scheduling (a block an IR lacks costs nothing)."""
+    if gpu.independent_thread_scheduling:
+        return ir
+    blocks = {b: row for b, row in ir.blocks.items() if b not in ITS_ONLY_BLOCKS}
+    moved = {b: row for b, row in ir.bytes.items() if b not in ITS_ONLY_BLOCKS}
+    return ir if blocks == ir.blocks else replace(ir, blocks=blocks, bytes=moved)
 
 
 def _lanes(value: dict, label: str) -> tuple[tuple[str, int], ...]:
@@ -226,6 +254,11 @@ def _parse(entry: Any, where: str) -> GpuConfig:
     for key in ("l1_kib", "l2_kib", "shared_kib_per_sm"):
         if entry[key] < 0:
             raise SimtSimError(f"{label}: field {key} must be >= 0, got {entry[key]!r}")
+    if not _ARCH.fullmatch(entry["arch"]) or not _ARCH.fullmatch(entry["ir_arch"]):
+        raise SimtSimError(
+            f"{label}: arch and ir_arch must name a compute capability as sm_XY (sm_13, "
+            f"sm_75), got {entry['arch']!r} and {entry['ir_arch']!r}"
+        )
     if entry["clock"] not in CLOCKS:
         raise SimtSimError(f"{label}: clock must be one of {', '.join(CLOCKS)}")
     values = {k: float(entry[k]) if k in _FLOAT_FIELDS else entry[k] for k in _FIELDS}

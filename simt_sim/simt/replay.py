@@ -35,7 +35,7 @@ from simt_sim.simt.engine import (
     replay_arrays,
     scan_trace,
 )
-from simt_sim.simt.gpus import GpuConfig
+from simt_sim.simt.gpus import GpuConfig, executed_on
 from simt_sim.simt.occupancy import kernel_occupancy
 from simt_sim.simt.result import SimResult, check_ir, merge
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
@@ -126,6 +126,7 @@ def simulate_traces(
     """
     _check_kind(scheme, TRACE, "simulate_traces")
     check_ir(ir, scheme.kernel, scheme.kernels[scheme.kernel])
+    ir = executed_on(ir, gpu)
     values = scheme.with_params(params)
     w = gpu.warp_size
     check_warp_size(w)
@@ -276,8 +277,9 @@ def simulate_paths(
         )
     for kernel, blocks in scheme.kernels.items():
         check_ir(irs[kernel], kernel, blocks)
+    irs = {k: executed_on(irs[k], gpu) for k in scheme.kernels}
     values = scheme.with_params(params)
-    out = scheme.replay_paths(pt, {k: irs[k] for k in scheme.kernels}, gpu, **values)
+    out = scheme.replay_paths(pt, irs, gpu, **values)
     card = model_card(
         scheme.name,
         [irs[k] for k in scheme.kernels],

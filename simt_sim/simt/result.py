@@ -20,7 +20,7 @@ from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.bounds import issue_bound, pipe_bound, roofline
 from simt_sim.simt.engine import Counts, class_mix, cost_vector, lane_traffic
-from simt_sim.simt.gpus import GpuConfig
+from simt_sim.simt.gpus import GpuConfig, executed_on
 
 TRAVERSAL_BLOCKS = ("trav_step", "trav_none", "trav_one", "trav_both", "trav_diverged")
 INTERSECTION_BLOCKS = ("leaf_entry", "tri_test", "tri_hit")
@@ -269,6 +269,7 @@ class SimResult:
         check_ir(
             ir, self.model_card.get("ir_kernel", self.scheme), self.model_card.get("ir_blocks", ())
         )
+        ir = executed_on(ir, self.gpu)
         c = self.counts
         counts = Counts(c.executions, c.active, c.hist, None, 0)
         card = dict(self.model_card)

@@ -24,7 +24,7 @@ from simt_sim.report.plots import to_image
 from simt_sim.report.warpstats import timeline_schemes, warp_counts, warp_schemes, warp_timeline
 from simt_sim.schemes import get_scheme
 from simt_sim.simt.engine import cost_vector
-from simt_sim.simt.gpus import get_gpu
+from simt_sim.simt.gpus import executed_on, get_gpu
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.study.workload import make_workload
 from simt_sim.trace.record import record_all
@@ -132,7 +132,7 @@ def test_warp_counts_add_up_to_the_replay(primary, scheme: str) -> None:
     _, trace = primary
     gpu = get_gpu("gtx285")
     ir = kernels_ir.load(scheme, gpu.ir_arch)
-    wc = warp_counts(trace, get_scheme(scheme), cost_vector(ir), gpu.warp_size)
+    wc = warp_counts(trace, get_scheme(scheme), cost_vector(executed_on(ir, gpu)), gpu.warp_size)
     r = simulate_traces([trace], get_scheme(scheme), ir, gpu)
     assert wc.warp_instructions.shape == (trace.n_rays // 32,)
     assert wc.warp_instructions.sum() == r.warp_instructions

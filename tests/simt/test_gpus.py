@@ -134,6 +134,7 @@ def test_unknown_id_lists_known_ids() -> None:
             USER_GPU.format(id="x").replace("source =", "colour = 'green'\nsource ="),
             "unknown field.*colour",
         ),
+        (USER_GPU.format(id="x").replace('\narch = "sm_80"', '\narch = "volta"'), "sm_XY"),
         (USER_GPU.format(id="x") * 2, "appears twice"),
         ("[[gpu]\n", "not valid TOML"),
         ("title = 'no gpus'\n", "no \\[\\[gpu\\]\\] entries"),
@@ -144,6 +145,17 @@ def test_bad_user_files_say_what_is_wrong(tmp_path: Path, text: str, message: st
     path.write_text(text)
     with pytest.raises(SimtSimError, match=message):
         load_gpus(path)
+
+
+@pytest.mark.parametrize(
+    ("gpu_id", "its"),
+    [("gtx285", False), ("gtx480", False), ("gtx680", False), ("titan", False),
+     ("rtx2080ti", True), ("a100", True), ("rtx4090", True), ("h100", True)],
+)  # fmt: skip
+def test_independent_thread_scheduling_from_volta_on(gpu_id: str, its: bool) -> None:
+    gpu = get_gpu(gpu_id)
+    assert gpu.independent_thread_scheduling is its
+    assert gpu.figures()["independent_thread_scheduling"] is its
 
 
 def test_missing_user_file(tmp_path: Path) -> None:

@@ -248,6 +248,44 @@ def test_recost_to_a_target_without_the_divergent_fallback() -> None:
     assert recosted.block_instructions["trav_diverged"] == 0
 
 
+def test_gtx285_speculative_step_pays_no_divergent_fallback() -> None:
+    """GT200 has no independent thread scheduling: its vote is one instruction for any
+    warp, so a diverged speculative step costs what a converged one does; the RTX 2080 Ti
+    (sm_75, the same IR) pays trav_diverged for each."""
+    spec = get_scheme("persistent_speculative_while_while")
+    ir = kernels_ir.load(spec.kernel, "sm_75")
+    trace = synthetic_trace(32 * 40, seed=3, coherence=32, divergence=0.3)
+    old, new = (
+        simulate_traces([trace], spec, ir, get_gpu(g), resident_warps=4)
+        for g in ("gtx285", "rtx2080ti")
+    )
+    same(old, new)  # one schedule: the fallback is charged, it does not reorder
+    diverged = int(new.executions["trav_diverged"])
+    assert diverged > 0 and ir.cost("trav_diverged") > 0
+    assert old.block_instructions["trav_diverged"] == 0
+    assert new.block_instructions["trav_diverged"] == diverged * ir.cost("trav_diverged")
+    assert new.warp_instructions - old.warp_instructions == diverged * ir.cost("trav_diverged")
+    # re-costing keeps the GPU's rule
+    assert old.recost(ir).block_instructions["trav_diverged"] == 0
+
+
+def test_if_if_warp_where_no_lane_traverses_still_pays_the_guards() -> None:
+    """A lane in a leaf takes neither the traversal nor (after the first) the leaf-entry
+    branch, yet each iteration runs all three ``if`` tests: they are in loop_control."""
+    scheme = get_scheme("if_if")
+    ir = kernels_ir.load("if_if", "sm_75")
+    r = simulate_traces([trace_from_lists([[LEAF, TRI_MISS, TRI_MISS]])], scheme, ir, gpu_for())
+    assert r.executions["trav_step"] == 0 and r.executions["loop_control"] == 2
+    expected = sum(
+        n * ir.cost(b)
+        for b, n in {"ray_setup": 1, "loop_control": 2, "leaf_entry": 1, "tri_test": 2,
+                     "finish": 1}.items()
+    )  # fmt: skip
+    assert r.warp_instructions == expected
+    guards = ir.cost("loop_control") - kernels_ir.load("while_while", "sm_75").cost("loop_control")
+    assert guards >= 5
+
+
 def test_dynamic_fetch_refuses_recost() -> None:
     r = simulate_traces(
         [synthetic_trace(64, seed=1)],

@@ -1,0 +1,231 @@
+"""The control-flow graph of a kernel's SASS, and how often each instruction runs.
+
+Source markers say which block a source line belongs to, but not how often the compiler's
+code for that line runs: nvcc rotates loops and hoists invariants, so a loop's first load
+and exit test sit *before* the loop (once per entry) while carrying the loop body's source
+line, and an ``if``'s condition is evaluated on every iteration by every live lane though it
+sits on the line of the ``if``'s body. This module finds the SASS basic blocks, the natural
+loops (back edges to a dominating header) and, inside each loop, the code that runs on every
+iteration (the basic blocks that dominate all of the loop's latches).
+:func:`kernels_ir.blocks.by_frequency` then moves an instruction whose frequency differs
+from its marker block's to the block that runs as often.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+from kernels_ir.errors import KernelIRError
+from kernels_ir.sass import SassInstruction, base_opcode, branch_target
+
+#: opcodes that end a path (an unguarded one has no fall-through successor)
+_ENDS = ("EXIT", "RET", "KILL")
+#: branch opcodes with a label target; BRX/JMX (indirect) are refused
+_BRANCHES = ("BRA", "JMP")
+_INDIRECT = ("BRX", "BRXU", "JMX", "JMXU")
+
+
+@dataclass(frozen=True)
+class Loop:
+    """One natural loop: its header, its basic blocks, its latches and its parent.
+
+    ``every_iteration`` holds the basic blocks that run on every iteration that goes round
+    again (they dominate every latch); the rest of the loop's own code is conditional.
+    ``depth`` is 1 for an outermost loop.
+    """
+
+    header: int
+    body: frozenset[int]
+    latches: frozenset[int]
+    every_iteration: frozenset[int]
+    parent: int | None
+    depth: int
+
+
+@dataclass(frozen=True)
+class ControlFlow:
+    """Basic blocks (``starts[b]`` .. ``starts[b+1]-1`` index the instructions), edges,
+    loops (by id) of one function, each basic block's innermost loop (an id) and its
+    immediate dominator (``None``: the entry or unreachable)."""
+
+    starts: tuple[int, ...]
+    successors: tuple[tuple[int, ...], ...]
+    reachable: frozenset[int]
+    loops: dict[int, Loop]
+    block_of: tuple[int, ...]
+    innermost: tuple[int | None, ...]
+    idom: tuple[int | None, ...]
+
+    def last(self, b: int) -> int:
+        """Index of basic block ``b``'s last instruction."""
+        return (self.starts[b + 1] if b + 1 < len(self.starts) else len(self.block_of)) - 1
+
+    def loop_of(self, i: int) -> int | None:
+        """Id of the innermost loop holding instruction ``i`` (``None``: no loop)."""
+        return self.innermost[self.block_of[i]]
+
+    def runs_every_iteration(self, i: int) -> bool:
+        """Whether instruction ``i`` runs on every iteration of its innermost loop (always
+        true outside loops)."""
+        loop = self.loop_of(i)
+        return loop is None or self.block_of[i] in self.loops[loop].every_iteration
+
+    def dominating(self, i: int) -> Iterator[int]:
+        """The other instructions of ``i``'s basic block (they run as often as ``i``), then
+        those of the basic blocks that dominate it, nearest first."""
+        b = self.block_of[i]
+        yield from (j for j in range(self.starts[b], self.last(b) + 1) if j != i)
+        while (b := self.idom[b]) is not None:
+            yield from range(self.last(b), self.starts[b] - 1, -1)
+
+    def encloses(self, outer: int | None, inner: int | None) -> bool:
+        """Whether loop ``outer`` (``None``: the function) contains loop ``inner``."""
+        while inner is not None:
+            if inner == outer:
+                return True
+            inner = self.loops[inner].parent
+        return outer is None
+
+
+def _is_branch(ins: SassInstruction) -> bool:
+    return base_opcode(ins.opcode) in _BRANCHES
+
+
+def build_cfg(instructions: Sequence[SassInstruction]) -> ControlFlow:
+    """The control flow of one function's instructions (in listing order).
+
+    Raises
+    ------
+    KernelIRError
+        On an indirect branch or a branch to a label the function does not define.
+    """
+    n = len(instructions)
+    at = {label: i for i, ins in enumerate(instructions) for label in ins.labels}
+    leaders = {0}
+    for i, ins in enumerate(instructions):
+        op = base_opcode(ins.opcode)
+        if op in _INDIRECT:
+            raise KernelIRError(f"{ins.function}: indirect branch {ins.text!r} not supported")
+        if ins.labels:
+            leaders.add(i)
+        if _is_branch(ins) or op in _ENDS:
+            if i + 1 < n:
+                leaders.add(i + 1)
+            if _is_branch(ins):
+                target = branch_target(ins)
+                if target not in at:
+                    raise KernelIRError(f"{ins.function}: branch to unknown label {target!r}")
+                leaders.add(at[target])
+    starts = tuple(sorted(leaders))
+    index = {s: b for b, s in enumerate(starts)}
+    block_of = []
+    for b, s in enumerate(starts):
+        end = starts[b + 1] if b + 1 < len(starts) else n
+        block_of += [b] * (end - s)
+    successors: list[tuple[int, ...]] = []
+    for b in range(len(starts)):
+        last = (starts[b + 1] if b + 1 < len(starts) else n) - 1
+        ins = instructions[last]
+        op = base_opcode(ins.opcode)
+        succ: list[int] = []
+        if _is_branch(ins):
+            succ.append(index[at[branch_target(ins) or ""]])
+        # a guarded branch or end falls through; so does anything that is neither
+        conditional = ins.guarded or len(ins.text.split(",")) > 1 and _is_branch(ins)
+        if (not (_is_branch(ins) or op in _ENDS) or conditional) and last + 1 < n:
+            succ.append(b + 1)
+        successors.append(tuple(dict.fromkeys(succ)))
+    reachable = _reachable(successors)
+    dom = _dominators(successors, reachable)
+    loops = _loops(successors, reachable, dom)
+    innermost: list[int | None] = [None] * len(starts)
+    for key in sorted(loops, key=lambda k: loops[k].depth):
+        for b in loops[key].body:
+            innermost[b] = key
+    idom: list[int | None] = [None] * len(starts)
+    for b in reachable - {0}:
+        idom[b] = max(dom[b] - {b}, key=lambda d: len(dom[d]))
+    return ControlFlow(
+        starts, tuple(successors), reachable, loops, tuple(block_of), tuple(innermost),
+        tuple(idom),
+    )  # fmt: skip
+
+
+def _reachable(successors: Sequence[tuple[int, ...]]) -> frozenset[int]:
+    seen = {0}
+    todo = [0]
+    while todo:
+        for s in successors[todo.pop()]:
+            if s not in seen:
+                seen.add(s)
+                todo.append(s)
+    return frozenset(seen)
+
+
+def _dominators(
+    successors: Sequence[tuple[int, ...]], reachable: frozenset[int]
+) -> dict[int, frozenset[int]]:
+    """Dominator sets of the reachable blocks (iterative data flow; kernels are small)."""
+    preds: dict[int, list[int]] = {b: [] for b in reachable}
+    for b in reachable:
+        for s in successors[b]:
+            preds[s].append(b)
+    every = frozenset(reachable)
+    dom = {b: every for b in reachable}
+    dom[0] = frozenset({0})
+    changed = True
+    while changed:
+        changed = False
+        for b in sorted(reachable - {0}):
+            new = frozenset.intersection(*(dom[p] for p in preds[b])) | {b}
+            if new != dom[b]:
+                dom[b] = new
+                changed = True
+    return dom
+
+
+def _loops(
+    successors: Sequence[tuple[int, ...]],
+    reachable: frozenset[int],
+    dom: dict[int, frozenset[int]],
+) -> dict[int, Loop]:
+    """Natural loops, keyed by an id (0, 1, ... in header order), nested.
+
+    All back edges to one header make one loop (a ``continue`` is a second latch). nvcc
+    gives an inner loop and the loop around it one header when the outer body starts with
+    the inner loop's test (speculative while-while's traversal loop): they are one loop
+    here, whose header code is charged per iteration of either.
+    """
+    preds: dict[int, list[int]] = {b: [] for b in reachable}
+    for b in reachable:
+        for s in successors[b]:
+            preds[s].append(b)
+    groups: dict[int, tuple[set[int], set[int]]] = {}  # header -> latches, body
+    for b in sorted(reachable):
+        for s in successors[b]:
+            if s in dom[b]:
+                latches, body = groups.setdefault(s, (set(), set()))
+                latches.add(b)
+                body |= _natural_body(s, b, preds)
+    headers = sorted(groups)
+    out: dict[int, Loop] = {}
+    for k, header in enumerate(headers):
+        tails, body = groups[header]
+        outer = [j for j, h in enumerate(headers) if h != header and body < groups[h][1]]
+        parent = min(outer, key=lambda j: len(groups[headers[j]][1])) if outer else None
+        every = frozenset(b for b in body if all(b in dom[t] for t in tails))
+        out[k] = Loop(header, frozenset(body), frozenset(tails), every, parent, len(outer) + 1)
+    return out
+
+
+def _natural_body(header: int, tail: int, preds: dict[int, list[int]]) -> set[int]:
+    """The blocks that reach ``tail`` without passing through ``header``, and both."""
+    body = {header, tail}
+    todo = [tail] if tail != header else []
+    while todo:
+        for p in preds[todo.pop()]:
+            if p not in body:
+                body.add(p)
+                todo.append(p)
+    return body

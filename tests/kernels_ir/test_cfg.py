@@ -1,0 +1,167 @@
+"""The SASS control-flow graph and the frequency attribution built on it (kernels_ir.cfg,
+kernels_ir.blocks.by_frequency): hand-made listings whose loops and counts are known, and
+the committed IR of the kernels whose loops the attribution must get right."""
+
+from __future__ import annotations
+
+import pytest
+
+from kernels_ir import load
+from kernels_ir.blocks import map_blocks, parse_loops, parse_markers
+from kernels_ir.cfg import build_cfg
+from kernels_ir.errors import KernelIRError
+from kernels_ir.sass import parse_listing
+
+
+def _listing(rows: list[tuple[int, str] | str]) -> str:
+    """An nvdisasm-style listing of function ``k``: ``(line, text)`` rows, a ``str`` row
+    being a label."""
+    out = [".text.k:"]
+    offset = 0
+    for row in rows:
+        if isinstance(row, str):
+            out.append(f"{row}:")
+            continue
+        line, text = row
+        out.append(f'        //## File "k.cu", line {line}')
+        out.append(f"        /*{offset:04x}*/                   {text} ;")
+        offset += 0x10
+    return "\n".join(out) + "\n"
+
+
+#: one source loop whose body is an ``if``: while (x) { if (c) { body } }
+SOURCE = """// k.cu
+// @block ray_setup
+a;
+// @block loop_control
+while (x) {
+    // @block trav_step
+    if (c) {
+        body;
+    }
+    // @block loop_control
+}
+// @block finish
+b;
+"""
+
+#: nvcc's rotated loop: the entry test before the loop, the ``if``'s test in the header,
+#: its body conditional, the loop test at the latch
+LOOP = [
+    (3, "MOV R1, c[0x0][0x28]"),
+    (3, "MOV R2, c[0x0][0x160]"),
+    (3, "MOV R3, c[0x0][0x164]"),
+    (5, "ISETP.NE.AND P0, PT, R2, RZ, PT"),
+    (5, "@!P0 BRA `(.L_x_2)"),
+    ".L_x_0",
+    (7, "ISETP.NE.AND P1, PT, R3, RZ, PT"),
+    (7, "@!P1 BRA `(.L_x_1)"),
+    (8, "FADD R4, R4, 1"),
+    (8, "FADD R5, R5, 1"),
+    (8, "FADD R6, R6, 1"),
+    ".L_x_1",
+    (5, "IADD3 R2, R2, -0x1, RZ"),
+    (5, "ISETP.NE.AND P0, PT, R2, RZ, PT"),
+    (5, "@P0 BRA `(.L_x_0)"),
+    ".L_x_2",
+    (13, "STG.E [R8], R4"),
+    (13, "EXIT"),
+]
+
+
+def test_cfg_finds_the_rotated_loop_and_what_runs_every_iteration() -> None:
+    cfg = build_cfg(parse_listing(_listing(LOOP)))
+    assert cfg.starts == (0, 5, 7, 10, 13)
+    assert cfg.successors == ((4, 1), (3, 2), (3,), (1, 4), ())  # target, then fall-through
+    assert list(cfg.loops) == [0]
+    loop = cfg.loops[0]
+    assert (loop.header, loop.body, loop.latches) == (1, {1, 2, 3}, {3})
+    assert loop.every_iteration == {1, 3} and (loop.parent, loop.depth) == (None, 1)
+    assert [cfg.loop_of(i) for i in (0, 5, 7, 10, 13)] == [None, 0, 0, 0, None]
+    assert cfg.runs_every_iteration(5) and not cfg.runs_every_iteration(7)
+    assert cfg.runs_every_iteration(0)  # outside every loop
+
+
+def test_cfg_nests_loops_and_keeps_a_continue_in_one_loop() -> None:
+    rows = [
+        (3, "MOV R1, RZ"),
+        ".L_x_0",
+        (4, "MOV R2, RZ"),
+        ".L_x_1",
+        (5, "IADD3 R2, R2, 0x1, RZ"),
+        (5, "ISETP.NE.AND P0, PT, R2, 0x4, PT"),
+        (5, "@P0 BRA `(.L_x_1)"),
+        (6, "ISETP.EQ.AND P1, PT, R1, 0x2, PT"),
+        (6, "@P1 BRA `(.L_x_0)"),  # a continue: a second back edge to the outer header
+        (7, "IADD3 R1, R1, 0x1, RZ"),
+        (7, "ISETP.NE.AND P0, PT, R1, 0x8, PT"),
+        (7, "@P0 BRA `(.L_x_0)"),
+        (8, "EXIT"),
+    ]
+    cfg = build_cfg(parse_listing(_listing(rows)))
+    assert len(cfg.loops) == 2
+    outer, inner = cfg.loops[0], cfg.loops[1]
+    assert inner.parent == 0 and (outer.depth, inner.depth) == (1, 2)
+    assert len(outer.latches) == 2 and inner.body < outer.body
+    assert cfg.encloses(0, 1) and not cfg.encloses(1, 0) and cfg.encloses(None, 1)
+    # the continue's test is conditional: the second latch does not run every iteration
+    assert cfg.block_of[9] not in outer.every_iteration
+
+
+def test_cfg_refuses_indirect_branches_and_unknown_labels() -> None:
+    with pytest.raises(KernelIRError, match="indirect branch"):
+        build_cfg(parse_listing(_listing([(3, "BRX R2 -0x10"), (3, "EXIT")])))
+    with pytest.raises(KernelIRError, match="unknown label"):
+        build_cfg(parse_listing(_listing([(3, "@P0 BRA `(.L_x_9)"), (3, "EXIT")])))
+
+
+def test_parse_loops_spans_while_for_and_do() -> None:
+    source = "\n".join([
+        "while (a) {",            # 1
+        "  for (;; i += 3) {",    # 2
+        "    if (x) break;",      # 3
+        "  }",                    # 4
+        "  do {",                 # 5
+        "    y;",                 # 6
+        "  } while (b);",         # 7
+        "  for (i = 0; i < n; ++i) z;",  # 8: no braced body
+        "}",                      # 9
+    ])  # fmt: skip
+    assert parse_loops(source) == {1: 9, 2: 4, 5: 7}
+
+
+def test_by_frequency_moves_a_guard_and_a_preheader_and_keeps_the_body() -> None:
+    ins = parse_listing(_listing(LOOP))
+    owner = parse_markers(SOURCE, "k.cu")
+    counts, _, _ = map_blocks(ins, owner, "k.cu", parse_loops(SOURCE))
+    total = {b: sum(row.values()) for b, row in counts.items()}
+    # trav_step keeps its conditional body (3 FADDs); the if's test (2 instructions, run
+    # on every iteration) goes to the loop's own block, loop_control, with the latch (3);
+    # the loop's entry test (2, once per thread) goes to the code around it, ray_setup (3)
+    assert total == {"ray_setup": 5, "loop_control": 5, "trav_step": 3, "finish": 2}
+
+
+def test_map_blocks_without_source_loops_still_attributes_by_frequency() -> None:
+    ins = parse_listing(_listing(LOOP))
+    counts, _, _ = map_blocks(ins, parse_markers(SOURCE, "k.cu"), "k.cu")
+    # without the source loops, the loop's own block is the one with most of its
+    # every-iteration code (loop_control: the latch)
+    assert sum(counts["trav_step"].values()) == 3
+
+
+def test_if_if_guards_run_in_loop_control() -> None:
+    """if-if's three ``if`` tests run on every iteration for every live lane: the CFG puts
+    them in loop_control, which the replay charges per iteration, so a warp where no lane
+    enters a branch still pays them."""
+    for arch in ("sm_75", "sm_90"):
+        ww, ii = load("while_while", arch), load("if_if", arch)
+        assert ii.cost("loop_control") >= ww.cost("loop_control") + 5, arch
+
+
+def test_while_while_triangle_loop_charges_its_preheader_per_leaf() -> None:
+    """The triangle loop's first load and end test run once per leaf (nvcc rotates the
+    loop): leaf_entry holds them, tri_test only what runs per triangle."""
+    ir = load("while_while", "sm_75")
+    assert ir.cost("leaf_entry") >= 20
+    assert ir.cost("tri_test") <= 70
+    assert ir.cost("tri_test") + ir.cost("leaf_entry") == 91  # nothing lost on the way
