@@ -1,11 +1,13 @@
-// Packet traversal (Guenther et al. 2007): the 32 rays of a warp share one stack in
-// shared memory and walk the tree together. A child is visited when any lane's ray hits
-// its box; when both are visited, the lanes vote which one comes first (majority of the
-// lanes that hit one of them). Every lane takes part in every leaf, also lanes whose ray
-// missed its box: each tested triangle is a real one, so the closest hit stays exact.
+// Packet traversal (Guenther et al. 2007) with the semantics of Aila & Laine's packet
+// kernel: the 32 rays of a warp share one stack in shared memory and walk the tree
+// together. Every lane with a ray tests every popped node, an any-hit lane that has its
+// hit too (against that hit's t: it keeps taking part in node tests and votes). A child is
+// visited when any lane's ray hits its box; when both are, child 1 goes first when more
+// than half of the warp's 32 lanes prefer it. Every lane takes part in every leaf: the
+// triangle loop runs over all its triangles, and the lanes still searching test them.
 // Launch: blockDim.x a multiple of 32, dynamic shared memory
-// (blockDim.x / 32) * SIMT_STACK_SIZE * 4 bytes. any_hit != 0: a lane stops at its
-// first hit; the warp stops when every lane has.
+// (blockDim.x / 32) * SIMT_STACK_SIZE * 4 bytes. any_hit != 0: a lane stops testing
+// triangles at its first hit; the warp stops after the leaf where every lane has one.
 #include "common.cuh"
 
 extern "C" __global__ void packet(const float4* __restrict__ nodes,
@@ -34,14 +36,14 @@ extern "C" __global__ void packet(const float4* __restrict__ nodes,
     while (node != SIMT_SENTINEL) {
         // @block trav_step
         if (simt_is_interior(node)) {
-            const NodeHit h = simt_intersect_node(nodes, node, r, live ? t_best : -SIMT_INF);
+            const NodeHit h = simt_intersect_node(nodes, node, r, active ? t_best : -SIMT_INF);
             const unsigned m0 = __ballot_sync(SIMT_FULL_MASK, h.hit0);
             const unsigned m1 = __ballot_sync(SIMT_FULL_MASK, h.hit1);
             if (m0 != 0u && m1 != 0u) {
                 // @block trav_both
                 const bool first1 = h.hit1 && (!h.hit0 || h.c1min < h.c0min);
                 const unsigned votes1 = __ballot_sync(SIMT_FULL_MASK, first1);
-                const bool swap = 2 * __popc(votes1) > __popc(m0 | m1);
+                const bool swap = 2 * __popc(votes1) > SIMT_WARP_SIZE;
                 node = swap ? h.child1 : h.child0;
                 ++sp;
                 if (simt_lane_id() == 0) stack[sp] = swap ? h.child0 : h.child1;

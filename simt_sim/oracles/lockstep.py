@@ -30,19 +30,20 @@ an interior node to step, a leaf to enter, a triangle to test, or nothing):
   (``leaf_entry``, lockstep ``tri_test``). Traversal uses the lane's *current* ``tmax``,
   so a lane may step nodes its recorded stream skipped, and an any-hit lane may traverse
   past its terminating leaf.
-- ``packet``: one shared stack per warp, each entry holding a node and the lanes active
-  for it (those whose ray hit its box when it was pushed; the root: all lanes). At an
-  interior node the active lanes test both child boxes against their own ray and ``tmax``
-  (``trav_step``); the warp takes the branch of the union (``trav_both`` when some lane
-  hits each child, ``trav_one``, ``trav_none``) with all active lanes; with both children
-  hit, the child more lanes prefer as nearer goes first (a lane hitting one child prefers
-  it; tie -> child 0), the other is pushed. At a leaf every active lane enters
-  (``leaf_entry``) and tests every triangle (``tri_test``, ``tri_hit`` for the lanes
-  whose hit is accepted, shrinking that lane's ``tmax``); any-hit lanes drop out at their
-  first hit and are removed from every mask they appear in. ``loop_control`` is charged
-  once per node or leaf the warp works on, with every lane that has a ray (the whole warp
-  runs the shared loop, as in the replay); an entry whose lanes all dropped out is popped
-  without work. The warp ends when its stack is empty.
+- ``packet`` (Aila & Laine's semantics of Günther et al.'s kernel): one shared stack per
+  warp, and every node popped from it is worked on by the whole warp. At an interior node
+  every lane tests both child boxes against its own ray and ``tmax`` (``trav_step``), an
+  any-hit lane that has found its hit too (with that hit's ``t``: it keeps taking part in
+  node tests and votes); the warp takes the branch of the union (``trav_both`` when some
+  lane hits each child, ``trav_one``, ``trav_none``); with both children hit, child 1 goes
+  first when more than half of the warp's ``warp_size`` lanes prefer it (a lane hitting one
+  child prefers it, one hitting both the nearer), the other is pushed. At a leaf the warp
+  runs the triangle loop over every triangle (``leaf_entry``, ``tri_test``, ``tri_hit`` for
+  the lanes whose hit is accepted); an any-hit warp ends after the leaf in which its last
+  lane found a hit, any other when its stack is empty. ``loop_control`` is charged once per
+  node or leaf with every lane that has a ray. A step's *useful* lanes (its active count,
+  and the lanes whose TRAV/LEAF/TRI it counts) are those whose ray hit the node's box when
+  it was pushed (the root: all) and is still searching; a step with none is still issued.
 
 Every run reports per-ray hits (identical to the tracer's for every scheme: the closest
 ``t`` does not depend on the order triangles are found in) and per-ray TRAV/LEAF/TRI
@@ -474,13 +475,23 @@ def _speculative(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, op
     return cost + charge(cnt, hist, costs, FINISH, lanes)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _issue(cnt, hist, costs, block, n):
+    """Issue one execution of ``block`` whatever its useful lanes ``n`` (0 counts: a packet
+    step every lane runs although none needs it); returns its cost."""
+    cnt[0, block] += 1
+    cnt[1, block] += n
+    hist[block, n] += 1
+    return costs[block]
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def _packet(li, lf, lanes, cap, root, nodes, nodes_i, woop, woop_i, any_hit, ops, base,
-            cnt, hist, costs):  # fmt: skip
+def _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i, any_hit, ops,
+            base, cnt, hist, costs):  # fmt: skip
     """One packet (shared stack) traversal of ``lanes`` lanes (see the module docstring)."""
     node_stack = np.empty(cap, np.int32)
     mask_stack = np.zeros((cap, lanes), np.bool_)
-    mask = np.ones(lanes, np.bool_)
+    mask = np.ones(lanes, np.bool_)  # useful lanes: their ray hit the node's box when pushed
     m0 = np.empty(lanes, np.bool_)
     m1 = np.empty(lanes, np.bool_)
     done = np.zeros(lanes, np.bool_)
@@ -488,82 +499,73 @@ def _packet(li, lf, lanes, cap, root, nodes, nodes_i, woop, woop_i, any_hit, ops
     node = root
     cost = np.int64(0)
     while True:
-        active = 0
+        cost += charge(cnt, hist, costs, LOOP_CONTROL, lanes)  # the whole warp runs the loop
+        useful = 0
         for lane in range(lanes):
-            mask[lane] = mask[lane] and not done[lane]
-            active += mask[lane]
+            useful += mask[lane] and not done[lane]
         go_on = False  # whether the warp continues with a child instead of popping
-        if active > 0:
-            cost += charge(cnt, hist, costs, LOOP_CONTROL, lanes)
-            if node >= 0:
-                cost += charge(cnt, hist, costs, TRAV_STEP, active)
-                any0 = 0
-                any1 = 0
-                vote0 = 0
-                vote1 = 0
-                for lane in range(lanes):
-                    m0[lane] = False
-                    m1[lane] = False
-                    if not mask[lane]:
-                        continue
+        if node >= 0:
+            cost += _issue(cnt, hist, costs, TRAV_STEP, useful)
+            any0 = 0
+            any1 = 0
+            vote1 = 0
+            for lane in range(lanes):  # every lane tests the boxes, finished ones too
+                if mask[lane] and not done[lane]:
                     ops[base + lane, _C_TRAV] += 1
-                    li[lane, _NODE] = node
-                    n0, f0, n1, f1 = _child_hits(nodes, li, lf, lane)
-                    h0 = n0 <= f0
-                    h1 = n1 <= f1
-                    m0[lane] = h0
-                    m1[lane] = h1
-                    any0 += h0
-                    any1 += h1
-                    if h1 and (not h0 or n1 < n0):
-                        vote1 += 1
-                    elif h0:
-                        vote0 += 1
-                c0 = nodes_i[node, COL_CHILD0]
-                c1 = nodes_i[node, COL_CHILD1]
-                if any0 > 0 and any1 > 0:
-                    cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_BOTH, active)
-                    if sp == cap:
-                        return np.int64(-1)
-                    near_is_1 = vote1 > vote0
-                    node_stack[sp] = c0 if near_is_1 else c1
-                    for lane in range(lanes):
-                        mask_stack[sp, lane] = m0[lane] if near_is_1 else m1[lane]
-                        mask[lane] = m1[lane] if near_is_1 else m0[lane]
-                    sp += 1
-                    node = c1 if near_is_1 else c0
-                    go_on = True
-                elif any0 > 0 or any1 > 0:
-                    cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_ONE, active)
-                    node = c0 if any0 > 0 else c1
-                    for lane in range(lanes):
-                        mask[lane] = m0[lane] if any0 > 0 else m1[lane]
-                    go_on = True
-                else:
-                    cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_NONE, active)
-            else:
-                cost += charge(cnt, hist, costs, LEAF_ENTRY, active)
+                li[lane, _NODE] = node
+                n0, f0, n1, f1 = _child_hits(nodes, li, lf, lane)
+                h0 = n0 <= f0
+                h1 = n1 <= f1
+                m0[lane] = h0
+                m1[lane] = h1
+                any0 += h0
+                any1 += h1
+                vote1 += h1 and (not h0 or n1 < n0)
+            c0 = nodes_i[node, COL_CHILD0]
+            c1 = nodes_i[node, COL_CHILD1]
+            if any0 > 0 and any1 > 0:
+                cost += _issue(cnt, hist, costs, TRAV_NONE_B + TRAV_BOTH, useful)
+                if sp == cap:
+                    return np.int64(-1)
+                near_is_1 = 2 * vote1 > warp_size  # a majority of the whole warp
+                node_stack[sp] = c0 if near_is_1 else c1
                 for lane in range(lanes):
-                    if mask[lane]:
-                        ops[base + lane, _C_LEAF] += 1
-                j = ~node
-                while woop_i[j, 0] != SENTINEL_I32:
-                    testing = 0
-                    hits = 0
-                    for lane in range(lanes):
-                        if not mask[lane] or done[lane]:
-                            continue
-                        testing += 1
-                        ops[base + lane, _C_TRI] += 1
-                        li[lane, _J] = j
-                        if _tri_test(li, lf, lane, woop, woop_i, any_hit):
-                            hits += 1
-                            done[lane] = any_hit
-                    if testing == 0:
-                        break
-                    cost += charge(cnt, hist, costs, TRI_TEST, testing)
-                    cost += charge(cnt, hist, costs, TRI_HIT_B, hits)
-                    j += 3
+                    mask_stack[sp, lane] = m0[lane] if near_is_1 else m1[lane]
+                    mask[lane] = m1[lane] if near_is_1 else m0[lane]
+                sp += 1
+                node = c1 if near_is_1 else c0
+                go_on = True
+            elif any0 > 0 or any1 > 0:
+                cost += _issue(cnt, hist, costs, TRAV_NONE_B + TRAV_ONE, useful)
+                node = c0 if any0 > 0 else c1
+                for lane in range(lanes):
+                    mask[lane] = m0[lane] if any0 > 0 else m1[lane]
+                go_on = True
+            else:
+                cost += _issue(cnt, hist, costs, TRAV_NONE_B + TRAV_NONE, useful)
+        else:
+            cost += _issue(cnt, hist, costs, LEAF_ENTRY, useful)
+            for lane in range(lanes):
+                if mask[lane] and not done[lane]:
+                    ops[base + lane, _C_LEAF] += 1
+            j = ~node
+            while woop_i[j, 0] != SENTINEL_I32:  # every triangle of the leaf, as the kernel
+                testing = 0
+                hits = 0
+                for lane in range(lanes):
+                    if not mask[lane] or done[lane]:
+                        continue
+                    testing += 1
+                    ops[base + lane, _C_TRI] += 1
+                    li[lane, _J] = j
+                    if _tri_test(li, lf, lane, woop, woop_i, any_hit):
+                        hits += 1
+                        done[lane] = any_hit
+                cost += _issue(cnt, hist, costs, TRI_TEST, testing)
+                cost += charge(cnt, hist, costs, TRI_HIT_B, hits)
+                j += 3
+            if any_hit and done.all():
+                break
         if not go_on:
             if sp == 0:
                 break
@@ -620,8 +622,8 @@ def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, 
             rest = _speculative(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,
                                 ops, base, c, h, costs)  # fmt: skip
         else:
-            rest = _packet(li, lf, lanes, cap, root, nodes, nodes_i, woop, woop_i, any_hit,
-                           ops, base, c, h, costs)  # fmt: skip
+            rest = _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i,
+                           any_hit, ops, base, c, h, costs)  # fmt: skip
         overflow[u] = rest < 0
         unit_cost[u] = cost + rest
         for lane in range(lanes):

@@ -16,6 +16,10 @@ step, but only the lanes whose own ray needs a node count as active for it. Per 
 Approximations: traversal order and the packet's culling by the lanes' tmax are ignored
 (the packet visits exactly the union of the recorded per-ray streams), and work is not
 conserved per lane, so SIMD efficiency here measures the useful fraction of the union.
+The kernel (Aila & Laine's packet semantics, run exactly by
+:mod:`simt_sim.oracles.lockstep`) also steps the nodes its finished any-hit lanes still
+hit and follows a whole-warp order vote; the replay sees neither, and under-counts the
+kernel's warp instructions on incoherent rays (docs/paper_table.md measures by how much).
 """
 
 from __future__ import annotations
@@ -173,6 +177,8 @@ SCHEME = SchemeInfo(
         "packet visits the union of its lanes' recorded nodes: traversal order and tmax "
         "culling of the shared packet ignored",
         "active lanes of a packet step = lanes whose own ray visits that node",
+        "finished any-hit lanes and the whole-warp order vote, which make the kernel visit "
+        "more nodes, are not modelled (the lockstep executor measures the error)",
     ),
     replay=replay,
     warp_counts=warp_counts,
