@@ -33,7 +33,7 @@ from simt_sim.study.workload import parse_resolution
 from simt_sim.types.raybatch import TRACE_RAY_TYPES as RAY_TYPES
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import approximation_error  # noqa: E402  (experiments/approximation_error.py)
+import secondary_order  # noqa: E402  (experiments/secondary_order.py)
 
 REPO = Path(__file__).resolve().parents[1]
 REFERENCE = REPO.parent / "shared" / "reference" / "aila-laine-2009-conference.csv"
@@ -71,9 +71,8 @@ BVH_VARIANTS = {
     "node cost 4": {"node_cost": 4.0},
 }
 BVH_SAMPLE = 1 / 64
-PACKET_CAMERA = 0
-PACKET_SECONDARY = (256, 192)
-"""The exact packet run: one camera, every primary pixel, secondary rays from this image."""
+PACKET_WINDOWS = 5
+"""Windows of 2^21 consecutive rays per ray type the exact packet kernel runs on."""
 BVH_COLUMNS = ("max_leaf", "node_cost", "interior_nodes", "leaves", "triangles_per_leaf")
 
 
@@ -178,33 +177,36 @@ def bvh_verdict(trees: pd.DataFrame, errors: pd.DataFrame) -> str:
 
 
 def packet_exact(args, ratios: pd.DataFrame, paper: pd.DataFrame) -> pd.DataFrame:
-    """The packet replay against the lockstep executor's packet kernel, and the
-    packet / while-while ratio with the replay's error taken out.
+    """The packet replay against the lockstep executor's packet kernel on windows of the
+    protocol's rays, and the packet / while-while ratio with the replay's error taken out.
 
     The executor runs Aila & Laine's packet semantics (finished any-hit lanes keep
     steering, the order vote over all lanes, every popped node worked on), which the
     replay's union of recorded streams cannot see; while-while's replay is exact, so the
     ratio's correction is packet's exact / replay MRays/s on the same rays.
     """
-    err = approximation_error.run(
-        args.scene, PACKET_CAMERA, parse_resolution(args.resolution), PACKET_SECONDARY,
-        args.spp, args.gpu, ("packet",),
+    default = secondary_order.DEFAULT
+    runs = secondary_order.measure(
+        args.scene, parse_resolution(args.resolution), args.spp, args.gpu, PACKET_WINDOWS,
+        ray_types=RAY_TYPES, orders={default: secondary_order.ORDERS[default]},
     )  # fmt: skip
+    m = runs.set_index(["ray_type", "scheme", "how"])
     ours = ratios.set_index(["ratio", "ray_type"])["ours"]
     p = paper.set_index(["scheme", "ray_type"])["simulated"]
     rows = []
-    for _, e in err.iterrows():
-        rt = e["ray_type"]
-        corrected = ours[("packet / while_while", rt)] * e["mrays_exact"] / e["mrays_replay"]
+    for rt in RAY_TYPES:
+        exact = m.loc[(rt, "packet", "exact"), "mrays"]
+        replay = m.loc[(rt, "packet", "replay"), "mrays"]
+        ww = m.loc[(rt, "while_while", "replay"), "mrays"]
+        corrected = ours[("packet / while_while", rt)] * exact / replay
         target = p[("packet", rt)] / p[("while_while", rt)]
         rows.append(
             {
                 "ray_type": rt,
-                "rays": e["rays"],
-                "winstr_replay_err": e["winstr_err"],
-                "trav/ray_replay": e["trav/ray_replay"],
-                "trav/ray_exact": e["trav/ray_exact"],
-                "exact / replay": e["mrays_exact"] / e["mrays_replay"],
+                "rays": m.loc[(rt, "packet", "exact"), "rays"],
+                "exact / replay": exact / replay,
+                "windows: replay / ww": replay / ww,
+                "windows: exact / ww": exact / ww,
                 "ratio_corrected": corrected,
                 "paper": target,
                 "rel_error": corrected / target - 1,
@@ -412,16 +414,17 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   lanes' recorded nodes, while the paper's packet kernel keeps finished any-hit lanes
   steering, orders children by a vote of all 32 lanes and works on every popped node. The
   lockstep executor runs that kernel ("Packet: the replay against the kernel"): the
-  replay's warp instructions are off by {packet_winstr}, and with
-  that taken out the errors are {packet_corrected} (one camera: the correction is
-  measured on camera 0, the ratios on all five). What the executor does not explain is
+  replay's MRays/s are off by {packet_winstr}, and with that taken out the errors are
+  {packet_corrected} (the correction measured on windows of the protocol's rays, the
+  ratios on all of them). What the executor does not explain is
   not measured here: our packet `trav_step` is {packet_trav} instructions against
   while-while's {ww_trav} (its ballots' divergent-warp fallbacks never run, as every lane
   stays in the packet loop), and the paper's GT200 packet kernel (its own shared-stack
   code) may have paid more per node than its while-while. To match the paper from the
   replay, our packet node visit would have to cost {packet_even}. What the union costs
   depends on how coherent a warp's rays are, and this ratio moves most with the protocol
-  (docs/speed_accuracy.md: a lower resolution moves the packet figures most).
+  (docs/speed_accuracy.md: a lower resolution moves the packet figures most) and with the
+  order of the secondary rays (docs/secondary_order.md measures by how much).
 """
 
 
@@ -501,7 +504,8 @@ def deviations(
         spec_even=even_text("speculative / while_while", "trav_step"),
         packet_even=even_text("packet / while_while", "trav_step"),
         packet_winstr=", ".join(
-            f"{r.ray_type} {r.winstr_replay_err:+.1%}" for r in packet.itertuples()
+            f"{rt} {x - 1:+.1%}" for rt, x in zip(packet.ray_type, 1 / packet["exact / replay"],
+                                                 strict=True)
         ),
         packet_corrected=", ".join(f"{r.ray_type} {r.rel_error:+.0%}" for r in packet.itertuples()),
     )  # fmt: skip
@@ -523,7 +527,10 @@ def render(
         "",
         f"Protocol: scene `{spec.scene}`, cameras `{spec.cameras}`, "
         f"{spec.resolution[0]}x{spec.resolution[1]}, {spec.spp} secondary rays per primary "
-        f"hit, secondary rays Morton-sorted in launches of 2^20, GPU `{r0.gpu.id}` "
+        f"hit, secondary rays sorted in launches of 2^20 by a 6D Morton key (origin "
+        "normalised to the launch's origin bounds, direction to [-1, 1], 10 bits per "
+        "dimension; docs/secondary_order.md measures how each ratio moves with this order: "
+        f"packet's most), GPU `{r0.gpu.id}` "
         f"({r0.gpu.sms} SMs, {r0.gpu.clock_mhz} MHz, {r0.gpu.issue_rate} warp instructions "
         f"per SM clock), instruction costs from `{r0.model_card['ir_arch']}` SASS "
         f"({r0.model_card['ir_compiler']}).",
@@ -567,17 +574,14 @@ def render(
         "packet kernel does more: an any-hit lane that has its hit keeps testing boxes and "
         "voting, the order vote counts all 32 lanes (a lane is steered through the "
         "packet's order, not its own), and every popped node is worked on. The lockstep "
-        "executor runs that kernel (`simt_sim/oracles/lockstep.py`); here on camera "
-        f"{PACKET_CAMERA} at the paper's density ({args.resolution} primary rays, "
-        f"{args.spp} AO and diffuse rays per hit of a {PACKET_SECONDARY[0]}x"
-        f"{PACKET_SECONDARY[1]} image, Morton sorted as above; `python "
-        "experiments/approximation_error.py --resolution "
-        f"{args.resolution} --secondary-resolution {PACKET_SECONDARY[0]}x"
-        f"{PACKET_SECONDARY[1]} --spp {args.spp} --schemes packet`). `winstr_replay_err` is "
-        "the replay's error in warp instructions; `ratio_corrected` is our packet / "
-        "while-while ratio times the packet's exact / replay MRays/s (while-while's replay "
-        "is exact). Corrected, the ratios have median |error| "
-        f"{packet.rel_error.abs().median():.1%}, worst {packet.rel_error.abs().max():.1%}.",
+        "executor runs that kernel (`simt_sim/oracles/lockstep.py`), here on "
+        f"{PACKET_WINDOWS} windows of 2^21 consecutive rays per ray type, spread evenly "
+        "over the protocol's stream and aligned to its launches (the machinery of "
+        "`experiments/secondary_order.py`). `exact / replay` is the packet's MRays/s "
+        "executed over replayed on those rays; `ratio_corrected` is the full run's packet "
+        "/ while-while ratio above times it (while-while's replay is exact). Corrected, "
+        f"the ratios have median |error| {packet.rel_error.abs().median():.1%}, worst "
+        f"{packet.rel_error.abs().max():.1%}.",
         "",
         packet.to_markdown(**fmt),
         "",
