@@ -81,6 +81,7 @@ def measure(
     scene = load_scene(scene_name)
     bvh = build_bvh(scene.vertices, scene.triangles)
     gpu = get_gpu(gpu_id)
+    irs = {s: kernels_ir.load(s, gpu.ir_arch) for s in (BASE, *SCHEMES)}
     rows = []
     for rt in ray_types:
         stream = ray_stream(
@@ -97,12 +98,10 @@ def measure(
                     rays = sort_morton6d(rays, batch=batch)
                 n += len(rays)
                 tr = record_all(bvh, rays, batch_size=LAUNCH_SIZE)
-                for s in (BASE, *SCHEMES):
-                    ir = kernels_ir.load(s, gpu.ir_arch)
+                for s, ir in irs.items():
                     r = simulate_traces([tr], get_scheme(s), ir, gpu, scene=scene.name)
                     runs.setdefault((s, "replay"), []).append(r)
-                ir = kernels_ir.load("packet", gpu.ir_arch)
-                ex = execute(bvh, rays, get_scheme("packet"), ir, gpu, scene=scene.name)
+                ex = execute(bvh, rays, get_scheme("packet"), irs["packet"], gpu, scene=scene.name)
                 runs.setdefault(("packet", "exact"), []).append(ex.result)
             for (s, how), rs in runs.items():
                 rows.append(_row(rt, order, s, how, n, merge(rs)))
