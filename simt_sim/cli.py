@@ -8,9 +8,12 @@ status 2, never a traceback and never a half-written file.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
+import logging
+import logging.handlers
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -19,7 +22,7 @@ import pandas as pd
 from kernels_ir.build import KERNELS
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
-from simt_sim import __version__
+from simt_sim import __version__, progress
 from simt_sim.atomic import write_atomic
 from simt_sim.errors import SimtSimError
 from simt_sim.report.tables import (
@@ -63,8 +66,23 @@ def _add_workload_args(
     p.add_argument(
         "--scene",
         default=DEFAULT_SCENE,
-        help="room (built-in), conference, sibenik, bunny, cornell-box, or a mesh "
-        "path (default: %(default)s)",
+        help="room (built-in), conference, sibenik, bunny, cornell-box, a mesh path, or a "
+        "scene description FILE.toml (mesh, transform, up, AO radius, cameras: see "
+        "docs/guide.md) (default: %(default)s)",
+    )
+    p.add_argument(
+        "--up",
+        choices=("x", "y", "z", "auto"),
+        default=None,
+        help="the scene's up axis (default: auto, the scene description's axis, or for a "
+        "mesh path the one its floors face)",
+    )
+    p.add_argument(
+        "--camera-file",
+        metavar="FILE",
+        default=None,
+        help="TOML or JSON [[camera]] tables (position, look_at or forward, up, fov_y_deg, "
+        "near, far; the scene's units) replacing the scene's cameras",
     )
     p.add_argument("--rays", default="primary", help=rays_help)
     p.add_argument("--camera", default=None, help=camera_help)
@@ -148,20 +166,27 @@ def _workload(args: argparse.Namespace, ray_type: str):
         seed=args.seed,
         max_leaf=args.max_leaf,
         node_cost=args.node_cost,
+        up=_up(args),
+        camera_file=args.camera_file,
     )
 
 
+def _up(args: argparse.Namespace) -> str | None:
+    """``--up``: an axis, or ``None`` for auto (the description's axis, else detected)."""
+    return None if args.up in (None, "auto") else args.up
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
-    """Measure real tracers on the same rays; agreement is against Embree's hits."""
+    """Measure real tracers on the same rays; agreement is against the float64 reference."""
     from simt_sim import progress
     from simt_sim.study.bench import bench_tracers, check_bench, runs, short_timings
 
     tracers = [t.strip() for t in args.tracers.split(",") if t.strip()]
-    check_bench(tracers, args.repeats)
+    check_bench(tracers, args.repeats, args.check_rays)
     with progress.bar("loading", enabled=progress.wanted(args.quiet)) as bar:
         wl = _workload(args, args.rays)
         bar.reset(total=len(wl.rays) * runs(tracers, args.repeats))
-        df = bench_tracers(wl, tracers, args.rays, args.repeats, bar)
+        df = bench_tracers(wl, tracers, args.rays, args.repeats, bar, args.check_rays)
     warning = short_timings(df)
     if warning:
         print(f"simt-sim: warning: {warning}", file=sys.stderr)
@@ -203,7 +228,9 @@ def cmd_trace(args: argparse.Namespace) -> int:
     with progress.bar("loading", enabled=progress.wanted(args.quiet)) as bar:
         wl = _workload(args, args.rays)
         meta = {
-            "scene": wl.scene.name,
+            "scene": args.scene,
+            "up": _up(args),
+            "camera_file": args.camera_file,
             "ray_type": args.rays,
             "cameras": list(wl.cameras),
             "resolution": list(wl.resolution),
@@ -266,6 +293,8 @@ def _spec(args: argparse.Namespace, **fields: object):
         max_leaf=args.max_leaf,
         node_cost=args.node_cost,
         tests=args.tests,
+        up=_up(args),
+        camera_file=args.camera_file,
         **fields,
     )
 
@@ -524,6 +553,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=5,
         help="timed runs after one warm-up; the median is reported (default: %(default)s)",
     )
+    p.add_argument(
+        "--check-rays",
+        type=int,
+        default=4096,  # simt_sim.study.bench.DEFAULT_CHECK_RAYS, not imported for --help
+        metavar="N",
+        help="hit_agreement is each tracer's agreement with the float64 reference tracer "
+        "on N rays spread evenly over the batch (all if N >= the ray count, none if 0); "
+        "column checked_rays (default: %(default)s)",
+    )
     _add_quiet_arg(p)
     _add_output_args(p)
     p.set_defaults(func=cmd_bench)
@@ -721,16 +759,62 @@ def _resolve_workload(args: argparse.Namespace) -> None:
             setattr(args, key, value)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``simt-sim`` and ``python -m simt_sim``."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
+class _LogLines(logging.Formatter):
+    """``simt-sim: message`` for information, ``simt-sim: warning: message`` above it."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        level = "" if record.levelno <= logging.INFO else f"{record.levelname.lower()}: "
+        return f"simt-sim: {level}{record.getMessage()}"
+
+
+@contextlib.contextmanager
+def _log_lines_held() -> Iterator[logging.handlers.MemoryHandler]:
+    """What the library logs (scene summaries, view warnings) goes to stderr, one line
+    each, when the command flushes it on success: a run that ends in a bad-input error or
+    an interrupt prints that one line alone. The logger is restored on exit, so a library
+    user's own logging setup is left alone."""
+    log = logging.getLogger("simt_sim")
+    stream = logging.StreamHandler(sys.stderr)
+    stream.setFormatter(_LogLines())
+    held = logging.handlers.MemoryHandler(1 << 16, flushLevel=logging.CRITICAL + 1, target=stream)
+    level, propagate = log.level, log.propagate
+    log.addHandler(held)
+    log.setLevel(logging.INFO)
+    log.propagate = False
     try:
-        _resolve_workload(args)
-        return int(args.func(args))
-    except (SimtSimError, KernelIRError) as exc:
-        print(f"simt-sim: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("simt-sim: interrupted", file=sys.stderr)
-        return 130
+        yield held
+    finally:
+        log.removeHandler(held)
+        log.setLevel(level)
+        log.propagate = propagate
+        held.buffer.clear()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``simt-sim`` and ``python -m simt_sim`` (:mod:`simt_sim.__main__`).
+
+    Ctrl-C at any moment ends with one line and status 130: it is a flag that the work
+    checks between stages and batches (:func:`~simt_sim.progress.ctrl_c_checked`), never
+    an exception inside numba. Warnings are one line each, numpy's none
+    (:func:`~simt_sim.progress.warnings_as_lines`); what the library logs is printed when
+    the command succeeds. All are undone on return.
+    """
+    with (
+        progress.ctrl_c_checked(),
+        progress.warnings_as_lines(),
+        _log_lines_held() as held,
+    ):
+        try:
+            parser = build_parser()
+            args = parser.parse_args(argv)
+            progress.checkpoint()  # a Ctrl-C while modules loaded or arguments were read
+            _resolve_workload(args)
+            code = int(args.func(args))
+            progress.checkpoint()  # a Ctrl-C after the command's last checkpoint
+            held.flush()
+            return code
+        except (SimtSimError, KernelIRError) as exc:
+            print(f"simt-sim: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            return progress.say_interrupted()

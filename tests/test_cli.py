@@ -94,7 +94,26 @@ def test_bench_rows_and_agreement():
     assert tracers == {"numba", "embree"}
     for r in rows:
         assert r["rays"] > 0 and r["mrays_per_s"] > 0
+        # agreement with the float64 reference, on every ray of this small batch
+        assert r["checked_rays"] == r["rays"]
         assert r["hit_agreement"] >= 0.999
+
+
+def test_bench_check_rays():
+    assert_clean_error(run_cli("bench", *SMALL, "--check-rays", "-1"), "--check-rays")
+    proc = run_cli("bench", *SMALL, "--repeats", "1", "--check-rays", "100", "--format", "json")
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads(proc.stdout)
+    assert {r["checked_rays"] for r in rows} == {100}
+    assert all(r["hit_agreement"] >= 0.99 for r in rows)
+
+
+def test_bench_check_rays_default_matches_the_library():
+    from simt_sim.cli import build_parser
+    from simt_sim.study.bench import DEFAULT_CHECK_RAYS
+
+    args = build_parser().parse_args(["bench"])
+    assert args.check_rays == DEFAULT_CHECK_RAYS
 
 
 def test_trace_writes_file_and_summary(tmp_path):
@@ -398,3 +417,70 @@ def test_by_block_breakdown_adds_up_to_the_table():
     assert {"trav_step", "tri_test", "leaf_entry"} <= set(blocks["block"])
     text = run_cli(*base[:-2], "--by-block").stdout
     assert "share %" in text and max(len(ln) for ln in text.splitlines()) <= 120
+
+
+def _write_room_obj(path: Path, scale: float = 1.0) -> None:
+    """A closed 12x9x4 room (y up, walls facing in) with one table, as an OBJ."""
+    faces = [[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4],
+             [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]]  # fmt: skip
+
+    def box(lo, hi):
+        return [[x, y, z] for z in (lo[2], hi[2]) for y in (lo[1], hi[1]) for x in (lo[0], hi[0])]
+
+    verts = box((0, 0, 0), (12, 4, 9)) + box((4, 0, 3), (8, 1.5, 6))
+    tris = [f[::-1] for f in faces] + [[a + 8, b + 8, c + 8] for a, b, c in faces]
+    lines = [f"v {x * scale!r} {y * scale!r} {z * scale!r}" for x, y, z in verts]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in tris]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_own_scene_by_path_description_and_camera_file(tmp_path):
+    mesh = tmp_path / "hall.obj"
+    _write_room_obj(mesh, scale=1000.0)  # millimetres
+    small = ["--rays", "primary,ao", "--resolution", "16x12", "--spp", "2", "--quiet"]
+    by_path = run_cli("table", "--scene", str(mesh), *small, "--schemes", "while_while")
+    assert by_path.returncode == 0, by_path.stderr
+    summary = [ln for ln in by_path.stderr.splitlines() if ln.startswith("simt-sim: scene")]
+    assert len(summary) == 1 and "interior" in summary[0] and "up y" in summary[0]
+    cams = tmp_path / "cams.toml"
+    cams.write_text("[[camera]]\nposition = [1000, 1700, 4500]\nlook_at = [11000, 1000, 4500]\n")
+    desc = tmp_path / "hall.toml"
+    desc.write_text('mesh = "hall.obj"\nup = "y"\nao_radius = 2000.0\n')
+    for args in (["--scene", str(desc), "--camera-file", str(cams)],
+                 ["--scene", str(mesh), "--up", "y", "--camera-file", str(cams)]):  # fmt: skip
+        proc = run_cli("table", *args, *small, "--schemes", "while_while", "--format", "csv")
+        assert proc.returncode == 0, proc.stderr
+        assert "1 cameras (given)" in proc.stderr
+        table = pd.read_csv(io.StringIO(proc.stdout))
+        assert set(table["ray_type"]) == {"primary", "ao"}
+    assert (
+        "AO radius 2000 (user units)"
+        in run_cli("table", "--scene", str(desc), *small, "--schemes", "while_while").stderr
+    )
+
+
+def test_own_scene_bad_inputs_are_one_line(tmp_path):
+    mesh = tmp_path / "hall.obj"
+    _write_room_obj(mesh)
+    bad_cams = tmp_path / "cams.toml"
+    bad_cams.write_text("[[camera]]\nposition = [1, 2]\nforward = [1, 0, 0]\n")
+    small = ["--resolution", "8x8", "--quiet"]
+    assert_clean_error(
+        run_cli("table", "--scene", str(mesh), "--camera-file", str(bad_cams), *small),
+        "three finite numbers",
+    )
+    assert_clean_error(
+        run_cli("table", "--scene", str(mesh), "--camera-file", str(tmp_path / "no.toml")),
+        "does not exist",
+    )
+    desc = tmp_path / "d.toml"
+    desc.write_text('mesh = "missing.obj"\n')
+    assert_clean_error(run_cli("table", "--scene", str(desc), *small), "mesh not found")
+    ply = tmp_path / "bad.ply"
+    ply.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+        "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+        "end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 5\n"
+    )
+    assert_clean_error(run_cli("bench", "--scene", str(ply), *small), "vertex 5")
+    assert_clean_error(run_cli("table", "--scene", str(mesh), "--up", "w"))

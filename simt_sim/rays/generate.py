@@ -22,6 +22,7 @@ from numba import njit, prange
 
 from simt_sim.errors import SimtSimError
 from simt_sim.rays.morton import bounds3, morton2d_order, morton6d_keys, stable_argsort
+from simt_sim.rays.offset import spawn_points
 from simt_sim.types.camera import Camera
 from simt_sim.types.hits import Hits
 from simt_sim.types.raybatch import SECONDARY_RAY_TYPES, TRACE_RAY_TYPES, RayBatch
@@ -30,7 +31,6 @@ from simt_sim.types.scene import Scene
 LAUNCH_SIZE = 1 << 20
 """Rays per launch, as the paper traced them; each launch's secondary rays are Morton-sorted
 together."""
-BACKOFF = np.float32(1e-4)  # secondary origin = orig + dir * max(t - 1e-4, 0)
 
 
 def _empty_batch(n: int, query: str, ray_type: str) -> RayBatch:
@@ -271,16 +271,7 @@ def _spawn(scene: Scene, hit: _HitRays, kind: str, spp: int, seed: int) -> RayBa
     out = _empty_batch(len(hit) * spp, "any" if kind == "ao" else "closest", kind)
     if len(hit) == 0:
         return out
-    d = hit.direction
-    point = hit.origin + d * np.maximum(hit.t - BACKOFF, np.float32(0))[:, None]
-    tri = scene.triangles[hit.tri]
-    v = scene.vertices
-    v0 = v[tri[:, 0]].astype(np.float64)
-    n = np.cross(v[tri[:, 1]] - v0, v[tri[:, 2]] - v0)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    n = np.where(length > 0, n / np.where(length > 0, length, 1.0), -d.astype(np.float64))
-    facing = np.einsum("ij,ij->i", n, d.astype(np.float64)) > 0
-    n[facing] = -n[facing]
+    point, n = spawn_points(scene, hit.origin, hit.direction, hit.t, hit.tri)
     angle = pixel_rotation(hit.pixel, hit.camera, seed)
     _spawn_directions(n, angle, halton(spp, 2), halton(spp, 3), point, out.origin, out.direction)
     out.tmin[:] = 0
@@ -305,7 +296,8 @@ def secondary_rays(
 ) -> RayBatch:
     """Secondary rays spawned at the primary hits (misses spawn nothing).
 
-    Each hit gets ``spp`` consecutive rays from the point ``orig + dir * max(t - 1e-4, 0)``,
+    Each hit gets ``spp`` consecutive rays from the hit point pushed off its surface by
+    :func:`~simt_sim.rays.offset.spawn_points` (relative to the point's magnitude),
     cosine-distributed about the geometric normal flipped to face the incoming ray. The
     Halton points (base 2 and 3, indices ``1..spp``) are rotated about the normal by
     ``pixel_rotation(pixel, camera, seed)`` (a rotation, not a Cranley-Patterson shift).

@@ -3,16 +3,18 @@
 Named scenes are described by JSON files shipped with the package
 (``simt_sim/scene/descriptors``: file name relative to the scenes folder, sha256,
 download address, licence, 3x4 transform into the paper's frame, cameras, AO radius).
-Meshes are never in the package; they are found in :func:`scenes_dir`. Every loaded
-scene has float32 vertices, int32 triangles and no zero-area triangles, because the
-paper's builder drops them and a ray can never hit them.
+Meshes are never in the package; they are found in :func:`scenes_dir`. A user's own scene
+is a mesh path or a scene description (:mod:`simt_sim.scene.description`). Every loaded
+scene is read in float64 and cast to float32 only in the canonical frame
+(:mod:`simt_sim.types.frame`); it has int32 triangles and no zero-area triangles, because
+the paper's builder drops them and a ray can never hit them. A mesh without cameras gets
+the views :mod:`simt_sim.scene.views` reads off its geometry.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 import warnings
 from functools import cache
@@ -24,19 +26,34 @@ import numpy as np
 import pandas as pd
 
 from simt_sim.errors import SimtSimError
+from simt_sim.scene.description import (
+    DESCRIPTION_SUFFIXES,
+    CameraSpec,
+    SceneDescription,
+    parse_description,
+    read_camera_file,
+    read_description,
+    up_axis,
+)
 from simt_sim.scene.objfile import read_obj
 from simt_sim.scene.room import make_room
+from simt_sim.scene.views import (
+    default_ao_radius,
+    detect_up,
+    find_eye,
+    interior_cameras,
+    object_cameras,
+)
 from simt_sim.types.camera import Camera
+from simt_sim.types.frame import Frame, fit_frame
 from simt_sim.types.scene import Scene
 
 SCENES_ENV = "SIMT_SIM_SCENES"
 DEFAULT_SCENE = "room"
 MESH_FORMATS = "OBJ, PLY, STL, OFF, GLB or GLTF"
-
-DEFAULT_CAMERA_FOV_Y = 60.0
-DEFAULT_CAMERA_AZIMUTHS = (30.0, 150.0, 270.0)  # degrees about +Z
-DEFAULT_CAMERA_ELEVATION = 35.0  # degrees above the XY plane
-AO_RADIUS_FRACTION = 0.1  # of the bounding-box diagonal
+UP_CONVENTION = {".obj": "y", ".ply": "y", ".off": "y", ".glb": "y", ".gltf": "y", ".stl": "z"}
+"""Each format's usual up axis (glTF's by its specification, OBJ and PLY by the common
+exporters and scans, STL by CAD), used when the geometry does not say."""
 
 
 def scenes_dir() -> Path:
@@ -103,45 +120,42 @@ def drop_degenerate(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.nda
     return np.ascontiguousarray(triangles[ok], dtype=np.int32), int(t.shape[0] - ok.sum())
 
 
-def _bounds(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Bounding box (float64) of the vertices the triangles use."""
-    used = vertices[np.unique(triangles)].astype(np.float64)
-    return used.min(axis=0), used.max(axis=0)
-
-
-def default_cameras(lo: np.ndarray, hi: np.ndarray) -> tuple[Camera, ...]:
-    """Three cameras outside and above a bounding box, looking at its centre.
-
-    They sit at azimuths 30, 150 and 270 degrees about +Z, 35 degrees up, at the
-    distance where the box's bounding sphere fills a 60-degree vertical field of view;
-    ``far`` reaches past the far side of the sphere.
-    """
-    centre = (lo + hi) / 2.0
-    radius = float(np.linalg.norm(hi - lo)) / 2.0
-    dist = radius / math.sin(math.radians(DEFAULT_CAMERA_FOV_Y) / 2.0)
-    el = math.radians(DEFAULT_CAMERA_ELEVATION)
-    cams = []
-    for k, az_deg in enumerate(DEFAULT_CAMERA_AZIMUTHS):
-        az = math.radians(az_deg)
-        out = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-        cams.append(
-            Camera(
-                name=f"default-{k}",
-                position=centre + dist * out,
-                forward=-out,
-                up=np.array([0.0, 0.0, 1.0]),
-                fov_y_deg=DEFAULT_CAMERA_FOV_Y,
-                near=1e-3 * radius,
-                far=2.0 * (dist + radius),
-            )
+def _used_vertices(
+    vertices: np.ndarray, triangles: np.ndarray, path: Path
+) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices the triangles use (float64) and the triangles renumbered to them;
+    an index out of range or a NaN in a used vertex is an error, an unused one is not."""
+    if triangles.shape[0] == 0:
+        raise SimtSimError(f"mesh {path} has no triangles; give a mesh with faces")
+    n = vertices.shape[0]
+    lo, hi = int(triangles.min()), int(triangles.max())
+    if lo < 0 or hi >= n:
+        bad = hi if hi >= n else lo
+        raise SimtSimError(
+            f"mesh {path} has a face using vertex {bad} but only {n} vertices; repair the file"
         )
-    return tuple(cams)
+    used, renumbered = np.unique(triangles, return_inverse=True)
+    v = np.asarray(vertices, np.float64)[used]
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        raise SimtSimError(
+            f"mesh {path} has NaN or inf coordinates in vertex {int(used[np.argmax(bad)])}, "
+            "which a face uses; repair the file"
+        )
+    return v, renumbered.reshape(triangles.shape).astype(np.int64)
 
 
-def default_ao_radius(lo: np.ndarray, hi: np.ndarray) -> float:
-    """AO radius of a scene without one: 10% of its bounding-box diagonal (the paper's
-    5 units are 15% of Conference's diagonal and 9% of Sibenik's)."""
-    return AO_RADIUS_FRACTION * float(np.linalg.norm(hi - lo))
+def _canonical_camera(cam: Camera, frame: Frame) -> Camera:
+    """A camera given in user units, in the canonical frame."""
+    return Camera(
+        name=cam.name,
+        position=frame.to_canonical(cam.position),
+        forward=frame.direction_to_canonical(cam.forward),
+        up=frame.direction_to_canonical(cam.up),
+        fov_y_deg=cam.fov_y_deg,
+        near=cam.near / frame.scale,
+        far=cam.far / frame.scale,
+    )
 
 
 def _make_scene(
@@ -150,75 +164,89 @@ def _make_scene(
     triangles: np.ndarray,
     path: Path,
     *,
-    transform: list[list[float]] | None = None,
-    cameras: tuple[Camera, ...] | None = None,
+    up: str | None,
+    cameras: tuple[CameraSpec, ...] = (),
     ao_radius: float | None = None,
     source: str,
+    up_source: str = "given",
 ) -> Scene:
-    """Validate raw mesh arrays, move them into the paper's frame and build the Scene."""
-    bad = ~np.isfinite(vertices).all(axis=1)
-    if bad.any():
-        raise SimtSimError(
-            f"mesh {path} has NaN or inf coordinates (first at vertex {int(np.argmax(bad))}); "
-            "repair the file"
+    """Validate raw float64 mesh arrays (user units), move them into the canonical frame
+    (:mod:`simt_sim.types.frame`), place cameras and build the Scene."""
+    v, tris = _used_vertices(vertices, triangles, path)
+    if up is None:
+        convention = UP_CONVENTION.get(path.suffix.lower(), "z")
+        guess = detect_up(v, tris, convention)
+        up = guess.axis
+        up_source = (
+            f"auto: {guess.share:.0%} of the area faces it, floors unpaired"
+            if guess.clear
+            else f"auto: no clear floor, {path.suffix or 'the'} format's convention; "
+            "set --up if it is wrong"
         )
-    if transform is not None:
-        m = np.asarray(transform, np.float64)
-        vertices = vertices @ m[:, :3].T + m[:, 3]
-    v32 = np.ascontiguousarray(vertices, dtype=np.float32)
-    if not np.isfinite(v32).all():
-        raise SimtSimError(f"mesh {path} has coordinates beyond float32 range; rescale it")
-    if triangles.shape[0] == 0:
-        raise SimtSimError(f"mesh {path} has no triangles; give a mesh with faces")
-    tris, n_dropped = drop_degenerate(v32, triangles)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    frame = fit_frame(lo, hi, up)
+    v32 = np.ascontiguousarray(frame.to_canonical(v), dtype=np.float32)
+    tris, n_dropped = drop_degenerate(v32, tris)
     if tris.shape[0] == 0:
         raise SimtSimError(
             f"mesh {path} has no triangles left after dropping {n_dropped} zero-area ones; "
             "give a mesh with non-degenerate faces"
         )
-    if cameras is None or ao_radius is None:
-        lo, hi = _bounds(v32, tris)
-        cameras = default_cameras(lo, hi) if cameras is None else cameras
-        ao_radius = default_ao_radius(lo, hi) if ao_radius is None else ao_radius
+    clo, chi = frame.to_canonical(lo), frame.to_canonical(hi)
+    clo, chi = np.minimum(clo, chi), np.maximum(clo, chi)
+    user_up = frame.direction_to_user(np.array([0.0, 0.0, 1.0]))
+    diagonal = float(np.linalg.norm(hi - lo))
+    if cameras:
+        cams = tuple(_canonical_camera(c.camera(user_up, diagonal), frame) for c in cameras)
+        views = "given"
+    else:
+        eye = find_eye(v32, tris)
+        if eye is None:
+            cams, views = object_cameras(v32[np.unique(tris)]), "object: cameras around it"
+        else:
+            cams = interior_cameras(eye.position, clo, chi)
+            views = f"interior: cameras inside at eye height ({eye.enclosed:.0%} enclosed)"
+    ao = default_ao_radius(clo, chi) if ao_radius is None else ao_radius / frame.scale
     return Scene(
         name=name,
         vertices=v32,
         triangles=tris,
-        cameras=tuple(cameras),
-        ao_radius=float(ao_radius),
+        cameras=cams,
+        ao_radius=float(ao),
         source=source,
         dropped={"zero_area": n_dropped},
+        frame=frame,
+        notes={"up": f"{up} ({up_source})", "views": views},
     )
 
 
-def load_mesh(path: str | os.PathLike, *, name: str | None = None) -> Scene:
+def load_mesh(
+    path: str | os.PathLike,
+    *,
+    name: str | None = None,
+    up: str | None = None,
+    camera_file: str | os.PathLike | None = None,
+) -> Scene:
     """Load any mesh file (OBJ, PLY, STL, OFF, GLB/GLTF) as a Scene.
 
     OBJ files are read by :mod:`simt_sim.scene.objfile` (vertices exactly as written, polygons
     fan-triangulated); other formats by trimesh without processing, several meshes
-    concatenated. Zero-area triangles are dropped and counted in ``dropped``. The scene
-    gets :func:`default_cameras` and :func:`default_ao_radius` of its bounding box.
+    concatenated. Zero-area triangles are dropped and counted in ``dropped``. ``up``
+    (``x``, ``y``, ``z``; ``None`` detects it) and, without ``camera_file``, the default
+    views (:mod:`simt_sim.scene.views`: interior or object) come from the geometry.
     """
     path = Path(path)
     if not path.is_file():
         raise SimtSimError(f"mesh file {path} does not exist; check the path")
     vertices, triangles = _read_mesh(path)
     return _make_scene(
-        name or path.stem, vertices, triangles, path, source=f"file {path.resolve()}"
-    )
-
-
-def camera_from_dict(d: dict[str, Any]) -> Camera:
-    """A Camera from a descriptor entry (forward normalised; extra keys ignored)."""
-    forward = np.asarray(d["forward"], np.float64)
-    return Camera(
-        name=str(d["name"]),
-        position=np.asarray(d["position"], np.float64),
-        forward=forward / np.linalg.norm(forward),
-        up=np.asarray(d["up"], np.float64),
-        fov_y_deg=float(d["fov_y_deg"]),
-        near=float(d["near"]),
-        far=float(d["far"]),
+        name or path.stem,
+        vertices,
+        triangles,
+        path,
+        up=up,
+        cameras=read_camera_file(camera_file) if camera_file else (),
+        source=f"file {path.resolve()}",
     )
 
 
@@ -235,61 +263,111 @@ def _mesh_path(desc: dict[str, Any]) -> Path:
     return scenes_dir() / desc["file"]
 
 
-def _load_named(desc: dict[str, Any]) -> Scene:
-    """Load a named mesh scene from its descriptor."""
-    path = _mesh_path(desc)
+def _from_description(
+    desc: SceneDescription,
+    *,
+    up: str | None,
+    camera_file: str | os.PathLike | None,
+    sha256: str | None = None,
+    missing: str = "check the path",
+) -> Scene:
+    """Load the mesh a description names, with its transform, cameras and AO radius;
+    ``up`` and ``camera_file`` (the command line) override the description's."""
+    path = desc.mesh
     if not path.is_file():
-        where = f"; download it from {desc['download']}" if desc.get("download") else ""
-        raise SimtSimError(
-            f"scene {desc['name']!r}: mesh not found at {path}; set {SCENES_ENV} to the folder "
-            f"that holds {desc['file']}{where}"
-        )
-    if desc.get("sha256") and sha256_of(path) != desc["sha256"]:
+        raise SimtSimError(f"scene {desc.name!r}: mesh not found at {path}; {missing}")
+    if sha256 and sha256_of(path) != sha256:
         warnings.warn(
-            f"scene {desc['name']!r}: {path} differs from the descriptor's sha256; results "
+            f"scene {desc.name!r}: {path} differs from the descriptor's sha256; results "
             "may not match the published numbers",
             stacklevel=3,
         )
     vertices, triangles = _read_mesh(path)
-    cams = desc.get("cameras") or None
+    if desc.transform is not None:
+        m = desc.transform
+        vertices = vertices @ m[:, :3].T + m[:, 3]
     return _make_scene(
-        desc["name"],
+        desc.name,
         vertices,
         triangles,
         path,
-        transform=desc.get("transform"),
-        cameras=tuple(camera_from_dict(c) for c in cams) if cams else None,
-        ao_radius=desc.get("ao_radius"),
-        source=f"scenes/{desc['name']}.json: {path}",
+        up=up if up is not None else desc.up,
+        cameras=read_camera_file(camera_file) if camera_file else desc.cameras,
+        ao_radius=desc.ao_radius,
+        source=f"{desc.source}: {path}",
+        up_source="command line" if up is not None else "description",
     )
 
 
-def load_scene(name_or_path: str = DEFAULT_SCENE, *, room_size: float | None = None) -> Scene:
-    """A named scene (``room``, ``conference``, ``sibenik``, ``bunny``, ``cornell-box``)
-    or a mesh path.
+def _load_room(params: dict[str, Any], up: str | None, camera_file: Any) -> Scene:
+    """The built-in room, through the same canonical frame as every mesh."""
+    room = make_room(**params)
+    cams = tuple(
+        CameraSpec(c.name, c.position, c.forward, c.up, c.fov_y_deg, c.near, c.far)
+        for c in room.cameras
+    )
+    return _make_scene(
+        room.name,
+        room.vertices.astype(np.float64),
+        room.triangles,
+        Path("room"),
+        up=up or "z",
+        cameras=read_camera_file(camera_file) if camera_file else cams,
+        ao_radius=room.ao_radius,
+        source=room.source,
+        up_source="command line" if up else "built in",
+    )
+
+
+def load_scene(
+    name_or_path: str = DEFAULT_SCENE,
+    *,
+    room_size: float | None = None,
+    up: str | None = None,
+    camera_file: str | os.PathLike | None = None,
+) -> Scene:
+    """A named scene (``room``, ``conference``, ``sibenik``, ``bunny``, ``cornell-box``),
+    a scene description (``.toml`` / ``.json``, see :mod:`simt_sim.scene.description`) or
+    a mesh path, in the canonical frame (:mod:`simt_sim.types.frame`).
 
     Parameters
     ----------
     room_size : overrides the room descriptor's ``size`` (triangle count scales with it);
         only valid for ``room``.
+    up : ``x``, ``y`` or ``z``: the scene's up axis, overriding its description; ``None``
+        keeps the description's, or detects it for a bare mesh.
+    camera_file : a TOML or JSON file of cameras (user units) replacing the scene's own.
     """
+    up = up_axis(up, "--up")
     descs = _descriptors()
     desc = descs.get(name_or_path)
     if room_size is not None and (desc is None or desc.get("generator") != "room"):
         raise SimtSimError("room_size applies only to the built-in scene 'room'; drop it")
     if desc is None:
-        if Path(name_or_path).is_file():
-            return load_mesh(name_or_path)
+        path = Path(name_or_path)
+        if path.suffix.lower() in DESCRIPTION_SUFFIXES:
+            return _from_description(read_description(path), up=up, camera_file=camera_file)
+        if path.is_file():
+            return load_mesh(path, up=up, camera_file=camera_file)
         raise SimtSimError(
             f"unknown scene {name_or_path!r} (no such file either); use one of "
-            f"{', '.join(descs)} or a mesh file path"
+            f"{', '.join(descs)}, a mesh file path or a scene description (.toml)"
         )
     if desc.get("generator") == "room":
         params = dict(desc["params"])
         if room_size is not None:
             params["size"] = float(room_size)
-        return make_room(**params)
-    return _load_named(desc)
+        return _load_room(params, up, camera_file)
+    where = f"scenes/{desc['name']}.json"
+    described = parse_description(desc, scenes_dir(), where, desc["name"])
+    download = f"; download it from {desc['download']}" if desc.get("download") else ""
+    return _from_description(
+        described,
+        up=up,
+        camera_file=camera_file,
+        sha256=desc.get("sha256"),
+        missing=f"set {SCENES_ENV} to the folder that holds {desc['file']}{download}",
+    )
 
 
 def list_scenes() -> pd.DataFrame:

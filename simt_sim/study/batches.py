@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numba
 
+from simt_sim.progress import checkpoint
 from simt_sim.simt.memory import MemoryCounts, memory_counts
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult
@@ -65,6 +66,7 @@ class BatchResults:
 def record_batch(plan: StudyPlan, ray_type: str, rays: RayBatch, index: int) -> RecordedBatch:
     """Record batch ``index`` of ``ray_type``, or its sampled warps (``plan.spec.sampled``)."""
     spec = plan.spec
+    checkpoint()  # also in the recording thread of pipelined(): it stops at the next batch
     if spec.sampled:
         picked = sample_warps(
             rays,
@@ -99,6 +101,7 @@ def replay_batch(plan: StudyPlan, recorded: RecordedBatch) -> BatchResults:
             if sampled:
                 resident = max(1, round(g.resident_warps * (stop - start) / recorded.rays))
             for s in plan.trace_schemes:
+                checkpoint()
                 r = None
                 if stop > start:
                     ir = plan.irs[(s.kernel, g.ir_arch)]

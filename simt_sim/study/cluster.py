@@ -12,6 +12,7 @@ bit for bit. Only this module imports dask, and only when a cluster is asked for
 from __future__ import annotations
 
 import logging
+import signal
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
@@ -35,18 +36,21 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
         raise SimtSimError("give either --workers N or --scheduler ADDRESS, not both")
     if workers is not None and workers < 1:
         raise SimtSimError(f"--workers must be at least 1, got {workers}")
-    from distributed import Client, LocalCluster
-
     if workers is not None:
-        cluster = LocalCluster(
-            n_workers=workers,
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=None,
-            silence_logs=logging.ERROR,
-        )
-        client = Client(cluster)
+        with _sigint_blocked():  # importing distributed may start threads: inside too
+            from distributed import Client, LocalCluster
+
+            cluster = LocalCluster(
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                silence_logs=logging.ERROR,
+            )
+            client = Client(cluster)
     else:
+        from distributed import Client
+
         cluster = None
         try:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
@@ -62,6 +66,26 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+@contextmanager
+def _sigint_blocked() -> Iterator[None]:
+    """SIGINT blocked in this thread while a local cluster starts: the threads it starts
+    and the worker processes they spawn inherit the mask, so the terminal's Ctrl-C, sent
+    to every process of the command, reaches only this one (a thread of it not started
+    here), which closes the cluster in order. Unblocked, it killed the workers mid-task
+    with a traceback each and left the client waiting for results forever.
+
+    multiprocessing's resource tracker is started first: starting it unblocks SIGINT in
+    the thread that does (the cluster's event loop thread, otherwise)."""
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _plan(spec: StudySpec) -> StudyPlan:

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import kernels_ir
 from kernels_ir.kernel_ir import KernelIR
-from simt_sim import schemes
+from simt_sim import progress, schemes
 from simt_sim.bvh.build import build_bvh
 from simt_sim.bvh.layout import BVH
 from simt_sim.errors import SimtSimError
@@ -22,6 +22,7 @@ from simt_sim.simt.footprint import decide, footprint_bytes
 from simt_sim.simt.gpus import GpuConfig, get_gpu
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
 from simt_sim.study.spec import StudySpec
+from simt_sim.study.viewcheck import announce
 from simt_sim.study.workload import Workload, make_workload, parse_cameras
 from simt_sim.types.raybatch import PATH_RAYS
 from simt_sim.types.scene import Scene
@@ -106,11 +107,13 @@ def plan_study(spec: StudySpec) -> StudyPlan:
         for s in chosen
         for k in s.kernels
     }
-    scene = load_scene(spec.scene)
+    scene = load_scene(spec.scene, up=spec.up, camera_file=spec.camera_file)
+    progress.checkpoint()  # Ctrl-C during the load stops before the BVH build
     cameras = parse_cameras(spec.cameras, scene)
     bvh = build_bvh(
         scene.vertices, scene.triangles, max_leaf=spec.max_leaf, node_cost=spec.node_cost
     )
+    announce(scene, bvh)
     footprint = footprint_bytes(bvh.nodes.shape[0], bvh.woop.shape[0])
     memory = {g.id: decide(spec.memory, footprint, g) for g in gpus}
     return StudyPlan(spec, scene, bvh, cameras, gpus, chosen, irs, memory)

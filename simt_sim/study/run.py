@@ -21,6 +21,8 @@ import pandas as pd
 from tqdm import tqdm
 
 from simt_sim import schemes
+from simt_sim.progress import bar as progress_bar
+from simt_sim.progress import checkpoint
 from simt_sim.simt.gpus import GpuConfig
 from simt_sim.simt.memory import MemoryCounts, memory_columns, memory_counts
 from simt_sim.simt.replay import simulate_paths, simulate_queues
@@ -60,6 +62,7 @@ def measure_actual(plan: StudyPlan, ray_type: str) -> tuple[dict[str, float], st
     cu = CudaTracer(plan.bvh, tests=plan.spec.tests)
     measured = {}
     for s in plan.trace_schemes:
+        checkpoint()
         if s.launch is not None:
             _, secs = cu.trace_timed(wl.rays, s.launch)
             measured[s.name] = len(wl.rays) / statistics.median(secs) / 1e6
@@ -184,6 +187,7 @@ def trace_rows(
         measured, device = measure_actual(plan, ray_type)
     results, rows = [], []
     for s in plan.schemes:
+        checkpoint()
         for g in plan.gpus:
             if s.kind == PATH:
                 rows.append(_not_applicable(plan, ray_type, s, g))
@@ -222,14 +226,17 @@ def path_rows(plan: StudyPlan, bar: tqdm) -> tuple[list[SimResult], list[dict]]:
         max_bounces=spec.max_bounces,
         seed=spec.seed,
     )
+    checkpoint()
     bar.total += pt.n_rays
     name = plan.scene.name
     replayed: dict[tuple[str, str], SimResult] = {}
     for g in plan.gpus:
         for s in plan.trace_schemes:
+            checkpoint()
             ir = plan.irs[(s.kernel, g.ir_arch)]
             replayed[(s.name, g.id)] = simulate_queues(pt, "all", s, ir, g, scene=name)
         for s in plan.path_schemes:
+            checkpoint()
             replayed[(s.name, g.id)] = simulate_paths(pt, s, plan.irs_for(s, g), g, scene=name)
     memory = {
         g.id: sum((memory_counts(q, g.warp_size, g) for q in pt.queues("all")), MemoryCounts())
@@ -290,7 +297,9 @@ def run_study(
     ``client`` the launch batches run on its workers (path traces stay in this process);
     the table is identical to the one made here.
     """
-    return run_plan(plan_study(spec), progress=progress, client=client)
+    plan = plan_study(spec)
+    checkpoint()  # Ctrl-C during the scene load or the BVH build
+    return run_plan(plan, progress=progress, client=client)
 
 
 def run_plan(
@@ -298,10 +307,7 @@ def run_plan(
 ) -> tuple[list[SimResult], pd.DataFrame]:
     """:func:`run_study` of a spec already resolved into ``plan``."""
     spec = plan.spec
-    bar = tqdm(
-        total=0, unit="ray", unit_scale=True, disable=not progress, dynamic_ncols=True,
-        leave=False,
-    )  # fmt: skip
+    bar = progress_bar("", enabled=progress)  # each update is a Ctrl-C checkpoint
     results: list[SimResult] = []
     rows: list[dict] = []
     try:

@@ -26,7 +26,7 @@ from simt_sim.trace.tracefile import iter_trace, read_meta
 from simt_sim.types.optrace import OpTrace
 
 #: what every saved file of one study must share (header ``meta`` keys)
-SHARED = ("scene", "cameras", "resolution", "spp", "seed", "bvh")
+SHARED = ("scene", "up", "camera_file", "cameras", "resolution", "spp", "seed", "bvh")
 
 
 def saved_spec(paths: Sequence[str], **fields: Any) -> StudySpec:
@@ -50,6 +50,8 @@ def saved_spec(paths: Sequence[str], **fields: Any) -> StudySpec:
     tree = first["bvh"]
     return StudySpec(
         scene=first["scene"],
+        up=first.get("up"),
+        camera_file=first.get("camera_file"),
         ray_types=tuple(ray_types),
         cameras=",".join(str(c) for c in first["cameras"]),
         resolution=(int(first["resolution"][0]), int(first["resolution"][1])),

@@ -45,6 +45,10 @@ class StudySpec:
     """A TOML file of GPUs added to the packaged ones (``simt-sim table --gpus FILE``)."""
     tests: str = DEFAULT_TESTS
     """Box and triangle tests the kernels are costed with (``kernels_ir.kernel_ir.TESTS``)."""
+    up: str | None = None
+    """The scene's up axis (``x``, ``y``, ``z``; ``None``: its description's, or detected)."""
+    camera_file: str | None = None
+    """A TOML or JSON file of cameras replacing the scene's own (``--camera-file``)."""
 
     @property
     def sampled(self) -> bool:

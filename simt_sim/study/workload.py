@@ -13,11 +13,13 @@ import re
 from dataclasses import dataclass
 from functools import cached_property
 
+from simt_sim import progress
 from simt_sim.bvh.build import build_bvh
 from simt_sim.bvh.layout import BVH
 from simt_sim.errors import SimtSimError
 from simt_sim.rays.generate import RayStream, ray_stream
 from simt_sim.scene.load import load_scene
+from simt_sim.study.viewcheck import announce
 from simt_sim.tracers.numba_tracer import trace
 from simt_sim.types.raybatch import TRACE_RAY_TYPES, RayBatch
 from simt_sim.types.scene import Scene
@@ -89,6 +91,8 @@ def make_workload(
     bvh: BVH | None = None,
     max_leaf: int = 8,
     node_cost: float = 1.0,
+    up: str | None = None,
+    camera_file: str | None = None,
 ) -> Workload:
     """Load ``scene``, build its BVH (unless given) and make the paper's rays of ``ray_type``.
 
@@ -110,6 +114,10 @@ def make_workload(
     max_leaf, node_cost
         The builder's largest leaf and SAH node cost (:func:`~simt_sim.bvh.build.build_bvh`)
         when ``bvh`` is not given.
+    up, camera_file
+        The scene's up axis and a camera file (:func:`~simt_sim.scene.load.load_scene`) when
+        ``scene`` is a name or path. A scene loaded here is announced
+        (:func:`~simt_sim.study.viewcheck.announce`).
     """
     if ray_type not in TRACE_RAY_TYPES:
         raise SimtSimError(
@@ -117,11 +125,16 @@ def make_workload(
         )
     if spp < 1:
         raise SimtSimError(f"--spp must be at least 1, got {spp}")
-    sc = load_scene(scene) if isinstance(scene, str) else scene
+    loaded = isinstance(scene, str)
+    sc = load_scene(scene, up=up, camera_file=camera_file) if loaded else scene
+    progress.checkpoint()  # Ctrl-C during the load stops before the BVH build
     cams = parse_cameras(cameras, sc)
     tree = bvh
     if tree is None:
         tree = build_bvh(sc.vertices, sc.triangles, max_leaf=max_leaf, node_cost=node_cost)
+        progress.checkpoint()
+    if loaded:
+        announce(sc, tree)
     stream = ray_stream(
         sc,
         ray_type,

@@ -8,13 +8,13 @@ after the other; path id = position in that order.
 Bounce ``b`` (``0 <= b < max_bounces``) of the live paths, vectorised over paths:
 
 1. **extend**: bounce 0 is the primary ray; later ones start at the previous hit point
-   backed off along the incoming ray (``orig + dir * max(t - 1e-4, 0)``, as the paper's
+   pushed off its surface (:func:`~simt_sim.rays.offset.spawn_points`, as the paper's
    secondary rays), in a cosine-weighted direction about the geometric normal flipped to
    face the incoming ray, ``tmax`` = the camera's far plane; closest hit, recorded.
    A miss ends the path (the scene has no environment light).
 2. **shade** at a hit: one next-event-estimation sample on a rectangular area light; if the
    sample lies in front of both the surface and the light, a **connect** (shadow) ray goes
-   from the backed-off hit point with the *unnormalised* direction ``light - point`` and
+   from the pushed-off hit point with the *unnormalised* direction ``light - point`` and
    ``tmax = 1 - 1e-4`` (just short of the light); any hit, recorded.
 3. **continue**: a path stops after ``max_bounces`` extend rays; from bounce ``rr_start``
    on it survives Russian roulette with probability ``albedo``.
@@ -41,7 +41,8 @@ import numpy as np
 
 from simt_sim.bvh.layout import BVH
 from simt_sim.errors import SimtSimError
-from simt_sim.rays.generate import BACKOFF, primary_rays
+from simt_sim.rays.generate import primary_rays
+from simt_sim.rays.offset import spawn_points
 from simt_sim.trace.record import DEFAULT_BATCH, record_all
 from simt_sim.types.paths import PathTrace, RectLight
 from simt_sim.types.raybatch import RayBatch
@@ -58,7 +59,7 @@ _N_DIMS = 8
 def default_light(scene: Scene) -> RectLight:
     """The light used when none is given: the scenes carry no light of their own.
 
-    A rectangle parallel to the XY plane (Z is up in the paper's frame), centred over the
+    A rectangle parallel to the XY plane (Z is up in the canonical frame), centred over the
     scene's bounding box at 98% of its height, 25% of its x and y extent, emitting
     downward (-Z). In a closed room it sits just under the ceiling.
     """
@@ -92,21 +93,6 @@ def uniform(seed: int, path: np.ndarray, bounce: int, dim: int) -> np.ndarray:
         key = _mix32(key ^ np.uint32((bounce * _N_DIMS + dim) & 0xFFFFFFFF))
         h = _mix32(np.asarray(path).astype(np.uint32) ^ key)
     return (h >> np.uint32(8)).astype(np.float64) * (1.0 / (1 << 24))
-
-
-def _facing_normals(scene: Scene, tri: np.ndarray, direction: np.ndarray) -> np.ndarray:
-    """Unit geometric normals (float64) of ``tri``, flipped to face the incoming rays."""
-    t = scene.triangles[tri]
-    v = scene.vertices
-    v0 = v[t[:, 0]].astype(np.float64)
-    n = np.cross(v[t[:, 1]].astype(np.float64) - v0, v[t[:, 2]].astype(np.float64) - v0)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    d = direction.astype(np.float64)
-    d_unit = d / np.linalg.norm(d, axis=1, keepdims=True)
-    n = np.where(length > 0, n / np.where(length > 0, length, 1.0), -d_unit)
-    flip = np.einsum("ij,ij->i", n, d) > 0
-    n[flip] = -n[flip]
-    return n
 
 
 def cosine_directions(normal: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -227,8 +213,7 @@ def trace_paths(
         shaded.append(hp)
         d = rays.direction[hit]
         t = tr.hits.t[hit]
-        point = rays.origin[hit] + d * np.maximum(t - BACKOFF, np.float32(0))[:, None]
-        normal = _facing_normals(scene, tr.hits.tri[hit], d)
+        point, normal = spawn_points(scene, rays.origin[hit], d, t, tr.hits.tri[hit])
         # next-event estimation: one uniform sample on the light
         su = uniform(seed, hp, b, _DIM_LIGHT_U)
         sv = uniform(seed, hp, b, _DIM_LIGHT_V)

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from simt_sim import progress
 from simt_sim.errors import SimtSimError
 from simt_sim.trace.record import concat_traces
 from simt_sim.types.hits import Hits
@@ -63,7 +64,10 @@ def save_trace(path: str | os.PathLike, traces: Iterable[OpTrace], meta: dict) -
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
-        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+        with (
+            progress.temporary(tmp),  # a second Ctrl-C removes it until it is renamed
+            zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf,
+        ):
             query = ray_type = None
             batches = rays = ops = 0
             for tr in traces:
@@ -86,7 +90,9 @@ def save_trace(path: str | os.PathLike, traces: Iterable[OpTrace], meta: dict) -
                 "batches": batches, "rays": rays, "ops": ops, "meta": meta,
             }  # fmt: skip
             zf.writestr(HEADER, json.dumps(header, indent=1))
-        os.replace(tmp, path)
+            zf.close()
+            progress.checkpoint()  # Ctrl-C while writing: the file at path stays as it was
+            os.replace(tmp, path)
     except BaseException:
         os.unlink(tmp)
         raise

@@ -1,4 +1,4 @@
-"""A pinhole camera in the paper's frame (Z up), as given in scenes/ and the manifest."""
+"""A pinhole camera in the scene's canonical frame (Z up; :mod:`simt_sim.types.frame`)."""
 
 from __future__ import annotations
 

@@ -1,9 +1,11 @@
 """Degenerate, sliver and lone triangles, end to end (mesh file -> scene -> BVH -> tracers).
 
-Zero-area triangles are dropped at load and counted; near-zero-area ones (needles, caps,
-triangles 1e-20 across next to unit ones) are kept and must never yield a NaN or
-infinite hit; a sliver too thin for its Woop rows to fit in float32 is never hit. A
-scene of one triangle runs through every stage, the simulator included.
+Zero-area triangles are dropped at load and counted, and so are slivers thinner than
+float32 resolves in the canonical frame (the loader recentres and rescales every scene).
+Given to the BVH directly, near-zero-area triangles (needles, caps, triangles 1e-20
+across next to unit ones) must never yield a NaN or infinite hit, and a sliver too thin
+for its Woop rows to fit in float32 is never hit. A scene of one triangle runs through
+every stage, the simulator included.
 """
 
 from __future__ import annotations
@@ -59,6 +61,12 @@ def write_obj(path, triangles: list, extra: bool = True) -> None:
     path.write_text("\n".join(lines + faces) + "\n")
 
 
+def raw_arrays(triangles: list) -> tuple[np.ndarray, np.ndarray]:
+    """The triangles as float32 vertices and int32 faces, as given (no loader, no frame)."""
+    v = [(x, y, k) for k, (corners, _) in enumerate(triangles) for x, y in corners]
+    return np.array(v, F32), np.arange(len(v), dtype=np.int32).reshape(-1, 3)
+
+
 def distance_to_triangles(p: np.ndarray, v: np.ndarray, t: np.ndarray, tri: np.ndarray):
     """Distance (float64) from each point ``p[k]`` to triangle ``tri[k]``: to its plane if
     the point projects inside, else to the nearest edge."""
@@ -101,16 +109,17 @@ def test_zero_area_triangles_are_dropped_and_counted(tmp_path):
     path = tmp_path / "slivers.obj"
     write_obj(path, [*GOOD, THIN])
     scene = load_mesh(path)
-    assert scene.dropped == {"zero_area": len(ZERO_AREA)}
-    assert scene.n_triangles == len(GOOD) + 1  # slivers, even the 1e-40 one, are kept
+    # In the canonical frame (recentred on (1, 1/2, 3), scaled by 1/8) the caps 1e-30,
+    # 1e-38 and 1e-40 high and the triangle 1e-20 across round to zero area; the 1e-7 cap
+    # and the needle are kept, and so is "f 1 6 7": its 1e-9 offsets now sit next to 0,
+    # where float32 keeps them, so it is a (tiny) real triangle there.
+    assert scene.dropped == {"zero_area": len(ZERO_AREA) - 1 + 4}
+    assert scene.n_triangles == 4
 
 
 @pytest.mark.parametrize("query", ["closest", "any"])
-def test_slivers_never_hit_with_nan_or_inf(tmp_path, query):
-    path = tmp_path / "slivers.obj"
-    write_obj(path, GOOD)
-    scene = load_mesh(path)
-    v, t = scene.vertices, scene.triangles
+def test_slivers_never_hit_with_nan_or_inf(query):
+    v, t = raw_arrays(GOOD)
     bvh = build_bvh(v, t, max_leaf=1)
     rays = probe_rays(v, t, query, seed=1)
     hits = trace(bvh, rays)
@@ -131,13 +140,10 @@ def test_slivers_never_hit_with_nan_or_inf(tmp_path, query):
     assert 0.3 < hits.hit_mask.mean() < 1.0
 
 
-def test_sliver_beyond_float32_is_never_hit(tmp_path):
+def test_sliver_beyond_float32_is_never_hit():
     """A cap 1e-40 high: its u, v rows (~1e40) overflow float32; it is stored like a
     zero-area triangle (all-zero rows) without a warning and never hit, never NaN."""
-    path = tmp_path / "thin.obj"
-    write_obj(path, [GOOD[0], THIN], extra=False)
-    scene = load_mesh(path)
-    v, t = scene.vertices, scene.triangles
+    v, t = raw_arrays([GOOD[0], THIN])
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         w0, w1, w2 = woop_transform(v[t[:, 0]], v[t[:, 1]], v[t[:, 2]])

@@ -15,7 +15,6 @@ import trimesh
 
 from simt_sim.errors import SimtSimError
 from simt_sim.scene.load import (
-    default_ao_radius,
     drop_degenerate,
     list_scenes,
     load_mesh,
@@ -25,6 +24,7 @@ from simt_sim.scene.load import (
 )
 from simt_sim.scene.objfile import read_obj
 from simt_sim.scene.room import make_room
+from simt_sim.scene.views import default_ao_radius
 
 #: the descriptors the package ships (read as package data, not from the checkout)
 DESCRIPTORS = resources.files("simt_sim.scene").joinpath("descriptors")
@@ -43,10 +43,12 @@ def test_every_format_loads_as_float32_int32(tmp_path, ext):
     assert scene.vertices.dtype == np.float32 and scene.triangles.dtype == np.int32
     assert scene.n_triangles == 12
     assert scene.dropped == {"zero_area": 0}
-    np.testing.assert_allclose(scene.vertices.min(axis=0), [-1.0, -0.5, -0.25])
-    np.testing.assert_allclose(scene.vertices.max(axis=0), [1.0, 0.5, 0.25])
+    user = scene.frame.to_user(scene.vertices)
+    np.testing.assert_allclose(user.min(axis=0), [-1.0, -0.5, -0.25])
+    np.testing.assert_allclose(user.max(axis=0), [1.0, 0.5, 0.25])
     assert len(scene.cameras) == 3
-    assert scene.ao_radius == pytest.approx(0.1 * math.sqrt(4 + 1 + 0.25))
+    diagonal = math.sqrt(4 + 1 + 0.25)
+    assert scene.frame.length_to_user(scene.ao_radius) == pytest.approx(0.1 * diagonal)
 
 
 def test_glb_with_several_meshes_is_concatenated_with_transforms(tmp_path):
@@ -61,7 +63,7 @@ def test_glb_with_several_meshes_is_concatenated_with_transforms(tmp_path):
     s.export(path)
     scene = load_mesh(path)
     assert scene.n_triangles == 24
-    assert scene.vertices[:, 0].max() == pytest.approx(5.5)
+    assert scene.frame.to_user(scene.vertices)[:, 0].max() == pytest.approx(5.5)
 
 
 def test_obj_relative_indices_polygons_slashes_comments_crlf(tmp_path):
@@ -246,26 +248,29 @@ def test_named_shared_scenes_load(name, in_file, zero_area, require_shared):
     assert scene.n_triangles + scene.dropped["zero_area"] == in_file
     assert zero_area[0] <= scene.dropped["zero_area"] <= zero_area[1]
     assert len(scene.cameras) == 5
-    assert scene.ao_radius == desc["ao_radius"]
+    assert scene.frame.length_to_user(scene.ao_radius) == desc["ao_radius"]
     assert drop_degenerate(scene.vertices, scene.triangles)[1] == 0
 
 
 def test_conference_is_moved_into_the_paper_frame(require_shared):
     require_shared("conference/conference.obj")
     scene = load_scene("conference")
-    lo, hi = scene.vertices.min(axis=0), scene.vertices.max(axis=0)
+    user = scene.frame.to_user(scene.vertices)
+    lo, hi = user.min(axis=0), user.max(axis=0)
     np.testing.assert_allclose(lo, [0, 0, 0], atol=1e-4)
     np.testing.assert_allclose(hi, [27.0594, 17.24149, 6.530854], atol=1e-3)
     for cam in scene.cameras:  # the cameras are inside the room
-        assert np.all(cam.position > lo) and np.all(cam.position < hi)
+        position = scene.frame.to_user(cam.position)
+        assert np.all(position > lo) and np.all(position < hi)
 
 
 def test_cornell_box_relative_indices_are_resolved(require_shared):
     """trimesh scrambles this file (relative indices); all five walls must be there."""
     require_shared("cornell-box/CornellBox-Original.obj")
     scene = load_scene("cornell-box")
-    np.testing.assert_allclose(scene.vertices.min(axis=0), [-1.02, 0.0, -1.04])
-    np.testing.assert_allclose(scene.vertices.max(axis=0), [1.0, 1.99, 0.99])
+    user = scene.frame.to_user(scene.vertices)
+    np.testing.assert_allclose(user.min(axis=0), [-1.02, 0.0, -1.04], atol=1e-6)
+    np.testing.assert_allclose(user.max(axis=0), [1.0, 1.99, 0.99], atol=1e-6)
     assert scene.dropped == {"zero_area": 0}
 
 

@@ -9,6 +9,7 @@ import pytest
 
 from simt_sim.bvh.build import build_bvh
 from simt_sim.errors import SimtSimError
+from simt_sim.rays.offset import spawn_points
 from simt_sim.trace.paths import default_light, trace_paths, uniform
 from simt_sim.tracers.numba_tracer import trace
 from simt_sim.types.paths import PathTrace, RectLight
@@ -142,15 +143,18 @@ def test_recorded_hits_match_tracer(room, room_paths) -> None:
             assert np.array_equal(tr.hits.t, hits.t)
 
 
-def test_secondary_rays_start_at_backed_off_hits(room_paths) -> None:
+def test_secondary_rays_start_at_hits_pushed_off_their_surface(room, room_paths) -> None:
+    scene, _ = room
     p = room_paths
     for b in range(p.n_bounces - 1):
         prev = p.extend_rays[b]
-        hit = p.extend[b].hits.hit_mask
+        hits = p.extend[b].hits
+        hit = hits.hit_mask
         keep = np.isin(p.extend_path[b][hit], p.survive[b])
-        t = p.extend[b].hits.t[hit][keep]
+        t = hits.t[hit][keep]
         d = prev.direction[hit][keep]
-        expect = prev.origin[hit][keep] + d * np.maximum(t - np.float32(1e-4), 0)[:, None]
+        tri = hits.tri[hit][keep]
+        expect, _ = spawn_points(scene, prev.origin[hit][keep], d, t, tri)
         assert np.array_equal(p.extend_rays[b + 1].origin, expect)
         assert np.allclose(np.linalg.norm(p.extend_rays[b + 1].direction, axis=1), 1, atol=1e-6)
 
