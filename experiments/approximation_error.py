@@ -2,7 +2,8 @@
 
 Usage: python experiments/approximation_error.py [--scene conference] [--camera 0]
        [--resolution 64x48] [--secondary-resolution 16x12] [--spp 32] [--gpu gtx285]
-       [--schemes persistent_speculative_while_while,packet] [--format md|csv|json] [--out F]
+       [--schemes persistent_speculative_while_while,speculative_dynamic_fetch,packet]
+       [--format md|csv|json] [--out F]
 
 For one camera of one scene: primary rays at ``--resolution``, and AO and diffuse rays
 spawned (``--spp`` per hit, Morton sorted as in the paper) from the primary hits at
@@ -33,7 +34,7 @@ from simt_sim.simt.gpus import get_gpu
 from simt_sim.study.workload import parse_resolution
 from simt_sim.tracers.numba_tracer import trace
 
-SCHEMES = ("persistent_speculative_while_while", "packet")
+SCHEMES = ("persistent_speculative_while_while", "speculative_dynamic_fetch", "packet")
 SHORT = {
     "warp_instructions": "winstr",
     "simd_efficiency": "simd",

@@ -340,7 +340,7 @@ def test_default_table_fits_120_columns_and_marks_one_winner_per_ray_type():
     body = [ln.split() for ln in lines[3:] if ln.strip() and not ln.startswith("*:")]
     assert {row[2] for row in body} == {
         "while_while", "if_if", "persistent_while_while", "persistent_speculative_while_while",
-        "dynamic_fetch", "packet",
+        "dynamic_fetch", "speculative_dynamic_fetch", "packet",
     }  # fmt: skip
     for rt in ("primary", "ao", "diffuse"):
         rows = [row for row in body if row[0] == rt]

@@ -30,6 +30,13 @@ an interior node to step, a leaf to enter, a triangle to test, or nothing):
   (``leaf_entry``, lockstep ``tri_test``). Traversal uses the lane's *current* ``tmax``,
   so a lane may step nodes its recorded stream skipped, and an any-hit lane may traverse
   past its terminating leaf.
+- ``speculative_dynamic_fetch`` (the 2012 addendum's Kepler kernel): that speculative
+  iteration on ``resident_warps`` warps sharing the batch's ray pool. The warp that has
+  issued the fewest instructions so far runs its next iteration (ties: the lowest id),
+  as the replay schedules it; before it, if fewer than ``threshold`` of its lanes hold a
+  ray, its idle lanes take the next rays (``pool_fetch``, ``ray_setup``); after it,
+  ``finish`` with the lanes whose ray ended. Which rays share a warp follows the exact
+  costs, so it may differ from the replay's.
 - ``packet`` (Aila & Laine's semantics of Günther et al.'s kernel): one shared stack per
   warp, and every node popped from it is worked on by the whole warp. At an interior node
   every lane tests both child boxes against its own ray and ``tmax`` (``trav_step``), an
@@ -53,6 +60,7 @@ counts of the work each lane actually did.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numba import njit, prange
@@ -86,10 +94,12 @@ from simt_sim.simt.engine import (
     charge,
     class_mix,
     cost_vector,
+    heap_sift_down,
     lane_traffic,
     schedule_groups,
 )
 from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, executed_on, get_gpu
+from simt_sim.simt.occupancy import kernel_occupancy
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult, check_ir
 from simt_sim.simt.scheme import SchemeInfo
@@ -99,9 +109,10 @@ from simt_sim.types.optrace import TRAV_BOTH, TRAV_NONE, TRAV_ONE
 from simt_sim.types.raybatch import RayBatch
 
 #: the kernel bodies the executor runs (``SchemeInfo.lockstep``); a persistent scheme adds
-#: its ``pool_fetch``. Dynamic fetch has none: its pool order follows instruction costs,
-#: and it visits what while-while visits, so its replay is exact.
-WHILE_WHILE_BODY, IF_IF_BODY, SPECULATIVE_BODY, PACKET_BODY = range(4)
+#: its ``pool_fetch``; the speculative one with dynamic fetch runs in event order
+#: (:func:`_execute_fetch`). Dynamic fetch has none: it visits what while-while visits,
+#: so its replay is exact.
+WHILE_WHILE_BODY, IF_IF_BODY, SPECULATIVE_BODY, PACKET_BODY, SPECULATIVE_FETCH_BODY = range(5)
 MAX_WARP = 64
 """Largest warp size the executor accepts (lane masks are small boolean arrays)."""
 
@@ -395,6 +406,90 @@ def _if_if(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, bas
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _spec_alive(li, lanes):
+    """Lanes with work left for the speculative kernel: a next op or a parked leaf."""
+    alive = 0
+    for lane in range(lanes):
+        if _next(li, lane) != _K_NONE or li[lane, _PLEAF] != _NO_LEAF:
+            alive += 1
+    return alive
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _speculative_iteration(li, lf, stack, lanes, alive, nodes, nodes_i, woop, woop_i, any_hit,
+                           ops, base, cnt, hist, costs, sel, tri_sel):  # fmt: skip
+    """One outer iteration of the speculative kernel with ``alive`` lanes that have work:
+    loop_control, the traversal loop, the intersection loop. Returns its cost, or -1 on a
+    stack overflow; afterwards no lane holds a parked leaf. ``sel`` and ``tri_sel`` are
+    scratch of ``lanes`` entries."""
+    cost = charge(cnt, hist, costs, LOOP_CONTROL, alive)
+    for lane in range(lanes):
+        li[lane, _SEARCH] = 1
+    # Traversal loop: lanes at interior nodes step; the first leaf a lane meets is
+    # parked; break once no lane that stepped is still searching.
+    n = _lanes_with(li, lanes, _K_TRAV, sel)
+    while n > 0:
+        c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base,
+                                 cnt, hist, costs)  # fmt: skip
+        if c < 0:
+            return np.int64(-1)
+        cost += c
+        if n < hist.shape[1] - 1:  # a diverged warp: the vote takes its fallback
+            cost += charge(cnt, hist, costs, TRAV_DIVERGED, n)
+        parked = 0
+        searching = False
+        for k in range(n):
+            lane = sel[k]
+            if li[lane, _STATE] == _AT_LEAF and li[lane, _PLEAF] == _NO_LEAF:
+                li[lane, _PLEAF] = li[lane, _NODE]
+                li[lane, _SEARCH] = 0
+                _pop(li, stack, lane)
+                parked += 1
+            if li[lane, _SEARCH] == 1:
+                searching = True
+        cost += charge(cnt, hist, costs, POSTPONE, parked)
+        if not searching:
+            break
+        m = 0
+        for k in range(n):
+            if _next(li, sel[k]) == _K_TRAV:
+                sel[m] = sel[k]
+                m += 1
+        n = m
+    # Intersection loop: parked leaves first, then leaves the lanes stand at.
+    while True:
+        n = 0
+        for lane in range(lanes):
+            if li[lane, _PLEAF] != _NO_LEAF or _next(li, lane) == _K_LEAF:
+                sel[n] = lane
+                n += 1
+        if n == 0:
+            break
+        cost += charge(cnt, hist, costs, LEAF_ENTRY, n)
+        for k in range(n):
+            lane = sel[k]
+            ops[base + lane, _C_LEAF] += 1
+            leaf = li[lane, _PLEAF]
+            if leaf != _NO_LEAF:
+                li[lane, _PLEAF] = _NO_LEAF
+            else:
+                leaf = li[lane, _NODE]
+                _pop(li, stack, lane)
+            _open_leaf(li, lane, leaf, woop_i)
+        while True:
+            m = 0
+            for k in range(n):
+                if _next(li, sel[k]) == _K_TRI:
+                    tri_sel[m] = sel[k]
+                    m += 1
+            if m == 0:
+                break
+            cost += _tri_iteration(li, lf, tri_sel, m, woop, woop_i, any_hit, ops, base,
+                                   cnt, hist, costs)  # fmt: skip
+    return cost
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _speculative(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, base,
                  cnt, hist, costs):  # fmt: skip
     """Aila & Laine's speculative while-while (see the module docstring)."""
@@ -402,76 +497,14 @@ def _speculative(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, op
     tri_sel = np.empty(lanes, np.int64)
     cost = np.int64(0)
     while True:
-        alive = 0
-        for lane in range(lanes):
-            if _next(li, lane) != _K_NONE or li[lane, _PLEAF] != _NO_LEAF:
-                alive += 1
+        alive = _spec_alive(li, lanes)
         if alive == 0:
             break
-        cost += charge(cnt, hist, costs, LOOP_CONTROL, alive)
-        for lane in range(lanes):
-            li[lane, _SEARCH] = 1
-        # Traversal loop: lanes at interior nodes step; the first leaf a lane meets is
-        # parked; break once no lane that stepped is still searching.
-        n = _lanes_with(li, lanes, _K_TRAV, sel)
-        while n > 0:
-            c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base,
-                                     cnt, hist, costs)  # fmt: skip
-            if c < 0:
-                return np.int64(-1)
-            cost += c
-            if n < hist.shape[1] - 1:  # a diverged warp: the vote takes its fallback
-                cost += charge(cnt, hist, costs, TRAV_DIVERGED, n)
-            parked = 0
-            searching = False
-            for k in range(n):
-                lane = sel[k]
-                if li[lane, _STATE] == _AT_LEAF and li[lane, _PLEAF] == _NO_LEAF:
-                    li[lane, _PLEAF] = li[lane, _NODE]
-                    li[lane, _SEARCH] = 0
-                    _pop(li, stack, lane)
-                    parked += 1
-                if li[lane, _SEARCH] == 1:
-                    searching = True
-            cost += charge(cnt, hist, costs, POSTPONE, parked)
-            if not searching:
-                break
-            m = 0
-            for k in range(n):
-                if _next(li, sel[k]) == _K_TRAV:
-                    sel[m] = sel[k]
-                    m += 1
-            n = m
-        # Intersection loop: parked leaves first, then leaves the lanes stand at.
-        while True:
-            n = 0
-            for lane in range(lanes):
-                if li[lane, _PLEAF] != _NO_LEAF or _next(li, lane) == _K_LEAF:
-                    sel[n] = lane
-                    n += 1
-            if n == 0:
-                break
-            cost += charge(cnt, hist, costs, LEAF_ENTRY, n)
-            for k in range(n):
-                lane = sel[k]
-                ops[base + lane, _C_LEAF] += 1
-                leaf = li[lane, _PLEAF]
-                if leaf != _NO_LEAF:
-                    li[lane, _PLEAF] = _NO_LEAF
-                else:
-                    leaf = li[lane, _NODE]
-                    _pop(li, stack, lane)
-                _open_leaf(li, lane, leaf, woop_i)
-            while True:
-                m = 0
-                for k in range(n):
-                    if _next(li, sel[k]) == _K_TRI:
-                        tri_sel[m] = sel[k]
-                        m += 1
-                if m == 0:
-                    break
-                cost += _tri_iteration(li, lf, tri_sel, m, woop, woop_i, any_hit, ops, base,
-                                       cnt, hist, costs)  # fmt: skip
+        c = _speculative_iteration(li, lf, stack, lanes, alive, nodes, nodes_i, woop, woop_i,
+                                   any_hit, ops, base, cnt, hist, costs, sel, tri_sel)  # fmt: skip
+        if c < 0:
+            return np.int64(-1)
+        cost += c
     return cost + charge(cnt, hist, costs, FINISH, lanes)
 
 
@@ -634,6 +667,91 @@ def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, 
     return cnt, hist, unit_cost, out_tri, out_t, ops, overflow.any()
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _execute_fetch(nodes, woop, tri_index, root, origin, direction, tmin, tmax, any_hit, cap,
+                   warp_size, resident, threshold, costs):  # fmt: skip
+    """Speculative dynamic fetch: one launch on ``resident`` warps, in event order.
+
+    The warp that has issued the fewest instructions (ties: the lowest id) runs next: if
+    fewer than ``threshold`` of its lanes hold a ray and the pool is not empty, its idle
+    lanes take the next rays (``pool_fetch``, ``ray_setup``); a warp holding none then
+    retires; otherwise one speculative outer iteration, then ``finish`` with the lanes
+    whose ray ended. Returns the counters, each warp's instructions, the makespan, per-ray
+    hits and op counts, and whether a stack overflowed.
+    """
+    nodes_i = nodes.view(np.int32)
+    woop_i = woop.view(np.int32)
+    n = origin.shape[0]
+    cnt = np.zeros((2, N_BLOCKS), np.int64)
+    hist = np.zeros((N_BLOCKS, warp_size + 1), np.int64)
+    ops = np.zeros((n, 3), np.int64)
+    out_tri = np.full(n, -1, np.int32)
+    out_t = np.full(n, np.inf, np.float32)
+    li = np.zeros((resident, warp_size, _N_INT), np.int32)
+    lf = np.zeros((resident, warp_size, _N_FLOAT), np.float32)
+    stack = np.empty((resident, warp_size, cap), np.int32)
+    lane_ops = np.zeros((resident, warp_size, 3), np.int64)  # the held ray's ops so far
+    ray = np.full((resident, warp_size), -1, np.int64)  # -1: the lane holds no ray
+    li[:, :, _STATE] = _DONE
+    li[:, :, _J] = -1
+    sel = np.empty(warp_size, np.int64)
+    tri_sel = np.empty(warp_size, np.int64)
+    key = np.zeros(resident, np.int64)  # heap of warps by (instructions so far, id)
+    wid = np.arange(resident)
+    size = resident
+    totals = np.zeros(resident, np.int64)
+    span = np.int64(0)
+    pool = 0
+    while size > 0:
+        w = wid[0]
+        issued = np.int64(0)
+        held = 0
+        for lane in range(warp_size):
+            held += ray[w, lane] >= 0
+        if held < threshold and pool < n:
+            fetched = 0
+            for lane in range(warp_size):
+                if ray[w, lane] < 0 and pool < n:
+                    ray[w, lane] = pool
+                    _init_lane(li[w], lf[w], lane, pool, origin, direction, tmin, tmax, root)
+                    pool += 1
+                    fetched += 1
+            issued += charge(cnt, hist, costs, POOL_FETCH, fetched)
+            issued += charge(cnt, hist, costs, RAY_SETUP, fetched)
+            held += fetched
+        if held == 0:  # the pool is empty and so is the warp: it retires
+            totals[w] = key[0]
+            span = max(span, key[0])
+            size -= 1
+            key[0] = key[size]
+            wid[0] = wid[size]
+            heap_sift_down(key, wid, size, 0)
+            continue
+        c = _speculative_iteration(li[w], lf[w], stack[w], warp_size, held, nodes, nodes_i,
+                                   woop, woop_i, any_hit, lane_ops[w], 0, cnt, hist, costs,
+                                   sel, tri_sel)  # fmt: skip
+        if c < 0:
+            return cnt, hist, totals, span, out_tri, out_t, ops, True
+        issued += c
+        done = 0
+        for lane in range(warp_size):
+            r = ray[w, lane]
+            if r < 0 or _next(li[w], lane) != _K_NONE:
+                continue
+            done += 1
+            j = li[w, lane, _HIT]
+            if j >= 0:
+                out_tri[r] = tri_index[j]
+                out_t[r] = lf[w, lane, _TMAX]
+            ops[r] = lane_ops[w, lane]
+            lane_ops[w, lane] = 0
+            ray[w, lane] = -1
+        issued += charge(cnt, hist, costs, FINISH, done)
+        key[0] += issued
+        heap_sift_down(key, wid, size, 0)
+    return cnt, hist, totals, span, out_tri, out_t, ops, False
+
+
 @dataclass(frozen=True)
 class Execution:
     """What the exact executor measured.
@@ -676,6 +794,7 @@ def execute(
     warp_size: int | None = None,
     scene: str = "",
     resident_warps: int | None = None,
+    **params: Any,
 ) -> Execution:
     """Run ``scheme``'s kernel in lockstep on warps of ``rays`` over ``bvh``; exact counts.
 
@@ -699,7 +818,11 @@ def execute(
     scene : str
         Name recorded in the result.
     resident_warps : int, optional
-        Persistent schemes: override of ``gpu.resident_warps``.
+        Persistent schemes: the resident warps (default: SMs x the kernel's occupancy,
+        as the replay takes them).
+    **params
+        The scheme's own parameters (``scheme.params``: speculative dynamic fetch's
+        ``threshold``).
 
     Returns
     -------
@@ -712,30 +835,47 @@ def execute(
         )
     check_ir(ir, scheme.kernel, scheme.kernels[scheme.kernel])
     check_bvh(bvh)
+    values = scheme.with_params(params)
     g = _gpu(gpu, warp_size)
     persistent = scheme.persistent
-    r = g.resident_warps if resident_warps is None else int(resident_warps)
+    ir = executed_on(ir, g)
+    if resident_warps is None:  # as the replay: SMs x the kernel's occupancy
+        r = g.sms * kernel_occupancy(g, ir, scheme.launch).warps_per_sm
+    else:
+        r = int(resident_warps)
     if r < 1:
         raise SimtSimError(f"resident_warps must be >= 1, got {r}")
     origin, direction, tmin, tmax = ray_arrays(rays)
-    ir = executed_on(ir, g)
     costs = cost_vector(ir)
-    cnt, hist, unit_cost, tri, t, ops, overflow = _execute(
-        scheme.lockstep, persistent, bvh.nodes, bvh.woop, bvh.tri_index, bvh.root,
-        origin, direction, tmin, tmax, rays.query == "any", stack_size(bvh), g.warp_size, costs,
-    )  # fmt: skip
+    cap = stack_size(bvh)
+    args = (bvh.nodes, bvh.woop, bvh.tri_index, bvh.root, origin, direction, tmin, tmax,
+            rays.query == "any", cap)  # fmt: skip
+    extra = {"resident_warps": r, "launch_size": len(rays), "launches": 1} if persistent else {}
+    if scheme.lockstep == SPECULATIVE_FETCH_BODY:
+        threshold = int(values["threshold"])
+        if threshold < 1:
+            raise SimtSimError(f"threshold must be >= 1, got {threshold}")
+        cnt, hist, totals, span, tri, t, ops, overflow = _execute_fetch(
+            *args, g.warp_size, r, threshold, costs
+        )
+        counts = Counts(cnt[0], cnt[1], hist, totals, int(span))
+    else:
+        cnt, hist, unit_cost, tri, t, ops, overflow = _execute(
+            scheme.lockstep, persistent, *args, g.warp_size, costs
+        )
+        totals = None
+        span = 0
+        if persistent:
+            totals = np.zeros(r, np.int64)
+            span = int(schedule_groups(unit_cost, r, totals)) if len(rays) else 0
+        counts = Counts(
+            cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0), totals, span
+        )
     if overflow:
         raise SimtSimError(
             f"BVH is deeper than its stats.depth ({bvh.stats.depth}) says; "
             "rebuild it with build_bvh"
         )
-    totals = None
-    span = 0
-    if persistent:
-        totals = np.zeros(r, np.int64)
-        span = int(schedule_groups(unit_cost, r, totals)) if len(rays) else 0
-    counts = Counts(cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0), totals, span)
-    extra = {"resident_warps": r, "launch_size": len(rays), "launches": 1} if persistent else {}
     card = model_card(
         scheme.name,
         [ir],
@@ -745,6 +885,7 @@ def execute(
         blocks=scheme.kernels[scheme.kernel],
         executor="exact lockstep execution over the BVH (simt_sim.oracles.lockstep)",
         **extra,
+        **values,
     )
     n_ops = ops.sum(axis=0)
     result = SimResult(
@@ -785,6 +926,7 @@ def approximation_error(
     *,
     warp_size: int | None = None,
     scene: str = "",
+    **params: Any,
 ) -> dict[str, float | int | str]:
     """Replay versus exact execution of ``scheme`` on the same rays: relative errors.
 
@@ -799,9 +941,9 @@ def approximation_error(
         (replay - exact) / exact; and mean TRAV/LEAF/TRI per ray of both.
     """
     g = _gpu(gpu, warp_size)
-    exact = execute(bvh, rays, scheme, ir, g, scene=scene).result
+    exact = execute(bvh, rays, scheme, ir, g, scene=scene, **params).result
     trace = record_all(bvh, rays, batch_size=max(len(rays), 1))
-    replayed = simulate_traces([trace], scheme, ir, g, scene=scene)
+    replayed = simulate_traces([trace], scheme, ir, g, scene=scene, **params)
     row: dict[str, float | int | str] = {
         "scheme": scheme.name,
         "ray_type": rays.ray_type,

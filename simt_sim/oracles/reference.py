@@ -3,13 +3,14 @@
 It exists so tests can check the numba replay counter for counter: no lane lists kept
 between passes, no shared helpers with the numba code, sets and lists everywhere. Use it
 on a few hundred warps at most. Each scheme's record (``SchemeInfo.reference_warp`` or,
-for dynamic fetch, ``SchemeInfo.reference``) names the function here that replays it.
+for the dynamic-fetch schemes, ``SchemeInfo.reference``) names the function here that
+replays it.
 """
 
 from __future__ import annotations
 
 import heapq
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -144,53 +145,58 @@ def if_if_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts)
     return issued + rec.charge("finish", everyone)
 
 
+def _spec_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
+    """loop_control, speculative traversal loop, postponed leaves, intersection loop."""
+    issued = rec.charge("loop_control", alive)
+    parked: dict[int, list[int]] = {}
+    while True:
+        t = [lane for lane in alive if _is_trav(w.next(lane))]
+        if not t:
+            break
+        issued += rec.charge("trav_step", t)
+        for o, block in enumerate(_OUTCOME_BLOCK):
+            issued += rec.charge(block, [lane for lane in t if w.next(lane) == o])
+        if len(t) < rec.warp_size:
+            issued += rec.charge("trav_diverged", t)
+        w.advance(t)
+        post = [lane for lane in t if w.next(lane) == LEAF and lane not in parked]
+        issued += rec.charge("postpone", post)
+        for lane in post:
+            ops = [LEAF]
+            w.advance([lane])
+            while _is_tri(w.next(lane)):
+                ops.append(w.next(lane))
+                w.advance([lane])
+            parked[lane] = ops
+        if all(lane in parked for lane in t):
+            break
+    if parked:
+        held = sorted(parked)
+        pw = _Lanes([parked[lane] for lane in held])
+        group = list(range(len(held)))
+        issued += rec.charge("leaf_entry", group)
+        pw.advance(group)
+        issued += _tri_loop(pw, group, rec)
+    while True:
+        leaf = [lane for lane in alive if w.next(lane) == LEAF]
+        if not leaf:
+            break
+        issued += rec.charge("leaf_entry", leaf)
+        w.advance(leaf)
+        issued += _tri_loop(w, leaf, rec)
+    return issued
+
+
 def speculative_group(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
     """One fetched group of persistent speculative while-while, in issue order."""
     w = _Lanes(streams)
     everyone = list(range(len(streams)))
     issued = rec.charge("pool_fetch", everyone) + rec.charge("ray_setup", everyone)
-    parked: dict[int, list[int]] = {}
     while True:
         alive = [lane for lane in everyone if w.next(lane) is not None]
         if not alive:
             break
-        issued += rec.charge("loop_control", alive)
-        while True:
-            t = [lane for lane in alive if _is_trav(w.next(lane))]
-            if not t:
-                break
-            issued += rec.charge("trav_step", t)
-            for o, block in enumerate(_OUTCOME_BLOCK):
-                issued += rec.charge(block, [lane for lane in t if w.next(lane) == o])
-            if len(t) < rec.warp_size:
-                issued += rec.charge("trav_diverged", t)
-            w.advance(t)
-            post = [lane for lane in t if w.next(lane) == LEAF and lane not in parked]
-            issued += rec.charge("postpone", post)
-            for lane in post:
-                ops = [LEAF]
-                w.advance([lane])
-                while _is_tri(w.next(lane)):
-                    ops.append(w.next(lane))
-                    w.advance([lane])
-                parked[lane] = ops
-            if all(lane in parked for lane in t):
-                break
-        if parked:
-            held = sorted(parked)
-            pw = _Lanes([parked[lane] for lane in held])
-            group = list(range(len(held)))
-            issued += rec.charge("leaf_entry", group)
-            pw.advance(group)
-            issued += _tri_loop(pw, group, rec)
-            parked = {}
-        while True:
-            leaf = [lane for lane in alive if w.next(lane) == LEAF]
-            if not leaf:
-                break
-            issued += rec.charge("leaf_entry", leaf)
-            w.advance(leaf)
-            issued += _tri_loop(w, leaf, rec)
+        issued += _spec_iteration(w, alive, rec)
     return issued + rec.charge("finish", everyone)
 
 
@@ -235,16 +241,15 @@ def packet_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts
     return issued + rec.charge("finish", everyone)
 
 
-def dynamic_fetch_launch(
+def _fetch_launch(
     rays: list[list[int]],
-    addrs: list[list[int]],
     rec: RefCounts,
     resident: int,
-    params: dict[str, Any],
+    threshold: int,
+    iteration: Callable[[_Lanes, list[int], RefCounts], int],
 ) -> tuple[list[int], int]:
-    """One dynamic-fetch launch (``params["threshold"]``): each resident warp's
-    instructions and the makespan."""
-    threshold = params["threshold"]
+    """One dynamic-fetch launch whose warps run ``iteration`` between refills: each
+    resident warp's instructions and the makespan."""
     w = rec.warp_size
     slots: list[list[int | None]] = [[None] * w for _ in range(resident)]  # ray per lane
     cursors = [[0] * w for _ in range(resident)]
@@ -275,13 +280,36 @@ def dynamic_fetch_launch(
             lane for lane in range(w) if ray[lane] is not None and lanes.next(lane) is not None
         ]
         if alive:
-            issued += _ww_iteration(lanes, alive, rec)
+            issued += iteration(lanes, alive, rec)
         done = [lane for lane in range(w) if ray[lane] is not None and lanes.next(lane) is None]
         issued += rec.charge("finish", done)
         for lane in done:
             ray[lane] = None
         heapq.heappush(heap, (issued_so_far + issued, wid))
     return totals, span
+
+
+def dynamic_fetch_launch(
+    rays: list[list[int]],
+    addrs: list[list[int]],
+    rec: RefCounts,
+    resident: int,
+    params: dict[str, Any],
+) -> tuple[list[int], int]:
+    """One dynamic-fetch launch (``params["threshold"]``), while-while between refills."""
+    return _fetch_launch(rays, rec, resident, params["threshold"], _ww_iteration)
+
+
+def speculative_dynamic_fetch_launch(
+    rays: list[list[int]],
+    addrs: list[list[int]],
+    rec: RefCounts,
+    resident: int,
+    params: dict[str, Any],
+) -> tuple[list[int], int]:
+    """One speculative dynamic-fetch launch (``params["threshold"]``): speculative
+    while-while between refills."""
+    return _fetch_launch(rays, rec, resident, params["threshold"], _spec_iteration)
 
 
 def reference_replay(

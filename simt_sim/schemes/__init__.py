@@ -22,6 +22,7 @@ from simt_sim.schemes import (
     packet,
     persistent_speculative_while_while,
     persistent_while_while,
+    speculative_dynamic_fetch,
     wavefront,
     while_while,
 )
@@ -34,6 +35,7 @@ MODULES = (
     persistent_while_while,
     persistent_speculative_while_while,
     dynamic_fetch,
+    speculative_dynamic_fetch,
     packet,
     megakernel,
     wavefront,

@@ -29,6 +29,11 @@ result is that simulation's, bit for bit, at any thread count.
 
 Each warp keeps the mask of lanes holding a ray; after an outer iteration every lane
 still holding one is at a TRAV op, so only refilled lanes need classifying.
+
+:func:`fetch_counts` runs either outer iteration: while-while's (this scheme) or the
+speculative one (speculative dynamic fetch, the addendum's Kepler kernel). A speculative
+iteration's first traversal loop also runs at least as many steps as its longest first
+traversal run, so the same bound on a refill point holds.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ from numba import njit, prange
 
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.reference import dynamic_fetch_launch
+from simt_sim.schemes.persistent_speculative_while_while import SCRATCH_ROWS, spec_outer_step
 from simt_sim.schemes.while_while import WINDOW, classify, outer_step
 from simt_sim.simt.engine import (
     FINISH,
@@ -66,12 +72,14 @@ _NEVER = np.iinfo(np.int64).max
 
 
 @njit(cache=True, nogil=True)
-def _iterate(op, cur, end, held, fresh, issued, t, threshold, tail, acc, costs, cnt, hist):
+def _iterate(op, cur, end, held, fresh, issued, t, threshold, tail, speculative, acc, post,
+             scratch, costs, cnt, hist):  # fmt: skip
     """A warp's iterations from the one starting at time ``t``, whose refill (lanes
     ``fresh``, costing ``issued``) is done, up to the start of the next iteration with
     fewer than ``threshold`` lanes holding a ray (``tail``: with none, the pool being
     empty). ``held`` holds a ray; all but the fresh lanes are at a TRAV op. Returns that
-    start time and the lanes then holding a ray.
+    start time and the lanes then holding a ray. ``speculative`` chooses the outer
+    iteration (``post`` and ``scratch`` are its scratch).
     """
     trav = held & ~fresh
     leaf = np.int64(0)
@@ -83,7 +91,12 @@ def _iterate(op, cur, end, held, fresh, issued, t, threshold, tail, acc, costs, 
     while True:
         alive = np.int64(0)
         if trav | leaf:
-            o_issued, alive = outer_step(op, cur, end, trav, leaf, acc, costs, cnt, hist)
+            if speculative:
+                o_issued, alive = spec_outer_step(
+                    op, cur, end, trav, leaf, scratch, acc, post, costs, cnt, hist
+                )
+            else:
+                o_issued, alive = outer_step(op, cur, end, trav, leaf, acc, costs, cnt, hist)
             issued += o_issued
         issued += charge(cnt, hist, costs, FINISH, popcount(held & ~alive))
         t += issued
@@ -96,7 +109,7 @@ def _iterate(op, cur, end, held, fresh, issued, t, threshold, tail, acc, costs, 
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _replay(offsets, op, costs, warp_size, resident_warps, threshold, warp_totals):
+def _replay(offsets, op, costs, warp_size, resident_warps, threshold, speculative, warp_totals):
     """One launch: counters per slot, each warp's instructions added to ``warp_totals``,
     and the makespan (the last retirement)."""
     n_rays = offsets.shape[0] - 1
@@ -109,6 +122,8 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, warp_total
     cnt = np.zeros((N_SLOTS, 2, N_BLOCKS), np.int64)
     hist = np.zeros((N_SLOTS, N_BLOCKS, warp_size + 1), np.int64)
     acc = np.zeros((N_SLOTS, WINDOW), np.int64)
+    post = np.zeros((N_SLOTS, WINDOW), np.int64)
+    scratch = np.zeros((N_SLOTS, SCRATCH_ROWS, warp_size), np.int64)
     cur = np.zeros((resident_warps, warp_size), np.int64)
     end = np.zeros((resident_warps, warp_size), np.int64)
     held = np.zeros(resident_warps, np.int64)  # lanes holding a ray
@@ -169,7 +184,7 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, warp_total
                 w = pending[i]
                 t[w], held[w] = _iterate(
                     op, cur[w], end[w], held[w], fresh[w], pend[w], t[w], threshold, False,
-                    acc[s], costs, cnt[s], hist[s],
+                    speculative, acc[s], post[s], scratch[s], costs, cnt[s], hist[s],
                 )  # fmt: skip
         for i in range(n_pending):
             key[size] = t[pending[i]]
@@ -184,8 +199,8 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, warp_total
         for i in range(n_done * s // N_SLOTS, n_done * (s + 1) // N_SLOTS):
             w = done[i]
             t[w], held[w] = _iterate(
-                op, cur[w], end[w], held[w], 0, 0, t[w], threshold, True,
-                acc[s], costs, cnt[s], hist[s],
+                op, cur[w], end[w], held[w], 0, 0, t[w], threshold, True, speculative,
+                acc[s], post[s], scratch[s], costs, cnt[s], hist[s],
             )  # fmt: skip
     span = np.int64(0)
     for w in range(resident_warps):
@@ -194,11 +209,11 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, warp_total
     return cnt, hist, span
 
 
-def replay(
-    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, p: ReplayParams
+def fetch_counts(
+    offsets: np.ndarray, op: np.ndarray, costs: np.ndarray, p: ReplayParams, speculative: bool
 ) -> Counts:
-    """Replay one launch: refill points in event order, warps' iterations between them in
-    parallel (see the module docstring)."""
+    """One launch's Counts: refill points in event order, warps' iterations between them in
+    parallel (see the module docstring), each a while-while or a ``speculative`` one."""
     threshold = p.scheme["threshold"]
     if not isinstance(threshold, int | np.integer) or threshold < 1:
         raise SimtSimError(
@@ -206,9 +221,16 @@ def replay(
         )
     totals = np.zeros(p.resident_warps, np.int64)
     cnt, hist, span = _replay(
-        offsets, op, costs, p.warp_size, p.resident_warps, int(threshold), totals
+        offsets, op, costs, p.warp_size, p.resident_warps, int(threshold), speculative, totals
     )
     return Counts(cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0), totals, int(span))
+
+
+def replay(
+    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, p: ReplayParams
+) -> Counts:
+    """Replay one launch (see the module docstring)."""
+    return fetch_counts(offsets, op, costs, p, speculative=False)
 
 
 SCHEME = SchemeInfo(

@@ -16,6 +16,9 @@ group, the outer loop body mirrors the speculative kernel of Aila & Laine:
   the triangle loop in lockstep); then, as in while-while's ``while node is leaf``, lanes
   whose next op is a LEAF process it too, leaf after leaf.
 
+One outer iteration is :func:`spec_outer_step`, shared with speculative dynamic fetch,
+which runs the same kernel body between refills.
+
 Approximation: each ray's ops are replayed from its recorded (non-speculative) stream, so
 op counts per ray are preserved; the real kernel may also visit nodes that a stale tmax
 no longer culls. That error is measured against an exact lockstep executor elsewhere.
@@ -64,6 +67,9 @@ from simt_sim.simt.engine import (
 )
 from simt_sim.simt.scheme import TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
 from simt_sim.types.optrace import LEAF, TRAV_BOTH
+
+#: rows of the lane scratch of :func:`spec_outer_step`: park, park_end, pcur, first
+SCRATCH_ROWS = 4
 
 
 @njit(cache=True, nogil=True)
@@ -161,8 +167,38 @@ def _spec_trav_loop(op, cur, end, park, park_end, trav, acc, post, first, costs,
 
 
 @njit(cache=True, nogil=True)
-def _group(offsets, op, r0, n, cur, end, park, park_end, pcur, acc, post, first, costs, cnt,
-           hist):  # fmt: skip
+def spec_outer_step(op, cur, end, trav, leaf, scratch, acc, post, costs, cnt, hist):
+    """One outer-loop iteration of the lanes at a TRAV (mask ``trav``) or a LEAF (``leaf``):
+    the speculative traversal loop, the postponed leaves, then while-while's intersection
+    loop. Returns the instructions issued and the mask of lanes with ops left (all at a
+    TRAV op), as while-while's :func:`outer_step` does.
+
+    ``scratch`` is int64 (SCRATCH_ROWS, warp_size), the lanes' park, park_end, pcur and
+    first; ``acc`` and ``post`` are the traversal loop's window counters (zero on entry and
+    on return).
+    """
+    park, park_end, pcur, first = scratch[0], scratch[1], scratch[2], scratch[3]
+    issued = charge(cnt, hist, costs, LOOP_CONTROL, popcount(trav | leaf))
+    t_issued, parked, t_leaf, trav = _spec_trav_loop(
+        op, cur, end, park, park_end, trav, acc, post, first, costs, cnt, hist
+    )
+    issued += t_issued
+    if parked:
+        issued += charge(cnt, hist, costs, LEAF_ENTRY, popcount(parked))
+        tri = np.int64(0)
+        m = parked
+        while m:
+            lane = lowest_lane(m)
+            m &= m - 1
+            pcur[lane] = park[lane] + 1
+            tri |= np.int64(pcur[lane] < park_end[lane]) << lane
+        issued += tri_loop(op, pcur, park_end, tri, acc, costs, cnt, hist)[0]
+    i_issued, i_trav = isect_loop(op, cur, end, leaf | t_leaf, acc, costs, cnt, hist)
+    return issued + i_issued, trav | i_trav
+
+
+@njit(cache=True, nogil=True)
+def _group(offsets, op, r0, n, cur, end, scratch, acc, post, costs, cnt, hist):
     trav = np.int64(0)
     leaf = np.int64(0)
     for lane in range(n):
@@ -172,24 +208,9 @@ def _group(offsets, op, r0, n, cur, end, park, park_end, pcur, acc, post, first,
     issued = charge(cnt, hist, costs, POOL_FETCH, n)
     issued += charge(cnt, hist, costs, RAY_SETUP, n)
     while trav | leaf:
-        issued += charge(cnt, hist, costs, LOOP_CONTROL, popcount(trav | leaf))
-        t_issued, parked, t_leaf, trav = _spec_trav_loop(
-            op, cur, end, park, park_end, trav, acc, post, first, costs, cnt, hist
-        )
-        issued += t_issued
-        if parked:
-            issued += charge(cnt, hist, costs, LEAF_ENTRY, popcount(parked))
-            tri = np.int64(0)
-            m = parked
-            while m:
-                lane = lowest_lane(m)
-                m &= m - 1
-                pcur[lane] = park[lane] + 1
-                tri |= np.int64(pcur[lane] < park_end[lane]) << lane
-            issued += tri_loop(op, pcur, park_end, tri, acc, costs, cnt, hist)[0]
-        i_issued, i_trav = isect_loop(op, cur, end, leaf | t_leaf, acc, costs, cnt, hist)
-        issued += i_issued
-        trav |= i_trav
+        o_issued, trav = spec_outer_step(op, cur, end, trav, leaf, scratch, acc, post, costs,
+                                         cnt, hist)  # fmt: skip
+        issued += o_issued
         leaf = np.int64(0)
     issued += charge(cnt, hist, costs, FINISH, n)
     return issued
@@ -208,20 +229,16 @@ def _replay(offsets, op, costs, warp_size, per_warp):
     for c in prange(nc):
         cur = np.empty(warp_size, np.int64)
         end = np.empty(warp_size, np.int64)
-        park = np.empty(warp_size, np.int64)
-        park_end = np.empty(warp_size, np.int64)
-        pcur = np.empty(warp_size, np.int64)
+        scratch = np.zeros((SCRATCH_ROWS, warp_size), np.int64)
         acc = np.zeros(WINDOW, np.int64)
         post = np.zeros(WINDOW, np.int64)
-        first = np.zeros(warp_size, np.int64)
         for g in range(bounds[c], bounds[c + 1]):
             r0 = g * warp_size
             n = min(warp_size, n_rays - r0)
             before = lanes_so_far(per_warp, cnt[c], costs)
             group_cost[g] = _group(
-                offsets, op, r0, n, cur, end, park, park_end, pcur, acc, post, first, costs,
-                cnt[c], hist[c],
-            )  # fmt: skip
+                offsets, op, r0, n, cur, end, scratch, acc, post, costs, cnt[c], hist[c]
+            )
             record_warp(per_warp, g, group_cost[g], before, cnt[c], costs)
     return cnt, hist, group_cost
 

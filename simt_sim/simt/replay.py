@@ -5,10 +5,10 @@ the integer counters, so memory stays bounded by one batch (or one launch). Sche
 whose warps are independent (while-while, if-if, packet) give results independent of how
 the rays were split into batches; persistent schemes replay launch by launch
 (``launch_size`` rays, by default each batch is one launch): their totals are still
-split-independent (fetched groups are independent) except for dynamic fetch, whose
-refills cross group boundaries, so its results depend on the launch size (the paper used
-launches of 2^20 rays). :func:`simulate_paths` replays a PathTrace under a path scheme
-(megakernel, wavefront), :func:`simulate_queues` a PathTrace's queues under a trace
+split-independent (fetched groups are independent) except for the dynamic-fetch schemes,
+whose refills cross group boundaries, so their results depend on the launch size (the
+paper used launches of 2^20 rays). :func:`simulate_paths` replays a PathTrace under a path
+scheme (megakernel, wavefront), :func:`simulate_queues` a PathTrace's queues under a trace
 scheme. Schemes come as :class:`~simt_sim.simt.scheme.SchemeInfo` records
 (``simt_sim.schemes.get_scheme(name)``).
 """
@@ -117,12 +117,13 @@ def simulate_traces(
         Name recorded in the result.
     launch_size : int, optional
         Persistent schemes: rays per launch (a multiple of the warp size); default: each
-        batch is one launch. Only dynamic fetch's counters depend on it.
+        batch is one launch. Only the dynamic-fetch schemes' counters depend on it.
     resident_warps : int, optional
         Persistent schemes: override the resident warps (default: SMs x the kernel's
         occupancy, :func:`~simt_sim.simt.occupancy.kernel_occupancy`).
     **params
-        The scheme's own parameters (``scheme.params``: dynamic fetch's ``threshold``).
+        The scheme's own parameters (``scheme.params``: the dynamic-fetch schemes'
+        ``threshold``).
     """
     _check_kind(scheme, TRACE, "simulate_traces")
     check_ir(ir, scheme.kernel, scheme.kernels[scheme.kernel])

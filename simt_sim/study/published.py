@@ -32,14 +32,16 @@ GPU_IDS = {
 
 #: measured kernels of the later-GPU table -> the scheme of the same class. The 2012
 #: addendum's Fermi kernel is speculative while-while (persistent or not, the instructions
-#: per ray are the speculative ones); Guthe 2014 is dynamic fetch with a shallower tree,
-#: unrolled loops and batched loads.
+#: per ray are the speculative ones); its Kepler kernel ("dynamic_fetch", also the
+#: Aila-Laine kernel Guthe measured on Titan) refills idle lanes around speculative
+#: traversal; Guthe 2014 is that kernel with a shallower tree, unrolled loops and batched
+#: loads.
 SCHEME_OF = {
     "persistent_speculative_while_while": "persistent_speculative_while_while",
     "speculative_while_while": "persistent_speculative_while_while",
-    "dynamic_fetch": "dynamic_fetch",
-    "dynamic_fetch (Aila-Laine 2009 kernels)": "dynamic_fetch",
-    "Guthe 2014 (shallower hierarchy; unrolled loops; batched loads)": "dynamic_fetch",
+    "dynamic_fetch": "speculative_dynamic_fetch",
+    "dynamic_fetch (Aila-Laine 2009 kernels)": "speculative_dynamic_fetch",
+    "Guthe 2014 (shallower hierarchy; unrolled loops; batched loads)": "speculative_dynamic_fetch",
 }
 
 RAY_TYPES = ("primary", "ao", "diffuse")

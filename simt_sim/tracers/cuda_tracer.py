@@ -13,7 +13,7 @@ its kernel follows (``SchemeInfo.launch``, a :class:`~kernels_ir.kernel_ir.Kerne
 - by default (while-while, if-if): one thread per ray, any grid covering the rays;
 - ``shared_stack`` (packet): block size a multiple of 32 and ``(blockDim.x / 32) * 64 * 4``
   bytes of dynamic shared memory (one 64-entry stack per warp);
-- ``persistent`` (persistent while-while, speculative, dynamic fetch): block size a
+- ``persistent`` (persistent while-while, speculative, both dynamic fetches): block size a
   multiple of 32, only as many warps as the GPU keeps resident (they fetch rays from a
   pool), and the pool counter set to 0 before every launch.
 """

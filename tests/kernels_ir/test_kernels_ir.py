@@ -284,12 +284,15 @@ def test_committed_ir_has_required_blocks_and_is_current(kernel: str) -> None:
         assert int(ir.notes["unattributed_instructions"]) <= max(25, total // 10)
 
 
-def test_trav_diverged_is_the_traversal_vote_fallback() -> None:
+@pytest.mark.parametrize(
+    "speculative", ["persistent_speculative_while_while", "speculative_dynamic_fetch"]
+)
+def test_trav_diverged_is_the_traversal_vote_fallback(speculative: str) -> None:
     # sm_75: the speculative step's __any_sync has a BRA.DIV fallback; sm_90 inlines it
-    ir75 = load("persistent_speculative_while_while", "sm_75")
+    ir75 = load(speculative, "sm_75")
     assert ir75.cost("trav_diverged") > 0
     assert ir75.notes["divergent_fallback_blocks"].count("trav_step=") == 1
-    assert load("persistent_speculative_while_while", "sm_90").cost("trav_diverged") == 0
+    assert load(speculative, "sm_90").cost("trav_diverged") == 0
     for arch in ARCHS:  # no warp vote in these traversal steps
         for kernel in ("while_while", "if_if", "persistent_while_while"):
             assert load(kernel, arch).cost("trav_diverged") == 0

@@ -29,6 +29,7 @@ from simt_sim.types.raybatch import RayBatch
 #: the schemes whose kernel body the executor runs
 LOCKSTEP_SCHEMES = tuple(n for n, s in SCHEMES.items() if s.lockstep is not None)
 EXACT_SCHEMES = ("while_while", "if_if", "persistent_while_while")
+SPECULATIVE_SCHEMES = ("persistent_speculative_while_while", "speculative_dynamic_fetch")
 GPU = replace(get_gpu("gtx285"), sms=2, resident_warps_per_sm=2)
 
 
@@ -122,9 +123,9 @@ def test_hits_equal_tracer(bvh, scheme, query):
 
 
 @pytest.mark.parametrize("query", ["closest", "any"])
-def test_speculation_visits_at_least_the_recorded_ops(bvh, query):
+@pytest.mark.parametrize("scheme", SPECULATIVE_SCHEMES)
+def test_speculation_visits_at_least_the_recorded_ops(bvh, scheme, query):
     """A stale tmax only culls less: per ray, at least the recorded TRAV/LEAF/TRI ops."""
-    scheme = "persistent_speculative_while_while"
     rays = make_rays(320, query, seed=3)
     tr, rep = replayed(bvh, rays, scheme)
     ex = execute(bvh, rays, get_scheme(scheme), ir_for(scheme), GPU)
@@ -135,9 +136,10 @@ def test_speculation_visits_at_least_the_recorded_ops(bvh, query):
     assert rep.executions["postpone"] > 0 and ex.result.executions["postpone"] > 0
 
 
-def test_speculation_on_one_lane_equals_replay(bvh):
-    """One lane never keeps traversing past its first leaf: the replay is exact there."""
-    scheme = "persistent_speculative_while_while"
+@pytest.mark.parametrize("scheme", SPECULATIVE_SCHEMES)
+def test_speculation_on_one_lane_equals_replay(bvh, scheme):
+    """One lane never keeps traversing past its first leaf: the replay is exact there, and
+    so is the order in which dynamic fetch's warps take their rays."""
     rays = make_rays(96, "closest", seed=4)
     one = replace(GPU, warp_size=1)
     _, rep = replayed(bvh, rays, scheme, one)
@@ -215,7 +217,7 @@ def test_packet_order_vote_counts_the_whole_warp(bvh):
 
 
 @pytest.mark.parametrize("query", ["closest", "any"])
-@pytest.mark.parametrize("scheme", ["persistent_speculative_while_while", "packet"])
+@pytest.mark.parametrize("scheme", [*SPECULATIVE_SCHEMES, "packet"])
 def test_approximation_error_is_bounded(bvh, scheme, query):
     """The replay's approximations move the totals, but by a bounded amount."""
     rays = make_rays(320, query, seed=8)
@@ -224,7 +226,7 @@ def test_approximation_error_is_bounded(bvh, scheme, query):
     for m in ("warp_instructions", "simd_efficiency", "mrays_upper"):
         assert abs(err[f"{m}_rel_err"]) < 0.5, (m, err)
     assert err["warp_instructions_exact"] > 0
-    if scheme == "persistent_speculative_while_while":
+    if scheme in SPECULATIVE_SCHEMES:
         # extra visits with a stale tmax: the exact kernel works more than the replay says
         assert err["mean_trav_exact"] >= err["mean_trav_replay"]
         assert err["warp_instructions_rel_err"] < 0

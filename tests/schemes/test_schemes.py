@@ -98,6 +98,11 @@ CASE_SPECULATIVE = [
     [TRAV_ONE, TRAV_ONE, TRAV_ONE, LEAF, TRI_MISS],
 ]
 CASE_DYNAMIC = [[TRAV_NONE], [TRAV_ONE, TRAV_NONE], [TRAV_NONE]]
+CASE_SPECULATIVE_DYNAMIC = [
+    [TRAV_ONE, LEAF, TRI_MISS, TRAV_NONE],
+    [TRAV_ONE, TRAV_ONE, LEAF, TRI_HIT],
+    [TRAV_NONE],
+]
 CASE_PACKET = [[TRAV_BOTH, TRAV_ONE, LEAF, TRI_MISS, TRI_HIT], [TRAV_ONE, TRAV_NONE]]
 PACKET_ADDRS = [[1, 2, 10, 10, 13], [1, 3]]  # LEAF 10 and TRI 10 are different things
 
@@ -129,6 +134,11 @@ BY_HAND = [
     ("dynamic_fetch", CASE_DYNAMIC, None, 2, 1, {"threshold": 2}, {
         "pool_fetch": (2, 3), "ray_setup": (2, 3), "loop_control": (2, 3), "trav_step": (3, 4),
         "trav_none": (3, 3), "trav_one": (1, 1), "finish": (2, 3)}),
+    # both lanes postpone their leaf and step on; the refilled ray steps alone (diverged)
+    ("speculative_dynamic_fetch", CASE_SPECULATIVE_DYNAMIC, None, 2, 1, {"threshold": 2}, {
+        "pool_fetch": (2, 3), "ray_setup": (2, 3), "loop_control": (2, 3), "trav_step": (3, 5),
+        "trav_none": (2, 2), "trav_one": (2, 3), "trav_diverged": (1, 1), "postpone": (2, 2),
+        "leaf_entry": (1, 2), "tri_test": (1, 2), "tri_hit": (1, 1), "finish": (2, 3)}),
     ("packet", CASE_PACKET, PACKET_ADDRS, 2, 4, {}, {
         "ray_setup": (1, 2), "loop_control": (4, 8), "trav_step": (3, 4), "trav_none": (1, 1),
         "trav_one": (1, 1), "trav_both": (1, 2), "leaf_entry": (1, 1), "tri_test": (2, 2),
@@ -178,12 +188,13 @@ def test_numba_replay_matches_reference(scheme: str, warp_size: int, any_hit: bo
         assert r.makespan == ref.makespan
 
 
+@pytest.mark.parametrize("scheme", ["dynamic_fetch", "speculative_dynamic_fetch"])
 @pytest.mark.parametrize(
     ("warp_size", "resident", "threshold", "scale"),
     [(8, 3, 5, 1), (8, 40, 20, 1), (4, 2, 9, 1), (8, 5, 3, 0), (1, 7, 1, 1)],
 )
 def test_dynamic_fetch_matches_reference(
-    warp_size: int, resident: int, threshold: int, scale: int
+    scheme: str, warp_size: int, resident: int, threshold: int, scale: int
 ) -> None:
     """The parallel event replay is the one-event-at-a-time simulation: few and many
     resident warps (more than the rays fill), thresholds above the warp size, zero costs
@@ -191,16 +202,16 @@ def test_dynamic_fetch_matches_reference(
     rng = np.random.default_rng(warp_size * 100 + resident)
     ops, addrs = random_streams(rng, 90 * warp_size + 3)
     costs = {b: c * scale for b, c in COSTS.items()}
-    ir = KernelIR("dynamic_fetch", "sm_75", {b: {"int": c} for b, c in costs.items()})
+    ir = KernelIR(scheme, "sm_75", {b: {"int": c} for b, c in costs.items()})
     r = simulate_traces(
         [trace_from_lists(ops, addrs)],
-        get_scheme("dynamic_fetch"),
+        get_scheme(scheme),
         ir,
         gpu_for(warp_size, resident),
         threshold=threshold,
     )
     ref = reference_replay(
-        ops, addrs, get_scheme("dynamic_fetch"), costs, warp_size, resident_warps=resident,
+        ops, addrs, get_scheme(scheme), costs, warp_size, resident_warps=resident,
         threshold=threshold,
     )  # fmt: skip
     assert counters(r) == {b: (ref.executions[b], ref.active[b], ref.hist[b]) for b in BLOCKS}
@@ -351,10 +362,17 @@ def test_divergent_rays_lose_efficiency_within_bounds(scheme: str) -> None:
     assert r.active_lanes_hist[0] == 0
 
 
-def test_speculation_keeps_lanes_traversing() -> None:
+@pytest.mark.parametrize(
+    ("plain_scheme", "spec_scheme"),
+    [
+        ("persistent_while_while", "persistent_speculative_while_while"),
+        ("dynamic_fetch", "speculative_dynamic_fetch"),
+    ],
+)
+def test_speculation_keeps_lanes_traversing(plain_scheme: str, spec_scheme: str) -> None:
     """Postponing a leaf fills the traversal loop: speculative traversal is more efficient."""
     trace = synthetic_trace(32 * 200, seed=11, coherence=32, divergence=0.3)
-    plain = run(trace, "persistent_while_while", 32)
-    spec = run(trace, "persistent_speculative_while_while", 32)
+    plain = run(trace, plain_scheme, 32)
+    spec = run(trace, spec_scheme, 32)
     assert spec.simd_efficiency_traversal > plain.simd_efficiency_traversal
     assert spec.executions["postpone"] > 0

@@ -18,6 +18,8 @@ from simt_sim.simt.synth import synthetic_trace, trace_from_lists
 from simt_sim.types.optrace import LEAF, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS, OpTrace
 
 TRACE_SCHEMES = names("trace")
+#: schemes whose idle lanes refill from the pool: their counts follow the launch and costs
+REFILLING = tuple(s for s in TRACE_SCHEMES if "threshold" in get_scheme(s).params)
 COSTS = {b: i + 1 for i, b in enumerate(BLOCKS)}
 INDEPENDENT = ("while_while", "if_if", "packet")
 
@@ -138,7 +140,7 @@ def test_results_do_not_depend_on_batch_split(scheme: str) -> None:
     if whole.warp_totals is not None:
         assert np.array_equal(whole.warp_totals, parts.warp_totals)
         assert whole.makespan == parts.makespan
-    if scheme != "dynamic_fetch":  # launches cut elsewhere: only dynamic fetch's counts move
+    if scheme not in REFILLING:  # launches cut elsewhere: only refills' counts move
         per_batch = simulate_traces(
             split(trace, [32 * 5, 32 * 65 + 3]), get_scheme(scheme), ir_for(scheme), gpu_for()
         )
@@ -167,11 +169,12 @@ def test_results_do_not_depend_on_thread_count(scheme: str) -> None:
         assert np.array_equal(one.warp_totals, two.warp_totals)
 
 
-def test_dynamic_fetch_depends_on_launch_size() -> None:
+@pytest.mark.parametrize("scheme", REFILLING)
+def test_dynamic_fetch_depends_on_launch_size(scheme: str) -> None:
     trace = synthetic_trace(32 * 64, seed=12)
-    ir = ir_for("dynamic_fetch")
-    big = simulate_traces([trace], get_scheme("dynamic_fetch"), ir, gpu_for(), launch_size=32 * 64)
-    small = simulate_traces([trace], get_scheme("dynamic_fetch"), ir, gpu_for(), launch_size=32 * 2)
+    ir = ir_for(scheme)
+    big = simulate_traces([trace], get_scheme(scheme), ir, gpu_for(), launch_size=32 * 64)
+    small = simulate_traces([trace], get_scheme(scheme), ir, gpu_for(), launch_size=32 * 2)
     assert big.model_card["launches"] == 1 and small.model_card["launches"] == 32
     assert not np.array_equal(big.counts.hist, small.counts.hist)
 
@@ -190,7 +193,7 @@ def test_persistent_schedule_is_ideal() -> None:
 
 
 # ---- merge and recost ------------------------------------------------------------------------
-@pytest.mark.parametrize("scheme", ["while_while", "persistent_while_while", "dynamic_fetch"])
+@pytest.mark.parametrize("scheme", ["while_while", "persistent_while_while", *REFILLING])
 def test_merge_sums_counters(scheme: str) -> None:
     a, b = synthetic_trace(32 * 20, seed=1), synthetic_trace(32 * 30, seed=2)
     ra = simulate_traces([a], get_scheme(scheme), ir_for(scheme), gpu_for(), scene="s")
@@ -220,7 +223,7 @@ def test_merge_refuses_unlike_results() -> None:
         merge([])
 
 
-@pytest.mark.parametrize("scheme", [s for s in TRACE_SCHEMES if s != "dynamic_fetch"])
+@pytest.mark.parametrize("scheme", [s for s in TRACE_SCHEMES if get_scheme(s).recostable])
 def test_recost_equals_replay_with_the_other_ir(scheme: str) -> None:
     trace = synthetic_trace(32 * 40, seed=3)
     other = ir_for(scheme, scale=3, arch="sm_90")
@@ -286,15 +289,13 @@ def test_if_if_warp_where_no_lane_traverses_still_pays_the_guards() -> None:
     assert guards >= 5
 
 
-def test_dynamic_fetch_refuses_recost() -> None:
+@pytest.mark.parametrize("scheme", REFILLING)
+def test_dynamic_fetch_refuses_recost(scheme: str) -> None:
     r = simulate_traces(
-        [synthetic_trace(64, seed=1)],
-        get_scheme("dynamic_fetch"),
-        ir_for("dynamic_fetch"),
-        gpu_for(),
+        [synthetic_trace(64, seed=1)], get_scheme(scheme), ir_for(scheme), gpu_for()
     )
     with pytest.raises(SimtSimError, match="cannot be re-costed"):
-        r.recost(ir_for("dynamic_fetch", scale=2))
+        r.recost(ir_for(scheme, scale=2))
 
 
 # ---- bad input ---------------------------------------------------------------------------

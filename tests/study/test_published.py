@@ -30,7 +30,7 @@ def test_every_published_measurement_is_read(measured: pd.DataFrame) -> None:
     assert len(measured) == 3 * (5 + 1 + 1 + 2)
     assert set(measured["gpu"]) == {"gtx285", "gtx480", "gtx680", "titan"}
     row = measured.set_index(["gpu", "kernel", "ray_type"]).loc[("gtx680", "dynamic_fetch", "ao")]
-    assert row["measured"] == 518.2 and row["scheme"] == "dynamic_fetch"
+    assert row["measured"] == 518.2 and row["scheme"] == "speculative_dynamic_fetch"
 
 
 def test_bound_check_marks_broken_promises_and_the_best_kernel() -> None:
