@@ -51,7 +51,9 @@ def gpu_table() -> str:
 
 
 def bound_table(check: pd.DataFrame, watertight: pd.DataFrame) -> str:
-    out = check[["gpu", "kernel", "ray_type", "measured", "bound", "limit", "ratio", "best"]]
+    out = check[
+        ["gpu", "kernel", "scheme", "ray_type", "measured", "bound", "limit", "ratio", "best"]
+    ]
     out = out.assign(
         holds=check["holds"].map({True: "yes", False: "**no**"}),
         best=check["best"].map({True: "best", False: ""}),
