@@ -86,17 +86,18 @@ def _tri_loop(w: _Lanes, group: list[int], rec: RefCounts) -> int:
         w.advance(x)
 
 
-def _ww_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
-    """loop_control, traversal loop, intersection loop of while-while."""
-    issued = rec.charge("loop_control", alive)
-    while True:
-        t = [lane for lane in alive if _is_trav(w.next(lane))]
-        if not t:
-            break
-        issued += rec.charge("trav_step", t)
-        for o, block in enumerate(_OUTCOME_BLOCK):
-            issued += rec.charge(block, [lane for lane in t if w.next(lane) == o])
-        w.advance(t)
+def _trav_step(w: _Lanes, t: list[int], rec: RefCounts) -> int:
+    """``trav_step`` for the lanes ``t`` at interior nodes, and each one's outcome block."""
+    issued = rec.charge("trav_step", t)
+    for o, block in enumerate(_OUTCOME_BLOCK):
+        issued += rec.charge(block, [lane for lane in t if w.next(lane) == o])
+    return issued
+
+
+def _leaf_loop(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
+    """The intersection loop: ``leaf_entry`` and the triangle loop while a lane stands at
+    a leaf."""
+    issued = 0
     while True:
         leaf = [lane for lane in alive if w.next(lane) == LEAF]
         if not leaf:
@@ -105,6 +106,18 @@ def _ww_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
         w.advance(leaf)
         issued += _tri_loop(w, leaf, rec)
     return issued
+
+
+def _ww_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
+    """loop_control, traversal loop, intersection loop of while-while."""
+    issued = rec.charge("loop_control", alive)
+    while True:
+        t = [lane for lane in alive if _is_trav(w.next(lane))]
+        if not t:
+            break
+        issued += _trav_step(w, t, rec)
+        w.advance(t)
+    return issued + _leaf_loop(w, alive, rec)
 
 
 def while_while_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
@@ -131,9 +144,7 @@ def if_if_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts)
             break
         issued += rec.charge("loop_control", alive)
         t = [lane for lane in alive if _is_trav(w.next(lane))]
-        issued += rec.charge("trav_step", t)
-        for o, block in enumerate(_OUTCOME_BLOCK):
-            issued += rec.charge(block, [lane for lane in t if w.next(lane) == o])
+        issued += _trav_step(w, t, rec)
         w.advance(t)
         leaf = [lane for lane in alive if w.next(lane) == LEAF]
         issued += rec.charge("leaf_entry", leaf)
@@ -153,9 +164,7 @@ def _spec_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
         t = [lane for lane in alive if _is_trav(w.next(lane))]
         if not t:
             break
-        issued += rec.charge("trav_step", t)
-        for o, block in enumerate(_OUTCOME_BLOCK):
-            issued += rec.charge(block, [lane for lane in t if w.next(lane) == o])
+        issued += _trav_step(w, t, rec)
         if len(t) < rec.warp_size:
             issued += rec.charge("trav_diverged", t)
         w.advance(t)
@@ -177,14 +186,7 @@ def _spec_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
         issued += rec.charge("leaf_entry", group)
         pw.advance(group)
         issued += _tri_loop(pw, group, rec)
-    while True:
-        leaf = [lane for lane in alive if w.next(lane) == LEAF]
-        if not leaf:
-            break
-        issued += rec.charge("leaf_entry", leaf)
-        w.advance(leaf)
-        issued += _tri_loop(w, leaf, rec)
-    return issued
+    return issued + _leaf_loop(w, alive, rec)
 
 
 def speculative_group(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
