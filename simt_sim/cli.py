@@ -36,6 +36,7 @@ from simt_sim.report.tables import (
 from simt_sim.scene.load import DEFAULT_SCENE
 from simt_sim.simt.footprint import MODES as MEMORY_MODES
 from simt_sim.simt.gpus import DEFAULT_GPU
+from simt_sim.types.optrace import LAYOUTS
 
 
 class _Parser(argparse.ArgumentParser):
@@ -106,6 +107,13 @@ def _add_workload_args(
         help="BVH builder: largest leaf, in triangles (default: %(default)s)",
     )
     p.add_argument(
+        "--bvh",
+        choices=LAYOUTS,
+        default="bvh2",
+        help="BVH layout: bvh2 (binary, Aila-Laine), bvh4 / bvh8 (the binary tree collapsed to "
+        "4 / 8 children per node); cwbvh is not built yet (default: %(default)s)",
+    )
+    p.add_argument(
         "--node-cost",
         type=float,
         default=1.0,
@@ -168,6 +176,7 @@ def _workload(args: argparse.Namespace, ray_type: str):
         node_cost=args.node_cost,
         up=_up(args),
         camera_file=args.camera_file,
+        layout=args.bvh,
     )
 
 
@@ -218,6 +227,7 @@ def _check_trace_size(first: Any, rays: int, out: str, quiet: bool) -> None:
 def cmd_trace(args: argparse.Namespace) -> int:
     """Record every ray's op sequence and save it; print the summary."""
     from simt_sim import progress
+    from simt_sim.bvh.layouts import tree_card
     from simt_sim.trace.record import record
     from simt_sim.trace.tracefile import save_trace
     from simt_sim.types.optrace import OpTrace
@@ -236,14 +246,14 @@ def cmd_trace(args: argparse.Namespace) -> int:
             "resolution": list(wl.resolution),
             "spp": wl.spp,
             "seed": wl.seed,
-            "bvh": wl.bvh.stats.card(),
+            "bvh": tree_card(wl.tree),
         }
         bar.reset(total=len(wl.rays))
         bar.set_description(f"recording {args.rays} rays")
 
         def batches():
             nonlocal hits, n
-            for tr in record(wl.bvh, wl.rays):
+            for tr in record(wl.tree, wl.rays):
                 assert isinstance(tr, OpTrace)
                 if n == 0:
                     _check_trace_size(tr, len(wl.rays), args.out, args.quiet)
@@ -295,6 +305,7 @@ def _spec(args: argparse.Namespace, **fields: object):
         tests=args.tests,
         up=_up(args),
         camera_file=args.camera_file,
+        bvh=args.bvh,
         **fields,
     )
 

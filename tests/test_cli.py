@@ -99,6 +99,24 @@ def test_bench_rows_and_agreement():
         assert r["hit_agreement"] >= 0.999
 
 
+def test_wide_layouts_bench_trace_and_refuse_replay(tmp_path):
+    """--bvh: bench times the numba tracer on the wide tree (same hits), trace records its
+    op stream under the layout's name, and no scheme replays it yet: a clean refusal."""
+    proc = run_cli("bench", *SMALL, "--bvh", "bvh4", "--repeats", "1", "--format", "json")
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads(proc.stdout)
+    assert {(r["tracer"], r["bvh"]) for r in rows} == {("numba", "bvh4"), ("embree", "embree")}
+    assert all(r["hit_agreement"] >= 0.999 for r in rows)
+    out = tmp_path / "w.trace"
+    proc = run_cli("trace", *SMALL, "--bvh", "bvh8", "--out", str(out), "--format", "json")
+    assert proc.returncode == 0, proc.stderr
+    header = read_meta(out)
+    assert header["layout"] == "bvh8" and header["meta"]["bvh"]["layout_stats"]["width"] == 8
+    assert_clean_error(run_cli("table", "--trace", str(out), "--quiet"), "--bvh bvh2")
+    assert_clean_error(run_cli("table", *SMALL, "--bvh", "bvh4", "--quiet"), "bvh4")
+    assert_clean_error(run_cli("bench", *SMALL, "--bvh", "cwbvh"), "cwbvh")
+
+
 def test_bench_check_rays():
     assert_clean_error(run_cli("bench", *SMALL, "--check-rays", "-1"), "--check-rays")
     proc = run_cli("bench", *SMALL, "--repeats", "1", "--check-rays", "100", "--format", "json")

@@ -161,6 +161,11 @@ def simulate_traces(
                     "simulate each ray type separately"
                 )
             state["ray_type"] = trace.ray_type
+            if trace.layout not in scheme.layouts:
+                raise SimtSimError(
+                    f"{scheme.name} replays {', '.join(scheme.layouts)} traces, not this "
+                    f"{trace.layout} one; record it with --bvh {scheme.layouts[0]}"
+                )
             n_trav, n_leaf, n_tri, bad = scan_trace(a[0], a[1])
             if bad >= 0:
                 local = int(np.searchsorted(a[0], bad, side="right") - 1)

@@ -82,6 +82,8 @@ class SchemeInfo:
         The kernel body the exact lockstep executor runs for it (``oracles.lockstep``).
     launch : KernelLaunch, optional
         How the CUDA tracer launches its kernel (trace schemes with a ``.cu`` tracer).
+    layouts : tuple of str
+        The BVH layouts (``simt_sim.types.optrace.LAYOUTS``) whose traces it replays.
     """
 
     name: str
@@ -101,6 +103,7 @@ class SchemeInfo:
     issue_order: bool = True
     lockstep: int | None = None
     launch: KernelLaunch | None = None
+    layouts: tuple[str, ...] = ("bvh2",)
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:

@@ -1,7 +1,8 @@
 """``simt-sim bench``: the real tracers timed on one workload's rays, hits checked.
 
-Embree runs on one thread (embreex holds the GIL); the numba tracer on one thread and on
-all of numba's; the CUDA kernels, on a GPU, for every scheme whose record names a launch.
+Embree runs on one thread (embreex holds the GIL); the numba tracer, on the workload's BVH
+layout (``--bvh``; the ``bvh`` column), on one thread and on all of numba's; the CUDA
+kernels, on a GPU, for every scheme whose record names a launch.
 Each figure is the median of ``repeats`` timed runs after one warm-up (CUDA: of
 :data:`CUDA_TIMED_LAUNCHES` launches after two, as the paper measured). Embree is timed on
 its own query; dropping its hits at ``t = tmin`` (an origin on a face), which embreex's
@@ -27,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from simt_sim import schemes
+from simt_sim.bvh.layouts import layout_of
 from simt_sim.errors import SimtSimError
 from simt_sim.study.workload import Workload
 from simt_sim.tracers import numba_tracer
@@ -37,6 +39,8 @@ from simt_sim.tracers.reference import ReferenceTracer
 from simt_sim.types.hits import Hits
 
 TRACERS = ("numba", "embree", "cuda")
+#: the ``bvh`` column of Embree's rows: it builds and walks its own wide tree
+EMBREE_BVH = "embree"
 #: timed launches per CUDA kernel (after 2 warm-ups, as the paper measured)
 CUDA_TIMED_LAUNCHES = 10
 #: rays checked against the float64 reference by default (about 20 ms on Conference, most
@@ -134,18 +138,19 @@ def bench_tracers(
     def traced(n: int = 1) -> None:
         bar.update(n * len(rays))
 
-    results: list[tuple[str, int | str, Any, float]] = []
+    results: list[tuple[str, str, int | str, Any, float]] = []
     if "embree" in names:
         bar.set_description("embree")
         emb = EmbreeTracer(wl.scene.vertices, wl.scene.triangles)
         hits, sec = timed(lambda: emb.trace_closed(rays), repeats, traced)
-        results.append(("embree", EMBREE_THREADS, emb.open_start(rays, hits), sec))
+        results.append(("embree", EMBREE_BVH, EMBREE_THREADS, emb.open_start(rays, hits), sec))
     if "numba" in names:
+        layout = layout_of(wl.tree)
         for threads in sorted({1, all_threads}):
-            bar.set_description(f"numba, {threads} thread{'s' * (threads > 1)}")
+            bar.set_description(f"numba {layout}, {threads} thread{'s' * (threads > 1)}")
             numba.set_num_threads(threads)
-            hits, sec = timed(lambda: numba_tracer.trace(wl.bvh, rays), repeats, traced)
-            results.append(("numba", threads, hits, sec))
+            hits, sec = timed(lambda: numba_tracer.trace(wl.tree, rays), repeats, traced)
+            results.append(("numba", layout, threads, hits, sec))
         numba.set_num_threads(all_threads)
     if "cuda" in names:
         from simt_sim.tracers.cuda_tracer import CudaTracer
@@ -156,7 +161,7 @@ def bench_tracers(
             hits, secs = cu.trace_timed(rays, s.launch, repeats=CUDA_TIMED_LAUNCHES)
             traced(len(secs))
             kernel = f"cuda:{s.launch.kernel}"
-            results.append((kernel, cu.device_name, hits, statistics.median(secs)))
+            results.append((kernel, "bvh2", cu.device_name, hits, statistics.median(secs)))
     sample = check_sample(len(rays), check_rays)
     ref = None
     if len(sample):
@@ -172,6 +177,7 @@ def bench_tracers(
     rows = [
         {
             "tracer": name,
+            "bvh": bvh,
             "threads": threads,
             "ray_type": ray_type,
             "rays": len(rays),
@@ -180,6 +186,6 @@ def bench_tracers(
             "hit_agreement": checked(hits),
             "checked_rays": len(sample),
         }
-        for name, threads, hits, sec in results
+        for name, bvh, threads, hits, sec in results
     ]
     return pd.DataFrame(rows)

@@ -19,6 +19,7 @@ from simt_sim.scene.load import DEFAULT_SCENE
 from simt_sim.simt.footprint import MODES as MEMORY_MODES
 from simt_sim.simt.gpus import DEFAULT_GPU
 from simt_sim.study.sampling import check_fraction
+from simt_sim.types.optrace import LAYOUTS
 from simt_sim.types.raybatch import RAY_TYPES, TRACE_RAY_TYPES
 
 
@@ -49,6 +50,8 @@ class StudySpec:
     """The scene's up axis (``x``, ``y``, ``z``; ``None``: its description's, or detected)."""
     camera_file: str | None = None
     """A TOML or JSON file of cameras replacing the scene's own (``--camera-file``)."""
+    bvh: str = "bvh2"
+    """The BVH layout the rays are recorded on (``--bvh``; :data:`LAYOUTS`)."""
 
     @property
     def sampled(self) -> bool:
@@ -60,8 +63,16 @@ class StudySpec:
         for rt in self.ray_types:
             if rt not in RAY_TYPES:
                 raise SimtSimError(f"unknown ray type {rt!r}; use any of {', '.join(RAY_TYPES)}")
+        if self.bvh not in LAYOUTS:
+            raise SimtSimError(f"unknown BVH layout {self.bvh!r}; use one of {', '.join(LAYOUTS)}")
         for name in self.schemes:
-            schemes.get_scheme(name)
+            scheme = schemes.get_scheme(name)
+            if self.bvh not in scheme.layouts:
+                raise SimtSimError(
+                    f"no replay of {self.bvh} traces yet ({name} replays "
+                    f"{', '.join(scheme.layouts)}): use --bvh bvh2 here; 'simt-sim trace' and "
+                    "'simt-sim bench' take any layout"
+                )
         check_fraction(self.sample)
         if self.memory not in MEMORY_MODES:
             raise SimtSimError(

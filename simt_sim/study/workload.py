@@ -16,6 +16,7 @@ from functools import cached_property
 from simt_sim import progress
 from simt_sim.bvh.build import build_bvh
 from simt_sim.bvh.layout import BVH
+from simt_sim.bvh.layouts import DEFAULT_LAYOUT, Tree, check_layout, make_tree
 from simt_sim.errors import SimtSimError
 from simt_sim.rays.generate import RayStream, ray_stream
 from simt_sim.scene.load import load_scene
@@ -27,7 +28,8 @@ from simt_sim.types.scene import Scene
 
 @dataclass(frozen=True)
 class Workload:
-    """A scene, its BVH and a ray set in warp order, streamed or whole."""
+    """A scene, its BVH and a ray set in warp order, streamed or whole; ``tree`` is the BVH
+    in the chosen layout (``bvh`` itself for ``bvh2``), which ``trace`` and ``bench`` use."""
 
     scene: Scene
     bvh: BVH
@@ -36,6 +38,7 @@ class Workload:
     resolution: tuple[int, int]
     spp: int
     seed: int
+    tree: Tree
 
     @cached_property
     def rays(self) -> RayBatch:
@@ -93,6 +96,7 @@ def make_workload(
     node_cost: float = 1.0,
     up: str | None = None,
     camera_file: str | None = None,
+    layout: str = DEFAULT_LAYOUT,
 ) -> Workload:
     """Load ``scene``, build its BVH (unless given) and make the paper's rays of ``ray_type``.
 
@@ -118,6 +122,8 @@ def make_workload(
         The scene's up axis and a camera file (:func:`~simt_sim.scene.load.load_scene`) when
         ``scene`` is a name or path. A scene loaded here is announced
         (:func:`~simt_sim.study.viewcheck.announce`).
+    layout : str
+        The BVH layout of ``Workload.tree`` (:func:`~simt_sim.bvh.layouts.make_tree`).
     """
     if ray_type not in TRACE_RAY_TYPES:
         raise SimtSimError(
@@ -125,6 +131,7 @@ def make_workload(
         )
     if spp < 1:
         raise SimtSimError(f"--spp must be at least 1, got {spp}")
+    check_layout(layout)
     loaded = isinstance(scene, str)
     sc = load_scene(scene, up=up, camera_file=camera_file) if loaded else scene
     progress.checkpoint()  # Ctrl-C during the load stops before the BVH build
@@ -145,4 +152,4 @@ def make_workload(
         seed=seed,
         tracer=lambda r: trace(tree, r),
     )
-    return Workload(sc, tree, stream, cams, resolution, spp, seed)
+    return Workload(sc, tree, stream, cams, resolution, spp, seed, make_tree(tree, layout))

@@ -12,8 +12,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from simt_sim.bvh.layout import BVH
-from simt_sim.bvh.traverse import check_bvh, depth_error, ray_arrays, stack_size, traverse_batch
+from simt_sim.bvh.layouts import Tree, check_tree, layout_of, trace_arrays
+from simt_sim.bvh.traverse import ray_arrays
 from simt_sim.errors import SimtSimError
 from simt_sim.types.hits import Hits
 from simt_sim.types.optrace import OpTrace
@@ -22,29 +22,14 @@ from simt_sim.types.raybatch import RayBatch
 DEFAULT_BATCH = 1 << 18
 
 
-def _record_batch(bvh: BVH, rays: RayBatch) -> OpTrace:
-    origin, direction, tmin, tmax = ray_arrays(rays)
-    n = origin.shape[0]
-    any_hit = rays.query == "any"
-    entries = stack_size(bvh)
-    out_tri = np.empty(n, dtype=np.int32)
-    out_t = np.empty(n, dtype=np.float32)
-    counts = np.empty(n, dtype=np.int64)
-    ok = traverse_batch(
-        bvh.nodes, bvh.woop, bvh.tri_index, bvh.root, origin, direction, tmin, tmax,
-        any_hit, entries, None, None, None, out_tri, out_t, counts,
-    )  # fmt: skip
-    if not ok:
-        raise depth_error(bvh)
-    offsets = np.zeros(n + 1, dtype=np.int64)
+def _record_batch(tree: Tree, rays: RayBatch) -> OpTrace:
+    _, _, counts = trace_arrays(tree, rays)
+    offsets = np.zeros(counts.shape[0] + 1, dtype=np.int64)
     np.cumsum(counts, out=offsets[1:])
     total = int(offsets[-1])
     op = np.empty(total, dtype=np.uint8)
     addr = np.empty(total, dtype=np.int32)
-    traverse_batch(
-        bvh.nodes, bvh.woop, bvh.tri_index, bvh.root, origin, direction, tmin, tmax,
-        any_hit, entries, offsets, op, addr, out_tri, out_t, counts,
-    )  # fmt: skip
+    out_tri, out_t, _ = trace_arrays(tree, rays, offsets, op, addr)
     return OpTrace(
         offsets=offsets,
         op=op,
@@ -52,11 +37,13 @@ def _record_batch(bvh: BVH, rays: RayBatch) -> OpTrace:
         hits=Hits(tri=out_tri, t=out_t),
         query=rays.query,
         ray_type=rays.ray_type,
+        layout=layout_of(tree),
     )
 
 
-def record(bvh: BVH, rays: RayBatch, *, batch_size: int = DEFAULT_BATCH) -> Iterator[OpTrace]:
-    """Record the op streams of ``rays`` on ``bvh``, one :class:`OpTrace` per batch.
+def record(tree: Tree, rays: RayBatch, *, batch_size: int = DEFAULT_BATCH) -> Iterator[OpTrace]:
+    """Record the op streams of ``rays`` on ``tree`` (a BVH of any layout, walked by that
+    layout's traversal), one :class:`OpTrace` per batch.
 
     Parameters
     ----------
@@ -67,14 +54,14 @@ def record(bvh: BVH, rays: RayBatch, *, batch_size: int = DEFAULT_BATCH) -> Iter
     """
     if batch_size <= 0:
         raise SimtSimError(f"batch_size must be a positive number of rays, got {batch_size}")
-    check_bvh(bvh)
+    check_tree(tree)
     ray_arrays(rays)  # bad input fails here, at the call, not at the first next()
-    return _batches(bvh, rays, batch_size)
+    return _batches(tree, rays, batch_size)
 
 
-def _batches(bvh: BVH, rays: RayBatch, batch_size: int) -> Iterator[OpTrace]:
+def _batches(tree: Tree, rays: RayBatch, batch_size: int) -> Iterator[OpTrace]:
     for start in range(0, len(rays), batch_size):
-        yield _record_batch(bvh, rays.slice(start, min(len(rays), start + batch_size)))
+        yield _record_batch(tree, rays.slice(start, min(len(rays), start + batch_size)))
 
 
 def concat_traces(traces: list[OpTrace]) -> OpTrace:
@@ -82,8 +69,13 @@ def concat_traces(traces: list[OpTrace]) -> OpTrace:
     if not traces:
         raise SimtSimError("no trace batches to join; record at least one ray")
     first = traces[0]
-    if any(t.query != first.query or t.ray_type != first.ray_type for t in traces):
-        raise SimtSimError("trace batches mix queries or ray types; record them separately")
+    if any(
+        (t.query, t.ray_type, t.layout) != (first.query, first.ray_type, first.layout)
+        for t in traces
+    ):
+        raise SimtSimError(
+            "trace batches mix queries, ray types or BVH layouts; record them separately"
+        )
     if len(traces) == 1:
         return first
     shifts = np.cumsum([0] + [int(t.offsets[-1]) for t in traces[:-1]])
@@ -100,13 +92,14 @@ def concat_traces(traces: list[OpTrace]) -> OpTrace:
         ),
         query=first.query,
         ray_type=first.ray_type,
+        layout=first.layout,
     )
 
 
-def record_all(bvh: BVH, rays: RayBatch, *, batch_size: int = DEFAULT_BATCH) -> OpTrace:
+def record_all(tree: Tree, rays: RayBatch, *, batch_size: int = DEFAULT_BATCH) -> OpTrace:
     """All of ``rays`` as one OpTrace (for ray sets small enough to hold at once)."""
-    batches = list(record(bvh, rays, batch_size=batch_size))
-    return concat_traces(batches) if batches else _record_batch(bvh, rays)
+    batches = list(record(tree, rays, batch_size=batch_size))
+    return concat_traces(batches) if batches else _record_batch(tree, rays)
 
 
 def summary(trace: OpTrace) -> dict:

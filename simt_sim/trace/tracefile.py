@@ -1,10 +1,13 @@
 """Save and load recorded op traces, so a long recording is made once and replayed often.
 
-Format (``format = "simt-sim-trace"``, ``version = 1``): an uncompressed zip archive that
+Format (``format = "simt-sim-trace"``, ``version = 2``): an uncompressed zip archive that
 ``numpy.load`` also opens as an ``.npz``. It holds
 
-- ``header.json``: ``{"format", "version", "query", "ray_type", "batches", "rays", "ops",
-  "meta"}``, ``meta`` being the caller's JSON-serialisable dict (scene, BVH, camera, ...);
+- ``header.json``: ``{"format", "version", "query", "ray_type", "layout", "batches",
+  "rays", "ops", "meta"}``, ``layout`` being the BVH layout the ops walk (``bvh2``,
+  ``bvh4``, ``bvh8`` or ``cwbvh``; version 2 added it with the wide layouts' op codes, and
+  a version 1 file, which has none, is read as ``bvh2``) and ``meta`` the caller's
+  JSON-serialisable dict (scene, BVH, camera, ...);
 - per batch ``b``, the ``.npy`` arrays ``b{b:06d}.offsets`` (int64), ``.op`` (uint8),
   ``.addr`` (int32), ``.tri`` (int32) and ``.t`` (float32): one :class:`OpTrace` each.
 
@@ -31,7 +34,9 @@ from simt_sim.types.hits import Hits
 from simt_sim.types.optrace import OpTrace
 
 FORMAT = "simt-sim-trace"
-VERSION = 1
+VERSION = 2
+READS = (1, 2)
+"""Versions this simt-sim reads (1: binary trees only, no ``layout`` field)."""
 HEADER = "header.json"
 _FIELDS = (("offsets", np.int64), ("op", np.uint8), ("addr", np.int32), ("tri", np.int32),
            ("t", np.float32))  # fmt: skip
@@ -68,14 +73,15 @@ def save_trace(path: str | os.PathLike, traces: Iterable[OpTrace], meta: dict) -
             progress.temporary(tmp),  # a second Ctrl-C removes it until it is renamed
             zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf,
         ):
-            query = ray_type = None
+            query = ray_type = layout = None
             batches = rays = ops = 0
             for tr in traces:
                 if query is None:
-                    query, ray_type = tr.query, tr.ray_type
-                elif (tr.query, tr.ray_type) != (query, ray_type):
+                    query, ray_type, layout = tr.query, tr.ray_type, tr.layout
+                elif (tr.query, tr.ray_type, tr.layout) != (query, ray_type, layout):
                     raise SimtSimError(
-                        "trace batches mix queries or ray types; save them to separate files"
+                        "trace batches mix queries, ray types or BVH layouts; save them to "
+                        "separate files"
                     )
                 arrays = (tr.offsets, tr.op, tr.addr, tr.hits.tri, tr.hits.t)
                 for (field, dtype), arr in zip(_FIELDS, arrays, strict=True):
@@ -87,7 +93,7 @@ def save_trace(path: str | os.PathLike, traces: Iterable[OpTrace], meta: dict) -
                 raise SimtSimError("no trace batches to save; record at least one ray")
             header = {
                 "format": FORMAT, "version": VERSION, "query": query, "ray_type": ray_type,
-                "batches": batches, "rays": rays, "ops": ops, "meta": meta,
+                "layout": layout, "batches": batches, "rays": rays, "ops": ops, "meta": meta,
             }  # fmt: skip
             zf.writestr(HEADER, json.dumps(header, indent=1))
             zf.close()
@@ -114,12 +120,13 @@ def _open(path: Path) -> tuple[zipfile.ZipFile, dict]:
     if header.get("format") != FORMAT:
         zf.close()
         raise SimtSimError(f"{path} is not a simt-sim trace (format {header.get('format')!r})")
-    if header.get("version") != VERSION:
+    if header.get("version") not in READS:
         zf.close()
         raise SimtSimError(
             f"{path} is trace format version {header.get('version')!r}; this simt-sim reads "
-            f"version {VERSION}: re-record the trace"
+            f"versions {', '.join(map(str, READS))}: re-record the trace"
         )
+    header.setdefault("layout", "bvh2")
     return zf, header
 
 
@@ -157,6 +164,7 @@ def _iter_batches(path: Path, zf: zipfile.ZipFile, header: dict) -> Iterator[OpT
                 hits=Hits(tri=tri, t=t),
                 query=header["query"],
                 ray_type=header["ray_type"],
+                layout=header["layout"],
             )
 
 

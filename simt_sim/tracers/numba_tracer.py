@@ -8,40 +8,28 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
-
-from simt_sim.bvh.layout import BVH
-from simt_sim.bvh.traverse import check_bvh, depth_error, ray_arrays, stack_size, traverse_batch
+from simt_sim.bvh.layouts import Tree, check_tree, layout_of, trace_arrays
 from simt_sim.errors import SimtSimError
 from simt_sim.types.hits import Hits
 from simt_sim.types.raybatch import RayBatch
 
 
-def trace(bvh: BVH, rays: RayBatch) -> Hits:
-    """Closest or any hit (per ``rays.query``) of every ray; ``tri`` is the scene index."""
-    check_bvh(bvh)
-    origin, direction, tmin, tmax = ray_arrays(rays)
-    n = origin.shape[0]
-    out_tri = np.empty(n, dtype=np.int32)
-    out_t = np.empty(n, dtype=np.float32)
-    out_count = np.empty(n, dtype=np.int64)
-    ok = traverse_batch(
-        bvh.nodes, bvh.woop, bvh.tri_index, bvh.root, origin, direction, tmin, tmax,
-        rays.query == "any", stack_size(bvh), None, None, None, out_tri, out_t, out_count,
-    )  # fmt: skip
-    if not ok:
-        raise depth_error(bvh)
-    return Hits(tri=out_tri, t=out_t)
+def trace(tree: Tree, rays: RayBatch) -> Hits:
+    """Closest or any hit (per ``rays.query``) of every ray through ``tree`` (a BVH of any
+    layout); ``tri`` is the scene index. A wide tree's traversal skips popped nodes beyond
+    the closest hit so far, as CPU tracers do (:func:`~simt_sim.bvh.layouts.trace_arrays`)."""
+    tri, t, _ = trace_arrays(tree, rays, cull=True)
+    return Hits(tri=tri, t=t)
 
 
 class NumbaTracer:
     """The numba tracer as ``simt-sim bench`` sees it: a name and a timed trace."""
 
-    name = "numba"
-
-    def __init__(self, bvh: BVH) -> None:
-        check_bvh(bvh)
-        self.bvh = bvh
+    def __init__(self, tree: Tree) -> None:
+        check_tree(tree)
+        self.bvh = tree
+        layout = layout_of(tree)
+        self.name = "numba" if layout == "bvh2" else f"numba-{layout}"
 
     def trace(self, rays: RayBatch) -> Hits:
         """Trace ``rays`` (see :func:`trace`)."""

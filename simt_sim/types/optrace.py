@@ -12,9 +12,13 @@ code  name         meaning (``addr`` holds)
 3     LEAF         leaf entered (float4 index of its first Woop triangle)
 4     TRI_MISS     triangle tested, no (closer) hit (float4 index of the Woop triangle)
 5     TRI_HIT      triangle tested, hit accepted: tmax shrinks / any-hit ends (same)
+6-11  TRAV_3..8    wide node visited, 3 to 8 child boxes hit (node index): code ``k + 3``
 ====  ===========  ===============================================================
 
-Op order is the order of the while-while kernel: nearer child first, farther pushed.
+A binary tree's traces use codes 0 to 5 only; a wide tree's node with ``k`` children hit
+is ``TRAV_NONE``, ``TRAV_ONE``, ``TRAV_BOTH`` for ``k <= 2`` and ``k + 3`` above (see
+:func:`trav_code`), the nearest hit child visited next and the others pushed farthest
+first. Op order is the order of the while-while kernel: nearer child first, farther pushed.
 A ray's ops are ``op[offsets[i]:offsets[i+1]]``.
 """
 
@@ -34,17 +38,35 @@ TRAV_BOTH = 2
 LEAF = 3
 TRI_MISS = 4
 TRI_HIT = 5
-OP_NAMES = ("TRAV_NONE", "TRAV_ONE", "TRAV_BOTH", "LEAF", "TRI_MISS", "TRI_HIT")
+TRAV_WIDE = 6
+"""Code of a wide node step with 3 children hit; ``k`` hits (3..8) is ``k + 3``."""
+MAX_WIDTH = 8
+OP_NAMES = ("TRAV_NONE", "TRAV_ONE", "TRAV_BOTH", "LEAF", "TRI_MISS", "TRI_HIT") + tuple(
+    f"TRAV_{k}" for k in range(3, MAX_WIDTH + 1)
+)
+LAYOUTS = ("bvh2", "bvh4", "bvh8", "cwbvh")
+"""The BVH layouts a trace can be recorded on (``bvh2``: the binary Aila-Laine tree)."""
+
+
+def trav_code(hits: int) -> int:
+    """Op code of a node step that hit ``hits`` children (0..8)."""
+    return hits if hits <= TRAV_BOTH else hits + TRAV_WIDE - 3
+
+
+def children_hit(op: np.ndarray) -> np.ndarray:
+    """Children hit by each traversal op (the inverse of :func:`trav_code`)."""
+    op = np.asarray(op)
+    return np.where(op >= TRAV_WIDE, op.astype(np.int64) - TRAV_WIDE + 3, op)
 
 
 def is_trav(op: np.ndarray) -> np.ndarray:
     """True where an op is a traversal step (any outcome)."""
-    return op <= TRAV_BOTH
+    return (op <= TRAV_BOTH) | (op >= TRAV_WIDE)
 
 
 def is_tri(op: np.ndarray) -> np.ndarray:
     """True where an op is a triangle test (any outcome)."""
-    return op >= TRI_MISS
+    return (op == TRI_MISS) | (op == TRI_HIT)
 
 
 @dataclass(frozen=True)
@@ -65,6 +87,8 @@ class OpTrace:
         ``"closest"`` or ``"any"``.
     ray_type : str
         ``"primary"``, ``"ao"``, ``"diffuse"`` or ``"path"``.
+    layout : str
+        The BVH layout the ops walk (one of :data:`LAYOUTS`); ``addr`` indexes its nodes.
     """
 
     offsets: np.ndarray
@@ -73,6 +97,7 @@ class OpTrace:
     hits: Hits
     query: str
     ray_type: str
+    layout: str = "bvh2"
 
     @property
     def n_rays(self) -> int:
@@ -99,7 +124,7 @@ class OpTrace:
     def op_totals(self) -> np.ndarray:
         """TRAV, LEAF and TRI ops over all rays, int64 (3,): ``counts().sum(axis=0)``
         without the per-ray table."""
-        n_trav = np.count_nonzero(self.op <= TRAV_BOTH)
+        n_trav = np.count_nonzero(is_trav(self.op))
         n_leaf = np.count_nonzero(self.op == LEAF)
         return np.array([n_trav, n_leaf, self.op.shape[0] - n_trav - n_leaf], np.int64)
 
@@ -113,6 +138,7 @@ class OpTrace:
             hits=Hits(tri=self.hits.tri[start:stop], t=self.hits.t[start:stop]),
             query=self.query,
             ray_type=self.ray_type,
+            layout=self.layout,
         )
 
 
@@ -124,5 +150,6 @@ def _kind_counts(offsets: np.ndarray, op: np.ndarray) -> np.ndarray:
     for i in prange(n):
         for k in range(offsets[i], offsets[i + 1]):
             c = op[k]
-            out[i, 0 if c <= TRAV_BOTH else (1 if c == LEAF else 2)] += 1
+            kind = 1 if c == LEAF else (2 if c == TRI_MISS or c == TRI_HIT else 0)
+            out[i, kind] += 1
     return out

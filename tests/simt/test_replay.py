@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numba
 import numpy as np
 import pytest
@@ -303,9 +305,15 @@ def test_malformed_streams_are_refused() -> None:
     bad = trace_from_lists([[TRAV_ONE, LEAF, TRI_MISS], [TRAV_ONE, TRI_HIT]])
     with pytest.raises(SimtSimError, match="ray 1: malformed op stream \\(TRI_HIT at op 1"):
         simulate_traces([bad], get_scheme("while_while"), ir_for("while_while"), gpu_for())
-    unknown = trace_from_lists([[TRAV_ONE, 9]])
-    with pytest.raises(SimtSimError, match="unknown op code 9"):
+    unknown = trace_from_lists([[TRAV_ONE, 12]])
+    with pytest.raises(SimtSimError, match="unknown op code 12"):
         simulate_traces([unknown], get_scheme("if_if"), ir_for("if_if"), gpu_for())
+    wide_op = trace_from_lists([[TRAV_ONE, 9]])  # a wide node's step in a binary trace
+    with pytest.raises(SimtSimError, match="TRAV_6 at op 1"):
+        simulate_traces([wide_op], get_scheme("if_if"), ir_for("if_if"), gpu_for())
+    wide = dataclasses.replace(trace_from_lists([[TRAV_ONE, LEAF, TRI_MISS]]), layout="bvh4")
+    with pytest.raises(SimtSimError, match="not this bvh4 one; record it with --bvh bvh2"):
+        simulate_traces([wide], get_scheme("while_while"), ir_for("while_while"), gpu_for())
     first = trace_from_lists([[TRI_MISS]])
     with pytest.raises(SimtSimError, match="ray 0"):
         simulate_traces([first], get_scheme("packet"), ir_for("packet"), gpu_for())

@@ -52,7 +52,8 @@ def test_round_trip_is_bit_identical(recorded, tmp_path):
     assert meta_back == meta
     assert_same(whole, record_all(bvh, rays))
     header = read_meta(path)
-    assert header["format"] == "simt-sim-trace" and header["version"] == 1
+    assert header["format"] == "simt-sim-trace" and header["version"] == 2
+    assert header["layout"] == "bvh2"
     assert header["rays"] == 200 and header["ops"] == int(whole.offsets[-1])
     assert np.load(path)["b000000.op"].dtype == np.uint8  # numpy reads it as an .npz too
 
@@ -71,13 +72,31 @@ def _rewrite_header(path, **changes):
 def test_unknown_version_or_format_is_refused(recorded, tmp_path):
     bvh, rays = recorded
     path = save_trace(tmp_path / "t.npz", record(bvh, rays), {})
-    _rewrite_header(path, version=2)
-    with pytest.raises(SimtSimError, match="version 2") as err:
+    _rewrite_header(path, version=3)
+    with pytest.raises(SimtSimError, match="version 3") as err:
         load_trace(path)
     assert "\n" not in str(err.value)
-    _rewrite_header(path, version=1, format="something-else")
+    _rewrite_header(path, version=2, format="something-else")
     with pytest.raises(SimtSimError, match="not a simt-sim trace"):
         load_trace(path)
+
+
+def test_version_1_file_reads_as_binary_tree(recorded, tmp_path):
+    """Files from before the wide layouts have no ``layout``: they walk the binary tree."""
+    bvh, rays = recorded
+    path = save_trace(tmp_path / "t.npz", record(bvh, rays), {})
+    with zipfile.ZipFile(path) as zf:
+        members = {name: zf.read(name) for name in zf.namelist()}
+    header = json.loads(members[HEADER])
+    del header["layout"]
+    header["version"] = 1
+    members[HEADER] = json.dumps(header).encode()
+    with zipfile.ZipFile(path, "w") as zf:
+        for name, data in members.items():
+            zf.writestr(name, data)
+    whole, _ = load_trace(path)
+    assert whole.layout == "bvh2" and read_meta(path)["layout"] == "bvh2"
+    assert_same(whole, record_all(bvh, rays))
 
 
 def test_not_a_trace_file_is_refused(tmp_path):
