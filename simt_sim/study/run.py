@@ -21,6 +21,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from simt_sim import schemes
+from simt_sim.bvh.layouts import make_tree, tree_card
 from simt_sim.progress import bar as progress_bar
 from simt_sim.progress import checkpoint
 from simt_sim.simt.gpus import GpuConfig
@@ -171,8 +172,9 @@ def _roofline_columns(r: SimResult, row: dict) -> dict:
 
 
 def _finish(plan: StudyPlan, r: SimResult) -> SimResult:
-    """Every result's card also describes the tree it was traced on."""
-    return replace(r, model_card={**r.model_card, "bvh": plan.bvh.stats.card()})
+    """Every result's card also describes the tree it was traced on, in its layout."""
+    tree = make_tree(plan.bvh, plan.spec.bvh)
+    return replace(r, model_card={**r.model_card, "bvh": tree_card(tree)})
 
 
 def trace_rows(
@@ -203,6 +205,7 @@ def trace_rows(
             merged, mem = _with_memory(plan, merged, counts or MemoryCounts(), g)
             row.update(mem)
             row.update(_roofline_columns(merged, row))
+            row["bvh"] = spec.bvh
             merged = _finish(plan, merged)
             results.append(merged)
             if spec.actual:
