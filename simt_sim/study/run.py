@@ -47,6 +47,7 @@ def _not_applicable(plan: StudyPlan, ray_type: str, scheme: SchemeInfo, gpu: Gpu
         "ray_type": ray_type,
         "scheme": scheme.name,
         "gpu": gpu.id,
+        "bvh": plan.spec.bvh,
         "note": f"n/a: {path_schemes} apply to path traces (--rays {PATH_RAYS})",
     }
 
@@ -255,6 +256,7 @@ def path_rows(plan: StudyPlan, bar: tqdm) -> tuple[list[SimResult], list[dict]]:
             merged, mem = _with_memory(plan, merged, memory.get(g.id, MemoryCounts()), g)
             row.update(mem)
             row.update(_roofline_columns(merged, row))
+            row["bvh"] = spec.bvh
             merged = _finish(plan, merged)
             results.append(merged)
             if spec.actual:
