@@ -97,10 +97,22 @@ def _run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
     return proc
 
 
+_INCLUDE = re.compile(r'^\s*#include\s+"([^"]+)"', re.MULTILINE)
+
+
+def kernel_headers(kernel: str) -> tuple[str, ...]:
+    """The headers of ``kernels_ir/cuda`` a kernel reads: the shared header, then any
+    other one its ``.cu`` includes, in include order (``bvh4.cuh`` for the bvh4 kernels)."""
+    text = (CUDA_DIR / f"{kernel}.cu").read_text()
+    return (HEADER, *dict.fromkeys(h for h in _INCLUDE.findall(text) if h != HEADER))
+
+
 def source_sha256(kernel: str) -> str:
-    """sha256 over the kernel's ``.cu`` file followed by the shared header."""
+    """sha256 over the kernel's ``.cu`` file followed by the headers it reads
+    (:func:`kernel_headers`; for a kernel including only the shared header, the ``.cu``
+    and that header)."""
     h = hashlib.sha256()
-    for name in (f"{kernel}.cu", HEADER):
+    for name in (f"{kernel}.cu", *kernel_headers(kernel)):
         h.update((CUDA_DIR / name).read_bytes())
     return h.hexdigest()
 

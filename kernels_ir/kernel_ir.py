@@ -13,6 +13,9 @@ trav_step          a traversal step: node fetch and both child box tests (TRAV_*
 trav_none          ... neither child hit: pop the stack          (TRAV_NONE)
 trav_one           ... one child hit: go there                    (TRAV_ONE)
 trav_both          ... both hit: order them, push the farther     (TRAV_BOTH)
+                   (bvh4 kernels: 4 child boxes per trav_step; trav_none, trav_one and
+                   trav_both are 0, 1 and 2 to 4 children hit: TRAV_BOTH, TRAV_3, TRAV_4
+                   all charge trav_both, the branch-free ordering and push)
 trav_diverged      ... taken by a diverged warp: the divergent-warp fallback of the step's
                    warp vote (sm_75..sm_89 speculative; made by the build, no marker)
 postpone           speculative: a lane parks the leaf it found and keeps traversing
@@ -61,6 +64,20 @@ CLASSES = (
     "sfu",
     "other",
 )
+
+
+#: the BVH layouts the kernels read (names of simt_sim.types.optrace.LAYOUTS): ``bvh2``, the
+#: binary Aila-Laine layout (``common.cuh``), and ``bvh4`` (simt_sim/bvh/wide.py, ``bvh4.cuh``)
+KERNEL_LAYOUTS = ("bvh2", "bvh4")
+
+
+def kernel_layout(kernel: str) -> str:
+    """The BVH layout ``kernel`` reads: a wide layout of :data:`KERNEL_LAYOUTS` when its
+    name is that layout's name, ``_`` and the loop (``bvh4_while_while``), else ``bvh2``.
+    A scheme charges kernels of the layouts it replays (``SchemeInfo.layouts``); a kernel of
+    a layout no scheme replays yet is compiled and its IR committed all the same."""
+    head = kernel.split("_", 1)[0]
+    return head if head in KERNEL_LAYOUTS[1:] else "bvh2"
 
 
 #: the box and triangle tests a kernel can be built with (``common.cuh``): the watertight

@@ -111,7 +111,8 @@ def _add_workload_args(
         choices=LAYOUTS,
         default="bvh2",
         help="BVH layout: bvh2 (binary, Aila-Laine), bvh4 / bvh8 (the binary tree collapsed to "
-        "4 / 8 children per node); cwbvh is not built yet (default: %(default)s)",
+        "4 / 8 children per node), cwbvh (compressed 8-wide, Ylitie et al. 2017) "
+        "(default: %(default)s)",
     )
     p.add_argument(
         "--node-cost",

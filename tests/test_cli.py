@@ -114,7 +114,7 @@ def test_wide_layouts_bench_trace_and_refuse_replay(tmp_path):
     assert header["layout"] == "bvh8" and header["meta"]["bvh"]["layout_stats"]["width"] == 8
     assert_clean_error(run_cli("table", "--trace", str(out), "--quiet"), "--bvh bvh2")
     assert_clean_error(run_cli("table", *SMALL, "--bvh", "bvh4", "--quiet"), "bvh4")
-    assert_clean_error(run_cli("bench", *SMALL, "--bvh", "cwbvh"), "cwbvh")
+    assert_clean_error(run_cli("bench", *SMALL, "--bvh", "bvh16"), "bvh16")
 
 
 def test_bench_check_rays():

@@ -2,7 +2,8 @@
 
 Every layout is made from the binary SAH tree (:func:`~simt_sim.bvh.build.build_bvh`):
 ``bvh2`` is that tree in the Aila-Laine layout, ``bvh4`` and ``bvh8`` its collapses
-(:mod:`simt_sim.bvh.wide`). The recorder and the numba tracer call :func:`trace_arrays`,
+(:mod:`simt_sim.bvh.wide`), ``cwbvh`` its compressed 8-wide form
+(:mod:`simt_sim.bvh.cwbvh`). The recorder and the numba tracer call :func:`trace_arrays`,
 so a tree of any layout is traced by its own traversal with the same triangle tests.
 """
 
@@ -10,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from simt_sim.bvh.cwbvh import CwBVH, build_cwbvh
+from simt_sim.bvh.cwbvh_traverse import check_cwbvh, cwbvh_trace_arrays
 from simt_sim.bvh.layout import BVH
 from simt_sim.bvh.traverse import (
     check_bvh,
@@ -18,33 +21,30 @@ from simt_sim.bvh.traverse import (
     stack_size,
     traverse_batch,
 )
-from simt_sim.bvh.wide import WIDTHS, WideBVH, WideStats, binary_stats, collapse
+from simt_sim.bvh.wide import WideBVH, WideStats, binary_stats, collapse
 from simt_sim.bvh.wide_traverse import check_wide, wide_trace_arrays
 from simt_sim.errors import SimtSimError
 from simt_sim.types.optrace import LAYOUTS
 from simt_sim.types.raybatch import RayBatch
 
-Tree = BVH | WideBVH
+Tree = BVH | WideBVH | CwBVH
 """A BVH of any layout."""
 
 DEFAULT_LAYOUT = "bvh2"
-#: the layouts a tree can be made in today (``cwbvh`` is named in LAYOUTS for traces)
-BUILT = ("bvh2", *WIDTHS)
 
 
 def check_layout(layout: str) -> None:
     """Refuse a layout name no tree can be made in, in one line."""
-    if layout in BUILT:
-        return
-    known = ", ".join(BUILT)
     if layout in LAYOUTS:
-        raise SimtSimError(f"the {layout} layout cannot be built yet; use one of {known}")
-    raise SimtSimError(f"unknown BVH layout {layout!r}; use one of {known}")
+        return
+    raise SimtSimError(f"unknown BVH layout {layout!r}; use one of {', '.join(LAYOUTS)}")
 
 
 def make_tree(bvh: BVH, layout: str) -> Tree:
-    """``bvh`` in ``layout`` (one of :data:`BUILT`)."""
+    """``bvh`` in ``layout`` (one of :data:`LAYOUTS`)."""
     check_layout(layout)
+    if layout == "cwbvh":
+        return build_cwbvh(bvh)
     return bvh if layout == "bvh2" else collapse(bvh, layout)
 
 
@@ -77,6 +77,8 @@ def check_tree(tree: Tree) -> None:
     """Refuse a tree whose arrays its traversal cannot read."""
     if isinstance(tree, BVH):
         check_bvh(tree)
+    elif isinstance(tree, CwBVH):
+        check_cwbvh(tree)
     else:
         check_wide(tree)
 
@@ -94,11 +96,13 @@ def trace_arrays(
 
     With ``offsets``/``op``/``addr`` given, ray ``i`` logs its ops into
     ``op[offsets[i]:offsets[i + 1]]`` (exactly its count, from a first call without them).
-    ``cull`` lets a wide traversal skip popped nodes beyond the closest hit so far (a CPU
-    tracer's shortcut, same hits; the kernels and the recorder do not take it).
+    ``cull`` lets a ``bvh4``/``bvh8`` traversal skip popped nodes beyond the closest hit so
+    far (a CPU tracer's shortcut, same hits; the kernels and the recorder do not take it).
     """
     if isinstance(tree, WideBVH):
         return wide_trace_arrays(tree, rays, offsets, op, addr, cull=cull)
+    if isinstance(tree, CwBVH):
+        return cwbvh_trace_arrays(tree, rays, offsets, op, addr)
     check_bvh(tree)
     origin, direction, tmin, tmax = ray_arrays(rays)
     n = origin.shape[0]

@@ -99,7 +99,8 @@ def ray_arrays(rays: RayBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _log(out_op, out_addr, pos, code, addr):
+def log_op(out_op, out_addr, pos, code, addr):
+    """Store op ``code`` at ``pos`` when logging (arrays given); the next position."""
     if out_op is not None:
         out_op[pos] = code
         out_addr[pos] = addr
@@ -165,7 +166,7 @@ def traverse_ray(
             h0 = n0 <= f0
             h1 = n1 <= f1
             if h0 and h1:
-                pos = _log(out_op, out_addr, pos, _OP_TRAV_BOTH, node)
+                pos = log_op(out_op, out_addr, pos, _OP_TRAV_BOTH, node)
                 c0 = nodes_i[node, COL_CHILD0]
                 c1 = nodes_i[node, COL_CHILD1]
                 if sp == cap:
@@ -178,27 +179,27 @@ def traverse_ray(
                     node = c0
                 sp += 1
             elif h0 or h1:
-                pos = _log(out_op, out_addr, pos, _OP_TRAV_ONE, node)
+                pos = log_op(out_op, out_addr, pos, _OP_TRAV_ONE, node)
                 node = nodes_i[node, COL_CHILD0] if h0 else nodes_i[node, COL_CHILD1]
             else:
-                pos = _log(out_op, out_addr, pos, _OP_TRAV_NONE, node)
+                pos = log_op(out_op, out_addr, pos, _OP_TRAV_NONE, node)
                 if sp == 0:
                     return hit, tmax if hit >= 0 else _INF, pos, True
                 sp -= 1
                 node = stack[sp]
         # Leaf: test its triangles up to the sentinel.
         j = ~node
-        pos = _log(out_op, out_addr, pos, _OP_LEAF, j)
+        pos = log_op(out_op, out_addr, pos, _OP_LEAF, j)
         while woop_i[j, 0] != SENTINEL_I32:
             ok, t = woop_hit_t(woop, j, ox, oy, oz, dx, dy, dz, tmin, tmax)
             if ok:
-                pos = _log(out_op, out_addr, pos, _OP_TRI_HIT, j)
+                pos = log_op(out_op, out_addr, pos, _OP_TRI_HIT, j)
                 hit = j
                 tmax = t
                 if any_hit:
                     return hit, tmax, pos, True
             else:
-                pos = _log(out_op, out_addr, pos, _OP_TRI_MISS, j)
+                pos = log_op(out_op, out_addr, pos, _OP_TRI_MISS, j)
             j += 3
         if sp == 0:
             return hit, tmax if hit >= 0 else _INF, pos, True

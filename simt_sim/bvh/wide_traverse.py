@@ -23,7 +23,7 @@ from numba import njit, prange
 
 from simt_sim.bvh.geometry import BOX_ROUNDING, SENTINEL_I32, inverse_direction, woop_hit_t
 from simt_sim.bvh.simd_wide import four_child_test
-from simt_sim.bvh.traverse import BLOCK, ray_arrays
+from simt_sim.bvh.traverse import BLOCK, log_op, ray_arrays
 from simt_sim.bvh.wide import PLANES, WideBVH, node_floats
 from simt_sim.errors import SimtSimError
 from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_WIDE, TRI_HIT, TRI_MISS
@@ -52,15 +52,8 @@ def check_wide(wide: WideBVH) -> None:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _log(out_op, out_addr, pos, code, addr):
-    if out_op is not None:
-        out_op[pos] = code
-        out_addr[pos] = addr
-    return pos + 1
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _trav_code(k):
+def trav_op(k):
+    """The op code of a node step with ``k`` children hit (``optrace.trav_code``)."""
     return np.uint8(k if k <= TRAV_BOTH else k + TRAV_WIDE - 3)
 
 
@@ -158,7 +151,7 @@ def wide_traverse_ray(
             else:
                 k = _hits_scalar(nodes, nodes_i, node, w, nx, ny, nz, fx, fy, fz,
                                  ox, oy, oz, idx, idy, idz, tmin, tmax, near, kids)  # fmt: skip
-            pos = _log(out_op, out_addr, pos, _trav_code(k), node)
+            pos = log_op(out_op, out_addr, pos, trav_op(k), node)
             if k == 0:
                 sp = _pop_to(stack_t, sp, cull, tmax)
                 if sp == 0:
@@ -174,17 +167,17 @@ def wide_traverse_ray(
                 sp += 1
             node = kids[0]
         j = ~node
-        pos = _log(out_op, out_addr, pos, _OP_LEAF, j)
+        pos = log_op(out_op, out_addr, pos, _OP_LEAF, j)
         while woop_i[j, 0] != SENTINEL_I32:
             ok, t = woop_hit_t(woop, j, ox, oy, oz, dx, dy, dz, tmin, tmax)
             if ok:
-                pos = _log(out_op, out_addr, pos, _OP_TRI_HIT, j)
+                pos = log_op(out_op, out_addr, pos, _OP_TRI_HIT, j)
                 hit = j
                 tmax = t
                 if any_hit:
                     return hit, tmax, pos, True
             else:
-                pos = _log(out_op, out_addr, pos, _OP_TRI_MISS, j)
+                pos = log_op(out_op, out_addr, pos, _OP_TRI_MISS, j)
             j += 3
         sp = _pop_to(stack_t, sp, cull, tmax)
         if sp == 0:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import kernels_ir
-from kernels_ir.kernel_ir import BLOCKS, KernelIR
+from kernels_ir.kernel_ir import BLOCKS, KernelIR, kernel_layout
 from simt_sim import schemes
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.reference import reference_replay
@@ -253,14 +253,19 @@ def test_every_scheme_module_is_registered_with_its_record() -> None:
 
 def test_every_kernel_a_scheme_names_is_compiled_with_the_blocks_it_charges() -> None:
     """The records and the committed IR agree: each kernel of each scheme has an IR for
-    every target, with every block the replay charges, and every ``.cu`` serves a scheme."""
+    every target, with every block the replay charges, and reads a layout the scheme
+    replays; every ``.cu`` of a layout some scheme replays serves a scheme (the bvh4
+    kernels wait for a bvh4 replay)."""
     for s in SCHEMES.values():
         for kernel, blocks in s.kernels.items():
             for arch in kernels_ir.ARCHS:
                 ir = kernels_ir.load(kernel, arch)
                 check_ir(ir, kernel, blocks)
                 assert all(ir.cost(b) > 0 for b in blocks), (kernel, arch)
-    assert {k for s in SCHEMES.values() for k in s.kernels} == set(kernels_ir.KERNELS)
+            assert kernel_layout(kernel) in s.layouts, (s.name, kernel)
+    replayed = {layout for s in SCHEMES.values() for layout in s.layouts}
+    served = {k for k in kernels_ir.KERNELS if kernel_layout(k) in replayed}
+    assert {k for s in SCHEMES.values() for k in s.kernels} == served
 
 
 def test_trace_and_path_calls_refuse_the_other_kind() -> None:

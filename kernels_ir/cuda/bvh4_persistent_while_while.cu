@@ -1,0 +1,97 @@
+// Persistent while-while (Aila & Laine 2009) on the 4-wide BVH (bvh4.cuh, layout "bvh4" of
+// simt_sim/bvh/wide.py): launch only as many warps as the GPU holds; each warp takes 32
+// rays from a global pool with one atomicAdd when all of its lanes are done, and traces
+// them with bvh4_while_while's loop (4 child boxes per step; k >= 2 hit children ordered
+// by tnear, the nearest taken, the other k - 1 pushed farthest first).
+// Launch: blockDim.x a multiple of 32, any grid; *pool_next = 0 before the launch.
+// any_hit != 0: stop at the first hit.
+// Per-ray stacks hold SIMT_BVH4_STACK_SIZE (192) entries: the tree's WideStats.depth
+// must be < 64.
+#include "common.cuh"
+#include "bvh4.cuh"
+
+extern "C" __global__ void bvh4_persistent_while_while(const float4* __restrict__ nodes,
+                                                       const float4* __restrict__ woop,
+                                                       const int* __restrict__ tri_index,
+                                                       int root,
+                                                       const float4* __restrict__ ray_o,
+                                                       const float4* __restrict__ ray_d,
+                                                       int num_rays, int any_hit,
+                                                       int* __restrict__ hit_tri,
+                                                       float* __restrict__ hit_t,
+                                                       int* __restrict__ pool_next)
+{
+#pragma unroll 1
+    while (true) {
+        // @block pool_fetch
+        int base = 0;
+        if (simt_lane_id() == 0) base = atomicAdd(pool_next, SIMT_WARP_SIZE);
+        base = __shfl_sync(SIMT_FULL_MASK, base, 0);
+        if (base >= num_rays) break;
+        const int ray = base + (int)simt_lane_id();
+        if (ray < num_rays) {
+            // @block ray_setup
+            const Ray r = simt_load_ray(ray_o, ray_d, ray);
+            const Bvh4Planes planes = simt_bvh4_planes(nodes, r);
+            int stack[SIMT_BVH4_STACK_SIZE];
+            int sp = 0;
+            stack[0] = SIMT_SENTINEL;
+            int node = root;
+            int hit_addr = -1;
+            float t_best = r.tmax;
+            // @block loop_control
+#pragma unroll 1
+            while (node != SIMT_SENTINEL) {
+                // @block trav_step
+#pragma unroll 1
+                while (simt_is_interior(node)) {
+                    const Bvh4Hit h = simt_bvh4_intersect_node(nodes, node, r, planes, t_best);
+                    const int k = simt_bvh4_count(h);
+                    if (k >= 2) {
+                        // @block trav_both
+                        node = simt_bvh4_order_push(h, k, stack, sp);
+                        // @block trav_step
+                    } else if (k == 1) {
+                        // @block trav_one
+                        node = simt_bvh4_single(h);
+                        // @block trav_step
+                    } else {
+                        // @block trav_none
+                        node = stack[sp--];
+                        // @block trav_step
+                    }
+                }
+                // @block leaf_entry
+#pragma unroll 1
+                while (node < 0) {
+                    int tri = ~node;
+                    node = stack[sp--];
+                    // @block tri_test
+#pragma unroll 1
+                    for (;; tri += 3) {
+                        const float4 w0 = __ldg(woop + tri);
+                        if (simt_is_tri_end(w0)) break;
+                        float t;
+                        const bool hit = simt_intersect_woop(woop, tri, w0, r, t_best, &t);
+                        // @block tri_hit
+                        if (hit) {
+                            t_best = t;
+                            hit_addr = tri;
+                            if (simt_opaque(any_hit)) {
+                                node = SIMT_SENTINEL;
+                                break;
+                            }
+                        }
+                        // @block tri_test
+                    }
+                    // @block leaf_entry
+                }
+                // @block loop_control
+            }
+            // @block finish
+            simt_store_hit(tri_index, hit_tri, hit_t, ray, hit_addr, t_best);
+            // @block pool_fetch
+        }
+    }
+    // @end
+}
