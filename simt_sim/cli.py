@@ -286,7 +286,6 @@ def cmd_trace(args: argparse.Namespace) -> int:
 
 def _spec(args: argparse.Namespace, **fields: object):
     """The StudySpec of a ``table`` or ``plot`` command line."""
-    from simt_sim import schemes
     from simt_sim.simt.gpus import load_gpus
     from simt_sim.study.spec import StudySpec, parse_list
     from simt_sim.study.workload import parse_resolution
@@ -295,7 +294,7 @@ def _spec(args: argparse.Namespace, **fields: object):
     return StudySpec(
         scene=args.scene,
         ray_types=parse_list(args.rays, RAY_TYPES, "ray type"),
-        schemes=parse_list(args.schemes, schemes.names(), "scheme"),
+        schemes=_schemes(args, args.bvh),
         gpus=parse_list(args.gpu, tuple(load_gpus(args.gpus)), "GPU"),
         gpu_file=args.gpus,
         resolution=parse_resolution(args.resolution),
@@ -311,16 +310,29 @@ def _spec(args: argparse.Namespace, **fields: object):
     )
 
 
+def _schemes(args: argparse.Namespace, layout: str) -> tuple[str, ...]:
+    """``--schemes``; ``all`` means every scheme that replays ``layout``'s traces."""
+    from simt_sim import schemes
+    from simt_sim.study.spec import parse_list
+
+    every = (
+        schemes.names(layout=layout) if args.schemes.strip().lower() == "all" else schemes.names()
+    )
+    if not every:
+        raise SimtSimError(f"no scheme replays {layout} traces yet; record them with --bvh bvh2")
+    return parse_list(args.schemes, every, "scheme")
+
+
 def _saved_spec(args: argparse.Namespace, **fields: object):
     """The study of ``--trace`` files with the schemes, GPUs and tests the user named."""
-    from simt_sim import schemes
     from simt_sim.simt.gpus import load_gpus
     from simt_sim.study.saved import saved_spec
     from simt_sim.study.spec import parse_list
+    from simt_sim.trace.tracefile import read_meta
 
     return saved_spec(
         args.trace,
-        schemes=parse_list(args.schemes, schemes.names(), "scheme"),
+        schemes=_schemes(args, read_meta(args.trace[0])["layout"] if args.trace else "bvh2"),
         gpus=parse_list(args.gpu, tuple(load_gpus(args.gpus)), "GPU"),
         gpu_file=args.gpus,
         tests=args.tests,

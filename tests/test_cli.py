@@ -101,7 +101,8 @@ def test_bench_rows_and_agreement():
 
 def test_wide_layouts_bench_trace_and_refuse_replay(tmp_path):
     """--bvh: bench times the numba tracer on the wide tree (same hits), trace records its
-    op stream under the layout's name, and no scheme replays it yet: a clean refusal."""
+    op stream under the layout's name; table replays bvh4 with the schemes that have bvh4
+    kernels and refuses, in one line, the layouts and schemes that have none."""
     proc = run_cli("bench", *SMALL, "--bvh", "bvh4", "--repeats", "1", "--format", "json")
     assert proc.returncode == 0, proc.stderr
     rows = json.loads(proc.stdout)
@@ -113,7 +114,12 @@ def test_wide_layouts_bench_trace_and_refuse_replay(tmp_path):
     header = read_meta(out)
     assert header["layout"] == "bvh8" and header["meta"]["bvh"]["layout_stats"]["width"] == 8
     assert_clean_error(run_cli("table", "--trace", str(out), "--quiet"), "--bvh bvh2")
-    assert_clean_error(run_cli("table", *SMALL, "--bvh", "bvh4", "--quiet"), "bvh4")
+    proc = run_cli("table", *SMALL, "--bvh", "bvh4", "--quiet", "--format", "json")
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads(proc.stdout)["rows"]
+    assert {r["scheme"] for r in rows} == {"while_while", "persistent_while_while"}
+    assert {r["bvh"] for r in rows} == {"bvh4"}
+    assert_clean_error(run_cli("table", *SMALL, "--bvh", "bvh4", "--schemes", "if_if"), "--schemes")
     assert_clean_error(run_cli("bench", *SMALL, "--bvh", "bvh16"), "bvh16")
 
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from simt_sim.bvh.cwbvh import CwBVH, build_cwbvh
 from simt_sim.bvh.cwbvh_traverse import check_cwbvh, cwbvh_trace_arrays
-from simt_sim.bvh.layout import BVH
+from simt_sim.bvh.layout import BVH, NODE_BYTES
 from simt_sim.bvh.traverse import (
     check_bvh,
     depth_error,
@@ -21,7 +21,7 @@ from simt_sim.bvh.traverse import (
     stack_size,
     traverse_batch,
 )
-from simt_sim.bvh.wide import WideBVH, WideStats, binary_stats, collapse
+from simt_sim.bvh.wide import WIDTHS, WideBVH, WideStats, binary_stats, collapse, node_bytes
 from simt_sim.bvh.wide_traverse import check_wide, wide_trace_arrays
 from simt_sim.errors import SimtSimError
 from simt_sim.types.optrace import LAYOUTS
@@ -31,6 +31,9 @@ Tree = BVH | WideBVH | CwBVH
 """A BVH of any layout."""
 
 DEFAULT_LAYOUT = "bvh2"
+#: bytes of one node of each layout whose leaves are the binary tree's (sentinel-ended
+#: Woop lists): what the memory model reads per node step
+NODE_BYTES_OF = {"bvh2": NODE_BYTES, **{name: node_bytes(w) for name, w in WIDTHS.items()}}
 
 
 def check_layout(layout: str) -> None:

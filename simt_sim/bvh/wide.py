@@ -48,6 +48,11 @@ def node_floats(width: int) -> int:
     return (PLANES + 1) * width
 
 
+def node_bytes(width: int) -> int:
+    """Bytes of one node of a ``width``-wide layout (112 for 4, 224 for 8)."""
+    return node_floats(width) * np.dtype(np.float32).itemsize
+
+
 @dataclass(frozen=True)
 class WideStats:
     """What the collapse made: sizes, fill, SAH cost (node and triangle cost 1), bytes."""
@@ -217,7 +222,7 @@ def _stats(
     layout: str, width: int, nodes: np.ndarray, leaves: int, depth: int, fill: float,
     sah: float, bvh: BVH,
 ) -> WideStats:  # fmt: skip
-    node_bytes = node_floats(width) * 4
+    size = node_bytes(width)
     return WideStats(
         layout=layout,
         width=width,
@@ -226,8 +231,8 @@ def _stats(
         depth=depth,
         fill=fill,
         sah_cost=sah,
-        node_bytes=node_bytes,
-        bytes=int(nodes.shape[0]) * node_bytes + int(bvh.woop.shape[0]) * FLOAT4_BYTES,
+        node_bytes=size,
+        bytes=int(nodes.shape[0]) * size + int(bvh.woop.shape[0]) * FLOAT4_BYTES,
     )
 
 

@@ -67,9 +67,14 @@ def get_scheme(name: str) -> SchemeInfo:
     return SCHEMES[name]
 
 
-def names(kind: str | None = None) -> tuple[str, ...]:
-    """Scheme names in table order: all, or those of ``kind`` (``"trace"`` or ``"path"``)."""
-    return tuple(n for n, s in SCHEMES.items() if kind is None or s.kind == kind)
+def names(kind: str | None = None, layout: str | None = None) -> tuple[str, ...]:
+    """Scheme names in table order: all, or those of ``kind`` (``"trace"`` or ``"path"``)
+    and those replaying ``layout``'s traces."""
+    return tuple(
+        n
+        for n, s in SCHEMES.items()
+        if (kind is None or s.kind == kind) and (layout is None or layout in s.layouts)
+    )
 
 
 __all__ = [

@@ -90,6 +90,7 @@ SCHEME = SchemeInfo(
     "(ideal scheduling) and run while-while on them",
     kind=TRACE,
     kernels={"persistent_while_while": (*TRACE_BLOCKS, "pool_fetch")},
+    wide={"bvh4": {"bvh4_persistent_while_while": (*TRACE_BLOCKS, "pool_fetch")}},
     persistent=True,
     approximations=(
         "ideal work distribution: each fetch goes to the warp with the fewest instructions "

@@ -307,6 +307,7 @@ SCHEME = SchemeInfo(
     "reconverging at its exit",
     kind=TRACE,
     kernels={"while_while": TRACE_BLOCKS},
+    wide={"bvh4": {"bvh4_while_while": TRACE_BLOCKS}},
     replay=replay,
     warp_counts=warp_counts,
     reference_warp=while_while_warp,

@@ -24,7 +24,7 @@ from numba.extending import intrinsic
 
 from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR
 from simt_sim.errors import SimtSimError
-from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS, OpTrace
+from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_WIDE, TRI_HIT, TRI_MISS, OpTrace
 
 N_BLOCKS = len(BLOCKS)
 RAY_SETUP = BLOCKS.index("ray_setup")
@@ -429,11 +429,22 @@ class ReplayParams:
     scheme: Mapping[str, Any] = field(default_factory=dict)
 
 
+def kernel_outcomes(op: np.ndarray) -> np.ndarray:
+    """Op codes as the kernels branch on them: a wide node step with 3 or more children hit
+    (``TRAV_3`` .. ``TRAV_8``) is ``TRAV_BOTH``. The wide kernels order and push any number
+    of hit children in one branch-free block, charged as ``trav_both``
+    (``kernels_ir/cuda/bvh4.cuh``), so none, one and several are their only outcomes."""
+    return np.where(op >= TRAV_WIDE, np.uint8(TRAV_BOTH), op).astype(np.uint8)
+
+
 def replay_arrays(trace: OpTrace) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The trace's CSR arrays (:meth:`OpTrace.csr`) as the replay kernels read them: a
-    trace without ops gets a one-op dummy, since the kernels read ``op[0]`` for lanes
-    whose stream is empty."""
+    """The trace's CSR arrays (:meth:`OpTrace.csr`) as the replay kernels read them, a wide
+    tree's node steps as their kernels' outcomes (:func:`kernel_outcomes`): a trace
+    without ops gets a one-op dummy, since the kernels read ``op[0]`` for lanes whose
+    stream is empty."""
     offsets, op, addr = trace.csr()
+    if trace.layout != "bvh2":
+        op = kernel_outcomes(op)
     if op.shape[0] == 0:
         op, addr = np.zeros(1, np.uint8), np.zeros(1, np.int32)
     return offsets, op, addr

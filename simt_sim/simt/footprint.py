@@ -8,22 +8,11 @@ and GPU, ``on`` and ``off`` force it, and the decision is a sentence for the mod
 
 from __future__ import annotations
 
-from simt_sim.bvh.layout import FLOAT4_BYTES, NODE_BYTES
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.gpus import GpuConfig
 
 #: the memory model's modes (``simt-sim table --memory-model``)
 MODES = ("auto", "on", "off")
-
-
-def footprint_bytes(n_nodes: int, n_woop_float4: int) -> int:
-    """Scene bytes a traversal can read: BVH nodes plus Woop triangles (with sentinels)."""
-    if n_nodes < 0 or n_woop_float4 < 0:
-        raise SimtSimError(
-            f"footprint needs non-negative sizes, got {n_nodes} nodes and "
-            f"{n_woop_float4} float4; pass bvh.nodes.shape[0] and bvh.woop.shape[0]"
-        )
-    return NODE_BYTES * int(n_nodes) + FLOAT4_BYTES * int(n_woop_float4)
 
 
 def _size(n: float) -> str:

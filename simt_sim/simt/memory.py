@@ -7,7 +7,10 @@ addresses cost in DRAM traffic, and the MRays/s that the DRAM bandwidth allows.
 What a lane fetches (the byte layout is :mod:`simt_sim.bvh.layout`'s; the reads are the
 while-while CUDA kernel's, ``kernels_ir/cuda``):
 
-- a TRAV op reads its 64-byte node, bytes ``64 i .. 64 i + 63`` (one 128-byte line);
+- a TRAV op reads its node, bytes ``B i .. B i + B - 1`` for the layout's node size ``B``
+  (64 bytes for ``bvh2``: one 128-byte line; 112 for ``bvh4``, 224 for ``bvh8``: every
+  line they touch; :data:`simt_sim.bvh.layouts.NODE_BYTES_OF`); the wide layouts' leaves
+  and triangles are the binary tree's;
 - a TRI op reads its Woop triangle, 48 bytes from float4 ``j`` (one line, or two when it
   straddles a line boundary). The kernel reads the 2nd and 3rd float4 only when the
   earlier tests pass, which the trace does not record: 48 is an upper bound (>= 16);
@@ -43,8 +46,15 @@ import numpy as np
 from numba import njit, prange
 
 from simt_sim.bvh.layout import FLOAT4_BYTES, NODE_BYTES, WOOP_FLOAT4_PER_TRI
+from simt_sim.bvh.layouts import NODE_BYTES_OF
 from simt_sim.errors import SimtSimError
-from simt_sim.simt.engine import MAX_MASK_LANES, N_CHUNKS, chunk_bounds, scan_trace
+from simt_sim.simt.engine import (
+    MAX_MASK_LANES,
+    N_CHUNKS,
+    chunk_bounds,
+    kernel_outcomes,
+    scan_trace,
+)
 from simt_sim.simt.gpus import GpuConfig
 from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS, OpTrace
 
@@ -82,6 +92,8 @@ class MemoryCounts:
         Distinct lines each resident set touched, summed over the sets.
     l1_misses, l2_misses : int
         Line requests that missed the L1 (went to the L2), and the L2 (went to DRAM).
+    node_bytes : int
+        Bytes of one node of the layout the trace walks.
     """
 
     rays: int = 0
@@ -97,12 +109,13 @@ class MemoryCounts:
     working_set_lines: int = 0
     l1_misses: int = 0
     l2_misses: int = 0
+    node_bytes: int = NODE_BYTES
 
     @property
     def bytes(self) -> int:
         """Bytes the lanes read from the scene (nodes, triangles, sentinels)."""
         return (
-            NODE_BYTES * self.node_fetches
+            self.node_bytes * self.node_fetches
             + TRI_BYTES * self.tri_fetches
             + SENTINEL_BYTES * self.sentinel_fetches
         )
@@ -120,18 +133,23 @@ class MemoryCounts:
         if not isinstance(other, MemoryCounts):
             return NotImplemented
         gpu = self.cache_gpu or other.cache_gpu
+        node_bytes = self.node_bytes if self.rays else other.node_bytes
         for c in (self, other):
             if c.cache_gpu != gpu and c.rays:
                 raise SimtSimError(
                     f"cannot add memory counts with cache model {self.cache_gpu or 'none'!r} "
                     f"to counts with {other.cache_gpu or 'none'!r}; count both with one GPU"
                 )
+            if c.node_bytes != node_bytes and c.rays:
+                raise SimtSimError(
+                    "cannot add memory counts of two BVH layouts; count each layout alone"
+                )
         summed = {
             f.name: getattr(self, f.name) + getattr(other, f.name)
             for f in fields(self)
-            if f.name != "cache_gpu"
+            if f.name not in ("cache_gpu", "node_bytes")
         }
-        return MemoryCounts(cache_gpu=gpu, **summed)
+        return MemoryCounts(cache_gpu=gpu, node_bytes=node_bytes, **summed)
 
 
 # ---- the walker: while-while warp steps of one warp --------------------------------------
@@ -155,9 +173,9 @@ def _distinct(buf, k):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _node_key(node):
-    """Line key of a node: its 128-byte line, tagged 0 (node array)."""
-    return ((np.int64(node) * NODE_BYTES) // LINE_BYTES) * 2
+def _node_key(byte):
+    """Line key of a byte of the node array: its 128-byte line, tagged 0."""
+    return (byte // LINE_BYTES) * 2
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -167,8 +185,8 @@ def _woop_key(byte):
 
 
 @njit(cache=True, nogil=True)
-def _walk_warp(offsets, op, addr, r0, n, any_hit, cur, end, first, ntri, lanes, buf,
-               row, emit, out_lines, line_pos, out_step_end, step_pos):  # fmt: skip
+def _walk_warp(offsets, op, addr, r0, n, any_hit, node_bytes, cur, end, first, ntri, lanes,
+               buf, row, emit, out_lines, line_pos, out_step_end, step_pos):  # fmt: skip
     """Walk rays ``r0 .. r0+n-1`` as one while-while warp; fill the counters ``row``.
 
     With ``emit``, each step's distinct line keys go to ``out_lines`` from ``line_pos``
@@ -186,16 +204,20 @@ def _walk_warp(offsets, op, addr, r0, n, any_hit, cur, end, first, ntri, lanes, 
             break
         while True:  # traversal loop: one node step per iteration
             k = 0
+            fetched = 0
             for lane in range(n):
                 c = cur[lane]
                 if c < end[lane] and op[c] <= TRAV_BOTH:
-                    buf[k] = _node_key(addr[c])
-                    k += 1
+                    b = np.int64(addr[c]) * node_bytes
+                    for line in range(b // LINE_BYTES, (b + node_bytes - 1) // LINE_BYTES + 1):
+                        buf[k] = _node_key(line * LINE_BYTES)
+                        k += 1
+                    fetched += 1
                     cur[lane] = c + 1
-            if k == 0:
+            if fetched == 0:
                 break
             d = _distinct(buf, k)
-            row[_NODE_FETCH] += k
+            row[_NODE_FETCH] += fetched
             row[_NODE_STEPS] += 1
             row[_NODE_LINES] += d
             if emit:
@@ -250,19 +272,25 @@ def _walk_warp(offsets, op, addr, r0, n, any_hit, cur, end, first, ntri, lanes, 
                     step_pos += 1
 
 
+@njit(cache=True, nogil=True, inline="always")
+def lines_per_op(node_bytes):
+    """Most 128-byte lines one op reads: a node straddling lines, or a triangle (two)."""
+    return max(2, (node_bytes + LINE_BYTES - 2) // LINE_BYTES + 1)
+
+
 @njit(cache=True, nogil=True)
-def _scratch(warp_size):
+def _scratch(warp_size, lines_per_op):
     cur = np.empty(warp_size, np.int64)
     end = np.empty(warp_size, np.int64)
     first = np.empty(warp_size, np.int64)
     ntri = np.empty(warp_size, np.int64)
     lanes = np.empty(warp_size, np.int64)
-    buf = np.empty(2 * warp_size, np.int64)
+    buf = np.empty(lines_per_op * warp_size, np.int64)
     return cur, end, first, ntri, lanes, buf
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _count_warps(offsets, op, addr, warp_size, any_hit):
+def _count_warps(offsets, op, addr, warp_size, any_hit, node_bytes):
     """Counters of every warp of the batch (n_warps, 7); parallel over chunks of warps."""
     n_rays = offsets.shape[0] - 1
     n_warps = (n_rays + warp_size - 1) // warp_size
@@ -271,17 +299,18 @@ def _count_warps(offsets, op, addr, warp_size, any_hit):
     bounds = chunk_bounds(n_warps, nc)
     dummy = np.empty(0, np.int64)
     for ch in prange(nc):
-        cur, end, first, ntri, lanes, buf = _scratch(warp_size)
+        cur, end, first, ntri, lanes, buf = _scratch(warp_size, lines_per_op(node_bytes))
         for w in range(bounds[ch], bounds[ch + 1]):
             r0 = w * warp_size
-            _walk_warp(offsets, op, addr, r0, min(warp_size, n_rays - r0), any_hit, cur, end,
-                       first, ntri, lanes, buf, per_warp[w], False, dummy, 0, dummy, 0)  # fmt: skip
+            _walk_warp(offsets, op, addr, r0, min(warp_size, n_rays - r0), any_hit, node_bytes,
+                       cur, end, first, ntri, lanes, buf, per_warp[w], False, dummy, 0, dummy,
+                       0)  # fmt: skip
     return per_warp
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _emit_warps(offsets, op, addr, warp_size, any_hit, w0, w1, step_base, line_base,
-                out_lines, out_step_end, per_warp):  # fmt: skip
+def _emit_warps(offsets, op, addr, warp_size, any_hit, node_bytes, w0, w1, step_base,
+                line_base, out_lines, out_step_end, per_warp):  # fmt: skip
     """Line keys of warps ``w0 .. w1-1``, step by step, at the given CSR positions; their
     counters go to rows ``w0 .. w1-1`` of ``per_warp``."""
     n_rays = offsets.shape[0] - 1
@@ -289,11 +318,11 @@ def _emit_warps(offsets, op, addr, warp_size, any_hit, w0, w1, step_base, line_b
     nc = min(N_CHUNKS, max(n, 1))
     bounds = chunk_bounds(n, nc)
     for ch in prange(nc):
-        cur, end, first, ntri, lanes, buf = _scratch(warp_size)
+        cur, end, first, ntri, lanes, buf = _scratch(warp_size, lines_per_op(node_bytes))
         for i in range(bounds[ch], bounds[ch + 1]):
             r0 = (w0 + i) * warp_size
-            _walk_warp(offsets, op, addr, r0, min(warp_size, n_rays - r0), any_hit, cur, end,
-                       first, ntri, lanes, buf, per_warp[w0 + i], True, out_lines,
+            _walk_warp(offsets, op, addr, r0, min(warp_size, n_rays - r0), any_hit, node_bytes,
+                       cur, end, first, ntri, lanes, buf, per_warp[w0 + i], True, out_lines,
                        line_base[i], out_step_end, step_base[i])  # fmt: skip
 
 
@@ -364,15 +393,15 @@ def _cache(n_caches: int, kib: int) -> tuple[np.ndarray, np.ndarray, int]:
     return np.full(shape, -1, np.int64), np.full(shape, -1, np.int64), sets
 
 
-def _cache_counts(a: tuple[np.ndarray, ...], w: int, any_hit: bool,
+def _cache_counts(a: tuple[np.ndarray, ...], w: int, any_hit: bool, node_bytes: int,
                   gpu: GpuConfig) -> tuple[np.ndarray, tuple[int, int, int, int]]:  # fmt: skip
     """Run the resident sets of the batch through the caches (see module docstring).
 
     Returns the per-warp counters (as :func:`_count_warps`) and (resident sets, distinct
     lines, L1 misses, L2 misses). Each set's line keys are emitted and counted in one walk,
     into room for a bound on them: a warp takes at most one step per op of its lanes and
-    reads at most two lines per op (a triangle may straddle two; a sentinel read follows a
-    LEAF op).
+    reads at most :func:`lines_per_op` lines per op (a node or triangle may straddle lines;
+    a sentinel read follows a LEAF op).
     """
     offsets, op, addr = a
     n_rays = offsets.shape[0] - 1
@@ -380,22 +409,26 @@ def _cache_counts(a: tuple[np.ndarray, ...], w: int, any_hit: bool,
     per_warp = np.zeros((n_warps, _N_COLS), np.int64)
     top = int(addr.max(initial=0))  # bounds node and Woop addresses alike (one pass)
     woop_top = top + WOOP_FLOAT4_PER_TRI  # sentinels lie beyond a leaf's triangles
-    top_key = max(int(_node_key(top)), int(_woop_key(woop_top * FLOAT4_BYTES + TRI_BYTES - 1)))
+    top_key = max(
+        int(_node_key((top + 1) * node_bytes - 1)),
+        int(_woop_key(woop_top * FLOAT4_BYTES + TRI_BYTES - 1)),
+    )
     seen = np.zeros(top_key + 1, np.int32)  # resident set that last touched each line key
     l1_tags, l1_stamps, l1_sets = _cache(gpu.sms, gpu.l1_kib)
     l2_tags, l2_stamps, l2_sets = _cache(1, gpu.l2_kib)
     size = gpu.resident_warps
     warp_ops = np.diff(offsets[np.minimum(np.arange(n_warps + 1) * w, n_rays)])
     most = max((int(warp_ops[s0 : s0 + size].sum()) for s0 in range(0, n_warps, size)), default=0)
-    out_lines = np.empty(2 * most, np.int64)
+    per_op = lines_per_op(node_bytes)
+    out_lines = np.empty(per_op * most, np.int64)
     out_step_end = np.empty(most, np.int64)
     clock = np.int64(0)
     totals = [0, 0, 0, 0]
     for s0 in range(0, n_warps, size):
         s1 = min(n_warps, s0 + size)
         step_base = np.concatenate(([0], np.cumsum(warp_ops[s0:s1])[:-1])).astype(np.int64)
-        line_base = 2 * step_base
-        _emit_warps(offsets, op, addr, w, any_hit, s0, s1, step_base, line_base,
+        line_base = per_op * step_base
+        _emit_warps(offsets, op, addr, w, any_hit, node_bytes, s0, s1, step_base, line_base,
                     out_lines, out_step_end, per_warp)  # fmt: skip
         n_steps = per_warp[s0:s1, _NODE_STEPS] + per_warp[s0:s1, _TRI_STEPS]
         m1, m2, distinct, clock = _run_caches(
@@ -432,7 +465,15 @@ def memory_counts(trace: OpTrace, warp_size: int, gpu: GpuConfig | None = None) 
         raise SimtSimError(
             f"warp_size must be in 1..{MAX_MASK_LANES} for the memory model, got {warp_size}"
         )
+    if trace.layout not in NODE_BYTES_OF:
+        raise SimtSimError(
+            f"the memory model reads leaves ended by a sentinel, which {trace.layout} has not; "
+            "use --memory-model off"
+        )
+    node_bytes = NODE_BYTES_OF[trace.layout]
     offsets, op, addr = trace.csr()
+    if trace.layout != "bvh2":
+        op = kernel_outcomes(op)  # a wide node step reads one node whatever its outcome
     if addr.shape[0] and addr.min() < 0:
         raise SimtSimError("OpTrace has negative addresses; re-record the trace")
     if op.shape[0] and scan_trace(offsets, op)[3] >= 0:
@@ -448,9 +489,9 @@ def memory_counts(trace: OpTrace, warp_size: int, gpu: GpuConfig | None = None) 
         )
     cache = (0, 0, 0, 0)
     if gpu is None:
-        per_warp = _count_warps(offsets, op, addr, warp_size, any_hit)
+        per_warp = _count_warps(offsets, op, addr, warp_size, any_hit, node_bytes)
     else:
-        per_warp, cache = _cache_counts((offsets, op, addr), warp_size, any_hit, gpu)
+        per_warp, cache = _cache_counts((offsets, op, addr), warp_size, any_hit, node_bytes, gpu)
     tot = per_warp.sum(axis=0) if per_warp.shape[0] else np.zeros(_N_COLS, np.int64)
     return MemoryCounts(
         rays=trace.n_rays,
@@ -466,6 +507,7 @@ def memory_counts(trace: OpTrace, warp_size: int, gpu: GpuConfig | None = None) 
         working_set_lines=cache[1],
         l1_misses=cache[2],
         l2_misses=cache[3],
+        node_bytes=node_bytes,
     )
 
 

@@ -161,10 +161,11 @@ def simulate_traces(
                     "simulate each ray type separately"
                 )
             state["ray_type"] = trace.ray_type
-            if trace.layout not in scheme.layouts:
+            if trace.layout != scheme.layout:
                 raise SimtSimError(
-                    f"{scheme.name} replays {', '.join(scheme.layouts)} traces, not this "
-                    f"{trace.layout} one; record it with --bvh {scheme.layouts[0]}"
+                    f"{scheme.name} is costed with {scheme.kernel} ({scheme.layout}), not for "
+                    f"this {trace.layout} trace: take scheme.for_layout({trace.layout!r}), "
+                    f"or record the trace with --bvh {scheme.layout}"
                 )
             n_trav, n_leaf, n_tri, bad = scan_trace(a[0], a[1])
             if bad >= 0:

@@ -12,11 +12,12 @@ one place where a name becomes a scheme.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any
 
 from kernels_ir.kernel_ir import KernelLaunch
+from simt_sim.errors import SimtSimError
 
 __all__ = ["KINDS", "PATH", "TRACE", "TRACE_BLOCKS", "KernelLaunch", "SchemeInfo"]
 
@@ -82,8 +83,12 @@ class SchemeInfo:
         The kernel body the exact lockstep executor runs for it (``oracles.lockstep``).
     launch : KernelLaunch, optional
         How the CUDA tracer launches its kernel (trace schemes with a ``.cu`` tracer).
-    layouts : tuple of str
-        The BVH layouts (``simt_sim.types.optrace.LAYOUTS``) whose traces it replays.
+    layout : str
+        The BVH layout (``simt_sim.types.optrace.LAYOUTS``) whose traces this record
+        replays with ``kernels``.
+    wide : mapping of str to mapping
+        Other layouts it replays, each with its own kernels (and their blocks):
+        :meth:`for_layout` gives the record for one of them.
     """
 
     name: str
@@ -103,7 +108,10 @@ class SchemeInfo:
     issue_order: bool = True
     lockstep: int | None = None
     launch: KernelLaunch | None = None
-    layouts: tuple[str, ...] = ("bvh2",)
+    layout: str = "bvh2"
+    wide: Mapping[str, Mapping[str, tuple[str, ...]]] = field(
+        default_factory=lambda: MappingProxyType({})
+    )
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -114,6 +122,26 @@ class SchemeInfo:
             raise ValueError(f"scheme {self.name!r}: a path scheme has replay_paths")
         object.__setattr__(self, "kernels", MappingProxyType(dict(self.kernels)))
         object.__setattr__(self, "params", MappingProxyType(dict(self.params)))
+        object.__setattr__(
+            self, "wide", MappingProxyType({k: dict(v) for k, v in self.wide.items()})
+        )
+
+    @property
+    def layouts(self) -> tuple[str, ...]:
+        """Every BVH layout whose traces the scheme replays (its own, then ``wide``)."""
+        return (self.layout, *self.wide)
+
+    def for_layout(self, layout: str) -> SchemeInfo:
+        """The record that replays ``layout``'s traces: the same replay rules, charged with
+        that layout's kernels (no CUDA launch: the tracer runs binary kernels only)."""
+        if layout == self.layout:
+            return self
+        if layout not in self.wide:
+            raise SimtSimError(
+                f"no replay of {layout} traces yet ({self.name} replays "
+                f"{', '.join(self.layouts)}): use --bvh {self.layout} with this scheme"
+            )
+        return replace(self, kernels=self.wide[layout], layout=layout, wide={}, launch=None)
 
     @property
     def kernel(self) -> str:

@@ -78,7 +78,7 @@ def record_batch(plan: StudyPlan, ray_type: str, rays: RayBatch, index: int) -> 
         traced, bounds = picked.rays, [int(b) for b in picked.bounds]
     else:
         traced, bounds = rays, [0, len(rays)]
-    trace = record_all(plan.bvh, traced, batch_size=spec.launch_size)
+    trace = record_all(plan.tree, traced, batch_size=spec.launch_size)
     return RecordedBatch(ray_type, index, len(rays), trace, tuple(bounds))
 
 

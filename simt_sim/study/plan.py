@@ -16,9 +16,10 @@ from kernels_ir.kernel_ir import KernelIR
 from simt_sim import progress, schemes
 from simt_sim.bvh.build import build_bvh
 from simt_sim.bvh.layout import BVH
+from simt_sim.bvh.layouts import Tree, make_tree, tree_stats
 from simt_sim.errors import SimtSimError
 from simt_sim.scene.load import load_scene
-from simt_sim.simt.footprint import decide, footprint_bytes
+from simt_sim.simt.footprint import decide
 from simt_sim.simt.gpus import GpuConfig, get_gpu
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
 from simt_sim.study.spec import StudySpec
@@ -37,6 +38,9 @@ class StudyPlan:
     spec : StudySpec
     scene : Scene
     bvh : BVH
+        The binary tree (rays are made with it; path traces walk it).
+    tree : Tree
+        ``bvh`` in the spec's layout (``--bvh``), which the trace ray types are recorded on.
     cameras : tuple of int
         The camera indices ``spec.cameras`` names.
     gpus : tuple of GpuConfig
@@ -52,6 +56,7 @@ class StudyPlan:
     spec: StudySpec
     scene: Scene
     bvh: BVH
+    tree: Tree
     cameras: tuple[int, ...]
     gpus: tuple[GpuConfig, ...]
     schemes: tuple[SchemeInfo, ...]
@@ -100,7 +105,7 @@ def plan_study(spec: StudySpec) -> StudyPlan:
             f"--sample draws whole warps, so the GPUs must share one warp size; got "
             f"{listed}: run them in separate tables"
         )
-    chosen = tuple(schemes.get_scheme(s) for s in spec.schemes)
+    chosen = tuple(schemes.get_scheme(s).for_layout(spec.bvh) for s in spec.schemes)
     irs = {
         (k, g.ir_arch): kernels_ir.load(k, g.ir_arch, spec.tests)
         for g in gpus
@@ -114,6 +119,6 @@ def plan_study(spec: StudySpec) -> StudyPlan:
         scene.vertices, scene.triangles, max_leaf=spec.max_leaf, node_cost=spec.node_cost
     )
     announce(scene, bvh)
-    footprint = footprint_bytes(bvh.nodes.shape[0], bvh.woop.shape[0])
-    memory = {g.id: decide(spec.memory, footprint, g) for g in gpus}
-    return StudyPlan(spec, scene, bvh, cameras, gpus, chosen, irs, memory)
+    tree = make_tree(bvh, spec.bvh)
+    memory = {g.id: decide(spec.memory, tree_stats(tree).bytes, g) for g in gpus}
+    return StudyPlan(spec, scene, bvh, tree, cameras, gpus, chosen, irs, memory)

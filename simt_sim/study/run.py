@@ -21,7 +21,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from simt_sim import schemes
-from simt_sim.bvh.layouts import make_tree, tree_card
+from simt_sim.bvh.layouts import tree_card
 from simt_sim.progress import bar as progress_bar
 from simt_sim.progress import checkpoint
 from simt_sim.simt.gpus import GpuConfig
@@ -174,8 +174,7 @@ def _roofline_columns(r: SimResult, row: dict) -> dict:
 
 def _finish(plan: StudyPlan, r: SimResult) -> SimResult:
     """Every result's card also describes the tree it was traced on, in its layout."""
-    tree = make_tree(plan.bvh, plan.spec.bvh)
-    return replace(r, model_card={**r.model_card, "bvh": tree_card(tree)})
+    return replace(r, model_card={**r.model_card, "bvh": tree_card(plan.tree)})
 
 
 def trace_rows(

@@ -15,7 +15,7 @@ from typing import Any
 
 import pandas as pd
 
-from simt_sim.bvh.layouts import make_tree, tree_card
+from simt_sim.bvh.layouts import tree_card
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.result import SimResult
 from simt_sim.study.batches import BatchResults, RecordedBatch, replay_batch
@@ -84,7 +84,7 @@ def _launches(path: str, size: int) -> Iterator[OpTrace]:
 def _check_tree(plan: StudyPlan, path: str) -> None:
     recorded = read_meta(path)["meta"]["bvh"]
     # a version-1 file's card has the binary build's fields only: compare those it has
-    built = tree_card(make_tree(plan.bvh, plan.spec.bvh))
+    built = tree_card(plan.tree)
     if any(recorded[k] != built.get(k) for k in recorded):
         raise SimtSimError(
             f"{path} was recorded on another tree than this simt-sim builds for scene "

@@ -20,7 +20,7 @@ from simt_sim.simt.footprint import MODES as MEMORY_MODES
 from simt_sim.simt.gpus import DEFAULT_GPU
 from simt_sim.study.sampling import check_fraction
 from simt_sim.types.optrace import LAYOUTS
-from simt_sim.types.raybatch import RAY_TYPES, TRACE_RAY_TYPES
+from simt_sim.types.raybatch import PATH_RAYS, RAY_TYPES, TRACE_RAY_TYPES
 
 
 @dataclass(frozen=True)
@@ -65,14 +65,17 @@ class StudySpec:
                 raise SimtSimError(f"unknown ray type {rt!r}; use any of {', '.join(RAY_TYPES)}")
         if self.bvh not in LAYOUTS:
             raise SimtSimError(f"unknown BVH layout {self.bvh!r}; use one of {', '.join(LAYOUTS)}")
+        if self.bvh != "bvh2" and PATH_RAYS in self.ray_types:
+            raise SimtSimError(
+                f"{PATH_RAYS} rays are traced on the binary tree only; drop them from --rays "
+                "or use --bvh bvh2"
+            )
         for name in self.schemes:
             scheme = schemes.get_scheme(name)
             if self.bvh not in scheme.layouts:
-                raise SimtSimError(
-                    f"no replay of {self.bvh} traces yet ({name} replays "
-                    f"{', '.join(scheme.layouts)}): use --bvh bvh2 here; 'simt-sim trace' and "
-                    "'simt-sim bench' take any layout"
-                )
+                able = schemes.names(layout=self.bvh)
+                hint = f"--schemes {','.join(able)}" if able else "--bvh bvh2"
+                raise SimtSimError(f"{name} does not replay {self.bvh} traces yet; use {hint}")
         check_fraction(self.sample)
         if self.memory not in MEMORY_MODES:
             raise SimtSimError(

@@ -252,20 +252,21 @@ def test_every_scheme_module_is_registered_with_its_record() -> None:
 
 
 def test_every_kernel_a_scheme_names_is_compiled_with_the_blocks_it_charges() -> None:
-    """The records and the committed IR agree: each kernel of each scheme has an IR for
-    every target, with every block the replay charges, and reads a layout the scheme
-    replays; every ``.cu`` of a layout some scheme replays serves a scheme (the bvh4
-    kernels wait for a bvh4 replay)."""
+    """The records and the committed IR agree: each kernel of each scheme, for each layout
+    it replays, has an IR for every target, with every block the replay charges, and reads
+    that layout; every ``.cu`` of a layout some scheme replays serves a scheme."""
+    charged = set()
     for s in SCHEMES.values():
-        for kernel, blocks in s.kernels.items():
-            for arch in kernels_ir.ARCHS:
-                ir = kernels_ir.load(kernel, arch)
-                check_ir(ir, kernel, blocks)
-                assert all(ir.cost(b) > 0 for b in blocks), (kernel, arch)
-            assert kernel_layout(kernel) in s.layouts, (s.name, kernel)
+        for layout in s.layouts:
+            for kernel, blocks in s.for_layout(layout).kernels.items():
+                charged.add(kernel)
+                assert kernel_layout(kernel) == layout, (s.name, kernel)
+                for arch in kernels_ir.ARCHS:
+                    ir = kernels_ir.load(kernel, arch)
+                    check_ir(ir, kernel, blocks)
+                    assert all(ir.cost(b) > 0 for b in blocks), (kernel, arch)
     replayed = {layout for s in SCHEMES.values() for layout in s.layouts}
-    served = {k for k in kernels_ir.KERNELS if kernel_layout(k) in replayed}
-    assert {k for s in SCHEMES.values() for k in s.kernels} == served
+    assert charged == {k for k in kernels_ir.KERNELS if kernel_layout(k) in replayed}
 
 
 def test_trace_and_path_calls_refuse_the_other_kind() -> None:

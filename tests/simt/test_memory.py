@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
+from simt_sim.bvh.layouts import tree_stats
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.lockstep import execute
 from simt_sim.schemes import get_scheme
-from simt_sim.simt.footprint import decide, footprint_bytes
+from simt_sim.simt.footprint import decide
 from simt_sim.simt.gpus import get_gpu, load_gpus
 from simt_sim.simt.memory import (
     RAY_IO_BYTES,
@@ -50,13 +51,20 @@ def gpu_with(l1_kib: int, l2_kib: int, sms: int = 1, warps_per_sm: int = 4):
 # ---- plain-Python reference, written straight from the model card's rules ------------------
 
 
+#: node bytes of each layout, from the layouts' descriptions (simt_sim/bvh/layout.py, wide.py)
+REF_NODE_BYTES = {"bvh2": 64, "bvh4": 112, "bvh8": 224}
+
+
 def ref_lines(kind: str, addr: int, size: int) -> list[tuple[int, str]]:
-    """128-byte lines (line, array) of ``size`` bytes at a node or float4 address."""
-    start = addr * (64 if kind == "node" else 16)
+    """128-byte lines (line, array) of ``size`` bytes at a node (of ``size`` bytes) or
+    float4 address."""
+    start = addr * (size if kind == "node" else 16)
     return [(line, kind) for line in range(start // 128, (start + size - 1) // 128 + 1)]
 
 
-def ref_warp_steps(streams: list[list[tuple[int, int]]], any_hit: bool) -> list[dict]:
+def ref_warp_steps(
+    streams: list[list[tuple[int, int]]], any_hit: bool, node_bytes: int = 64
+) -> list[dict]:
     """While-while lockstep steps of one warp: each a dict of kind, fetches, line set."""
     pos = [0] * len(streams)
 
@@ -66,12 +74,16 @@ def ref_warp_steps(streams: list[list[tuple[int, int]]], any_hit: bool) -> list[
     steps: list[dict] = []
     while any(nxt(i) is not None for i in range(len(streams))):
         while True:
-            active = [i for i in range(len(streams)) if nxt(i) is not None and nxt(i) <= 2]
+            active = [
+                i
+                for i in range(len(streams))
+                if nxt(i) is not None and (nxt(i) <= 2 or nxt(i) >= 6)
+            ]
             if not active:
                 break
             lines = []
             for i in active:
-                lines += ref_lines("node", streams[i][pos[i]][1], 64)
+                lines += ref_lines("node", streams[i][pos[i]][1], node_bytes)
                 pos[i] += 1
             steps.append({"kind": "node", "fetches": len(active), "sent": 0, "lines": lines})
         while True:
@@ -130,7 +142,9 @@ def ref_counts(trace: OpTrace, warp_size: int, gpu=None) -> dict:
         for a, b in zip(trace.offsets[:-1], trace.offsets[1:], strict=True)
     ]
     warps = [
-        ref_warp_steps(streams[r : r + warp_size], trace.query == "any")
+        ref_warp_steps(
+            streams[r : r + warp_size], trace.query == "any", REF_NODE_BYTES[trace.layout]
+        )
         for r in range(0, len(streams), warp_size)
     ]
     out = dict.fromkeys(
@@ -173,6 +187,7 @@ def ref_counts(trace: OpTrace, warp_size: int, gpu=None) -> dict:
 def as_dict(c: MemoryCounts) -> dict:
     d = {k: getattr(c, k) for k in c.__dataclass_fields__}
     d.pop("cache_gpu")
+    d.pop("node_bytes")
     return d
 
 
@@ -243,6 +258,21 @@ def test_lru_evicts_beyond_capacity() -> None:
 # ---- numba against the reference ---------------------------------------------------------------
 
 
+@pytest.mark.parametrize("layout", ["bvh4", "bvh8"])
+def test_wide_layouts_equal_the_reference(layout: str) -> None:
+    """Wide nodes straddle lines (112 and 224 bytes) and steps hit up to 8 children."""
+    rng = np.random.default_rng(13)
+    tr = random_trace(rng, 211, "closest")
+    op = tr.op.copy()
+    wide = (op == TRAV_BOTH) & (rng.random(op.shape) < 0.5)
+    op[wide] = rng.integers(6, 12 if layout == "bvh8" else 8, wide.sum())
+    tr = replace(tr, op=op, layout=layout)
+    gpu = gpu_with(l1_kib=1, l2_kib=2, sms=2, warps_per_sm=2)
+    for ws in (32, 5):
+        assert as_dict(memory_counts(tr, ws)) == ref_counts(tr, ws)
+        assert as_dict(memory_counts(tr, ws, gpu)) == ref_counts(tr, ws, gpu)
+
+
 @pytest.mark.parametrize("query", ["closest", "any"])
 @pytest.mark.parametrize("warp_size", [32, 5])
 def test_numba_equals_reference_on_random_traces(query: str, warp_size: int) -> None:
@@ -295,7 +325,7 @@ def test_steps_match_the_exact_lockstep_executor(room) -> None:
 def test_room_numbers_are_sane(room) -> None:
     w, primary, _, _ = room
     gpu = get_gpu("gtx285")
-    fp = footprint_bytes(w.bvh.nodes.shape[0], w.bvh.woop.shape[0])
+    fp = tree_stats(w.bvh).bytes
     assert fp == w.bvh.nodes.nbytes + w.bvh.woop.nbytes
     on, reason = decide("auto", fp, gpu)
     assert on and "exceeds" in reason
@@ -392,8 +422,6 @@ def test_bad_traces_are_refused(trace: OpTrace, match: str) -> None:
 def test_bad_sizes_are_refused() -> None:
     with pytest.raises(SimtSimError, match="warp_size"):
         memory_counts(make_trace([[(T, 0)]]), 0)
-    with pytest.raises(SimtSimError, match="non-negative"):
-        footprint_bytes(-1, 3)
 
 
 def test_every_packaged_gpu_has_its_dram_bandwidth() -> None:
