@@ -47,7 +47,7 @@ from simt_sim.schemes import SCHEMES, get_scheme
 from simt_sim.simt.gpus import GpuConfig, get_gpu
 from simt_sim.simt.replay import simulate_paths, simulate_traces
 from simt_sim.simt.result import SimResult
-from simt_sim.simt.scheme import PATH, TRACE
+from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
 from simt_sim.simt.synth import synthetic_trace
 from simt_sim.study.workload import make_workload, parse_resolution
 from simt_sim.trace.paths import trace_paths
@@ -55,19 +55,19 @@ from simt_sim.types.optrace import OpTrace
 from simt_sim.types.paths import PathTrace
 
 
-def _synthetic_ir(scheme: str, gpu: GpuConfig) -> KernelIR:
-    return KernelIR(scheme, gpu.ir_arch, {b: {"int": i + 1} for i, b in enumerate(BLOCKS)})
+def _synthetic_ir(scheme: SchemeInfo, gpu: GpuConfig) -> KernelIR:
+    return KernelIR(scheme.kernel, gpu.ir_arch, {b: {"int": i + 1} for i, b in enumerate(BLOCKS)})
 
 
-def _recorded_ir(scheme: str, gpu: GpuConfig) -> KernelIR:
-    return kernels_ir.load(scheme, "sm_75")
+def _recorded_ir(scheme: SchemeInfo, gpu: GpuConfig) -> KernelIR:
+    return kernels_ir.load(scheme.kernel, "sm_75")
 
 
-def _recorded_trace(scene: str, resolution: tuple[int, int], spp: int) -> OpTrace:
+def _recorded_trace(scene: str, resolution: tuple[int, int], spp: int, layout: str) -> OpTrace:
     from simt_sim.trace.record import record_all
 
-    wl = make_workload(scene, "diffuse", cameras="0", resolution=resolution, spp=spp)
-    return record_all(wl.bvh, wl.rays)
+    wl = make_workload(scene, "diffuse", cameras="0", resolution=resolution, spp=spp, layout=layout)
+    return record_all(wl.tree, wl.rays)
 
 
 def _thread_cpu() -> dict[str, float]:
@@ -82,12 +82,16 @@ def _thread_cpu() -> dict[str, float]:
 
 
 def _trace_replays(
-    trace: OpTrace, ir_of: Callable[[str, GpuConfig], KernelIR], gpu: GpuConfig, schemes
+    trace: OpTrace, ir_of: Callable[[SchemeInfo, GpuConfig], KernelIR], gpu: GpuConfig, schemes
 ) -> dict[str, Callable[[], SimResult]]:
-    return {
-        s: functools.partial(simulate_traces, [trace], get_scheme(s), ir_of(s, gpu), gpu)
+    records = {
+        s: get_scheme(s).for_layout(trace.layout)
         for s in schemes
-        if SCHEMES[s].kind == TRACE
+        if SCHEMES[s].kind == TRACE and trace.layout in SCHEMES[s].layouts
+    }
+    return {
+        s: functools.partial(simulate_traces, [trace], rec, ir_of(rec, gpu), gpu)
+        for s, rec in records.items()
     }
 
 
@@ -155,6 +159,7 @@ def main() -> None:
     ap.add_argument("--resolution", default="256x192")
     ap.add_argument("--spp", type=int, default=8)
     ap.add_argument("--gpu", default="gtx285")
+    ap.add_argument("--bvh", default="bvh2", help="layout of the recorded trace")
     ap.add_argument("--schemes", default="all", help="all or a comma-separated list")
     ap.add_argument(
         "--thread-cpu",
@@ -178,7 +183,9 @@ def main() -> None:
             trace = synthetic_trace(args.rays, seed=1, coherence=32, divergence=0.2)
             replays = _trace_replays(trace, _synthetic_ir, gpu, schemes)
         elif name == "recorded":
-            trace = _recorded_trace(args.scene, parse_resolution(args.resolution), args.spp)
+            trace = _recorded_trace(
+                args.scene, parse_resolution(args.resolution), args.spp, args.bvh
+            )
             replays = _trace_replays(trace, _recorded_ir, gpu, schemes)
         elif name == "paths":
             pt = _path_trace(args.scene, parse_resolution(args.resolution))

@@ -55,6 +55,19 @@ an interior node to step, a leaf to enter, a triangle to test, or nothing):
 Every run reports per-ray hits (identical to the tracer's for every scheme: the closest
 ``t`` does not depend on the order triangles are found in) and per-ray TRAV/LEAF/TRI
 counts of the work each lane actually did.
+
+Wide trees: the ``bvh4`` records of while-while and persistent while-while
+(``SchemeInfo.for_layout("bvh4")``) run their kernels (``kernels_ir/cuda/bvh4_*.cu``) over
+a 4-wide :class:`~simt_sim.bvh.wide.WideBVH`. The loop structure is while-while's; a
+lane's node step tests the node's four child boxes (the binary test's arithmetic per
+child: near and far plane rows picked by the ray's direction signs,
+``tn = max(max(sx, sy), max(sz, tmin))``, ``tf = min(BOX_ROUNDING * min(min(fx, fy), fz),
+tmax)``, hit iff ``tn <= tf``), goes to the nearest hit child (equal distances: the lower
+slot) and pushes the other hit ones farthest first, or pops when none is hit. Each step
+charges ``trav_step`` and one outcome block, as those kernels branch: ``trav_none`` (no
+child hit), ``trav_one`` (one), ``trav_both`` (two or more: one branch-free ordering and
+push). Leaves are the binary tree's Woop triangles, entered and tested as in the binary
+kernels.
 """
 
 from __future__ import annotations
@@ -67,6 +80,7 @@ from numba import njit, prange
 
 from kernels_ir.kernel_ir import KernelIR
 from simt_sim.bvh.geometry import (
+    BOX_ROUNDING,
     SENTINEL_I32,
     inverse_direction,
     near_columns,
@@ -74,7 +88,11 @@ from simt_sim.bvh.geometry import (
     woop_hit_t,
 )
 from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
+from simt_sim.bvh.layouts import Tree, layout_of
 from simt_sim.bvh.traverse import check_bvh, ray_arrays, stack_size
+from simt_sim.bvh.wide import PLANES, WideBVH
+from simt_sim.bvh.wide_traverse import check_wide
+from simt_sim.bvh.wide_traverse import stack_size as wide_stack_size
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.card import model_card
 from simt_sim.simt.engine import (
@@ -611,6 +629,209 @@ def _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i, a
     return cost + charge(cnt, hist, costs, FINISH, lanes)
 
 
+# ---------------------------------------------------------------------------------------
+# Wide trees (bvh4): the while-while kernels' body over a WideBVH. Lane state is the binary
+# executor's (the same ``li``/``lf`` rows, stack and leaf handling); only the node step and
+# the outcome it charges differ. ``_NX``/``_NY``/``_NZ`` hold the wide layout's near plane
+# rows (column offsets of child 0) instead of the binary node's columns.
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _wide_planes(li, lf, lane, width):
+    """Set the lane's near plane rows of a ``width``-wide node from its direction signs.
+
+    Rows of the layout (``simt_sim.bvh.wide``): lo.x, hi.x, lo.y, hi.y, lo.z, hi.z, each
+    ``width`` columns. A ray enters a box through ``lo`` on an axis where its inverse
+    direction is positive, through ``hi`` where it is negative.
+    """
+    li[lane, _NX] = width if lf[lane, _IX] < 0 else 0
+    li[lane, _NY] = 3 * width if lf[lane, _IY] < 0 else 2 * width
+    li[lane, _NZ] = 5 * width if lf[lane, _IZ] < 0 else 4 * width
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _wide_trav_step(li, lf, stack, lane, nodes, nodes_i, width, tnear, child):
+    """One node step of a lane on a wide tree; returns how many children it hit.
+
+    Every child box is tested against the lane's current ``tmax``; the hit children are
+    ranked front to back (nearer ``tnear`` first, an equal one: the lower slot). The lane
+    goes to the first and pushes the others so that the second is on top of its stack;
+    with none hit it pops. ``tnear``/``child`` are ``width`` entries of scratch. Returns -1
+    if the pushes would overflow the stack.
+    """
+    node = li[lane, _NODE]
+    ox = lf[lane, _OX]
+    oy = lf[lane, _OY]
+    oz = lf[lane, _OZ]
+    ix = lf[lane, _IX]
+    iy = lf[lane, _IY]
+    iz = lf[lane, _IZ]
+    tmin = lf[lane, _TMIN]
+    tmax = lf[lane, _TMAX]
+    near_x = li[lane, _NX]
+    near_y = li[lane, _NY]
+    near_z = li[lane, _NZ]
+    # the far plane of an axis is the other row of its (lo, hi) pair: rows 0 and 1 (x),
+    # 2 and 3 (y), 4 and 5 (z), each ``width`` columns, so near + far = 1, 5, 9 widths
+    far_x = width - near_x
+    far_y = 5 * width - near_y
+    far_z = 9 * width - near_z
+    first_child = PLANES * width
+    hits = 0
+    for c in range(width):
+        sx = (nodes[node, near_x + c] - ox) * ix
+        sy = (nodes[node, near_y + c] - oy) * iy
+        sz = (nodes[node, near_z + c] - oz) * iz
+        fx = (nodes[node, far_x + c] - ox) * ix
+        fy = (nodes[node, far_y + c] - oy) * iy
+        fz = (nodes[node, far_z + c] - oz) * iz
+        tn = max(max(sx, sy), max(sz, tmin))
+        tf = min(BOX_ROUNDING * min(min(fx, fy), fz), tmax)
+        if tn <= tf:
+            tnear[hits] = tn
+            child[hits] = nodes_i[node, first_child + c]
+            hits += 1
+    if hits == 0:
+        _pop(li, stack, lane)
+        return 0
+    sp = li[lane, _SP]
+    pushes = hits - 1
+    if sp + pushes > stack.shape[1]:
+        return -1
+    # The hit children were gathered in slot order; a child's rank is the number of hit
+    # children before it front to back. Rank 0 is visited next; rank r >= 1 goes r - 1
+    # entries below the top, so the farthest is deepest and the stack pops front to back.
+    for a in range(hits):
+        rank = 0
+        for b in range(hits):
+            if tnear[b] < tnear[a] or (tnear[b] == tnear[a] and b < a):
+                rank += 1
+        if rank == 0:
+            _goto(li, lane, child[a])
+        else:
+            stack[lane, sp + pushes - rank] = child[a]
+    li[lane, _SP] = sp + pushes
+    return hits
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _wide_traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, width, tnear, child, ops,
+                              base, cnt, hist, costs):  # fmt: skip
+    """One lockstep node step of lanes ``sel[:n]`` on a wide tree: ``trav_step``, then
+    ``trav_none``, ``trav_one`` and ``trav_both`` with the lanes that hit no child, one
+    child, and two or more. Returns the cost issued, or -1 on stack overflow."""
+    cost = charge(cnt, hist, costs, TRAV_STEP, n)
+    none = 0
+    one = 0
+    several = 0
+    for k in range(n):
+        lane = sel[k]
+        hits = _wide_trav_step(li, lf, stack, lane, nodes, nodes_i, width, tnear, child)
+        if hits < 0:
+            return np.int64(-1)
+        if hits == 0:
+            none += 1
+        elif hits == 1:
+            one += 1
+        else:
+            several += 1
+        ops[base + lane, _C_TRAV] += 1
+    cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_NONE, none)
+    cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_ONE, one)
+    cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_BOTH, several)
+    return cost
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _wide_while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i, any_hit, ops,
+                      base, cnt, hist, costs):  # fmt: skip
+    """While-while (:func:`_while_while`) with wide node steps; returns cost (-1 overflow)."""
+    sel = np.empty(lanes, np.int64)
+    tri_sel = np.empty(lanes, np.int64)
+    tnear = np.empty(width, np.float32)
+    child = np.empty(width, np.int32)
+    cost = np.int64(0)
+    while True:
+        alive = lanes - _lanes_with(li, lanes, _K_NONE, sel)
+        if alive == 0:
+            break
+        cost += charge(cnt, hist, costs, LOOP_CONTROL, alive)
+        while True:
+            n = _lanes_with(li, lanes, _K_TRAV, sel)
+            if n == 0:
+                break
+            c = _wide_traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, width, tnear,
+                                          child, ops, base, cnt, hist, costs)  # fmt: skip
+            if c < 0:
+                return np.int64(-1)
+            cost += c
+        while True:
+            n = _lanes_with(li, lanes, _K_LEAF, sel)
+            if n == 0:
+                break
+            cost += charge(cnt, hist, costs, LEAF_ENTRY, n)
+            for k in range(n):
+                lane = sel[k]
+                ops[base + lane, _C_LEAF] += 1
+                leaf = li[lane, _NODE]
+                _pop(li, stack, lane)
+                _open_leaf(li, lane, leaf, woop_i)
+            while True:
+                m = 0
+                for k in range(n):
+                    if _next(li, sel[k]) == _K_TRI:
+                        tri_sel[m] = sel[k]
+                        m += 1
+                if m == 0:
+                    break
+                cost += _tri_iteration(li, lf, tri_sel, m, woop, woop_i, any_hit, ops, base,
+                                       cnt, hist, costs)  # fmt: skip
+    return cost + charge(cnt, hist, costs, FINISH, lanes)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _execute_wide(persistent, nodes, width, woop, tri_index, root, origin, direction, tmin,
+                  tmax, any_hit, cap, warp_size, costs):  # fmt: skip
+    """:func:`_execute` for the wide while-while kernels: every warp (or fetched group) of
+    the batch over a ``width``-wide tree, in parallel; returns what :func:`_execute` does."""
+    nodes_i = nodes.view(np.int32)
+    woop_i = woop.view(np.int32)
+    n = origin.shape[0]
+    units = (n + warp_size - 1) // warp_size
+    cnt = np.zeros((units, 2, N_BLOCKS), np.int64)
+    hist = np.zeros((units, N_BLOCKS, warp_size + 1), np.int64)
+    unit_cost = np.zeros(units, np.int64)
+    ops = np.zeros((n, 3), np.int64)
+    out_tri = np.full(n, -1, np.int32)
+    out_t = np.full(n, np.inf, np.float32)
+    overflow = np.zeros(units, np.bool_)
+    for u in prange(units):
+        base = u * warp_size
+        lanes = min(warp_size, n - base)
+        li = np.zeros((lanes, _N_INT), np.int32)
+        lf = np.zeros((lanes, _N_FLOAT), np.float32)
+        stack = np.empty((lanes, cap), np.int32)
+        for lane in range(lanes):
+            _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, root)
+            _wide_planes(li, lf, lane, width)
+        c = cnt[u]
+        h = hist[u]
+        cost = np.int64(0)
+        if persistent:
+            cost += charge(c, h, costs, POOL_FETCH, lanes)
+        cost += charge(c, h, costs, RAY_SETUP, lanes)
+        rest = _wide_while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i,
+                                 any_hit, ops, base, c, h, costs)  # fmt: skip
+        overflow[u] = rest < 0
+        unit_cost[u] = cost + rest
+        for lane in range(lanes):
+            j = li[lane, _HIT]
+            if j >= 0:
+                out_tri[base + lane] = tri_index[j]
+                out_t[base + lane] = lf[lane, _TMAX]
+    return cnt, hist, unit_cost, out_tri, out_t, ops, overflow.any()
+
+
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, tmin, tmax, any_hit,
              cap, warp_size, costs):  # fmt: skip
@@ -784,8 +1005,42 @@ def _gpu(gpu: GpuConfig | None, warp_size: int | None) -> GpuConfig:
     return g
 
 
+#: the wide layouts the executor runs, with their widths (the bvh4 kernels' while-while body)
+WIDE_LAYOUTS = {"bvh4": 4}
+
+
+def _tree_width(tree: Tree, scheme: SchemeInfo) -> int:
+    """Children per node of ``tree`` (2: binary) once it is checked to be what ``scheme``'s
+    kernels run on; a mismatch is refused in one line."""
+    layout = layout_of(tree)
+    if layout != scheme.layout:
+        fix = (
+            f"take scheme.for_layout({layout!r})"
+            if layout in scheme.wide
+            else f"pass make_tree(bvh, {scheme.layout!r})"
+        )
+        raise SimtSimError(
+            f"{scheme.name} is costed with {scheme.kernel} ({scheme.layout}), which does not "
+            f"run on this {layout} tree: {fix}"
+        )
+    if isinstance(tree, BVH):
+        check_bvh(tree)
+        return 2
+    if (
+        isinstance(tree, WideBVH)
+        and WIDE_LAYOUTS.get(layout) == tree.width
+        and scheme.lockstep == WHILE_WHILE_BODY
+    ):
+        check_wide(tree)
+        return tree.width
+    raise SimtSimError(
+        f"the lockstep executor has no {layout} kernel body for {scheme.name}: it runs the "
+        f"while-while kernels on {', '.join(WIDE_LAYOUTS)} trees and every body on bvh2"
+    )
+
+
 def execute(
-    bvh: BVH,
+    bvh: Tree,
     rays: RayBatch,
     scheme: SchemeInfo,
     ir: KernelIR,
@@ -803,8 +1058,10 @@ def execute(
 
     Parameters
     ----------
-    bvh : BVH
-        The tree the rays traverse (Aila-Laine layout).
+    bvh : BVH or WideBVH
+        The tree the rays traverse, in ``scheme.layout``: a binary BVH (Aila-Laine
+        layout), or for a ``bvh4`` record (``scheme.for_layout("bvh4")`` of while-while
+        or persistent while-while) a 4-wide :class:`~simt_sim.bvh.wide.WideBVH`.
     rays : RayBatch
         Rays in warp order; the whole batch is one launch for the persistent schemes.
     scheme : SchemeInfo
@@ -834,7 +1091,7 @@ def execute(
             "scheme whose SchemeInfo.lockstep is set"
         )
     check_ir(ir, scheme.kernel, scheme.kernels[scheme.kernel])
-    check_bvh(bvh)
+    width = _tree_width(bvh, scheme)
     values = scheme.with_params(params)
     g = _gpu(gpu, warp_size)
     persistent = scheme.persistent
@@ -847,11 +1104,23 @@ def execute(
         raise SimtSimError(f"resident_warps must be >= 1, got {r}")
     origin, direction, tmin, tmax = ray_arrays(rays)
     costs = cost_vector(ir)
-    cap = stack_size(bvh)
+    cap = stack_size(bvh) if width == 2 else wide_stack_size(bvh)
     args = (bvh.nodes, bvh.woop, bvh.tri_index, bvh.root, origin, direction, tmin, tmax,
             rays.query == "any", cap)  # fmt: skip
     extra = {"resident_warps": r, "launch_size": len(rays), "launches": 1} if persistent else {}
-    if scheme.lockstep == SPECULATIVE_FETCH_BODY:
+    if width != 2:  # the wide while-while kernels (checked by _tree_width)
+        cnt, hist, unit_cost, tri, t, ops, overflow = _execute_wide(
+            persistent, bvh.nodes, width, *args[1:], g.warp_size, costs
+        )
+        totals = None
+        span = 0
+        if persistent:
+            totals = np.zeros(r, np.int64)
+            span = int(schedule_groups(unit_cost, r, totals)) if len(rays) else 0
+        counts = Counts(
+            cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0), totals, span
+        )
+    elif scheme.lockstep == SPECULATIVE_FETCH_BODY:
         threshold = int(values["threshold"])
         if threshold < 1:
             raise SimtSimError(f"threshold must be >= 1, got {threshold}")
@@ -873,8 +1142,9 @@ def execute(
         )
     if overflow:
         raise SimtSimError(
-            f"BVH is deeper than its stats.depth ({bvh.stats.depth}) says; "
-            "rebuild it with build_bvh"
+            f"{'' if width == 2 else 'wide '}BVH is deeper than its stats.depth "
+            f"({bvh.stats.depth}) says; "
+            f"rebuild it with {'build_bvh' if width == 2 else 'collapse'}"
         )
     card = model_card(
         scheme.name,
@@ -883,7 +1153,12 @@ def execute(
         approximations=(),
         recostable=scheme.recostable,
         blocks=scheme.kernels[scheme.kernel],
-        executor="exact lockstep execution over the BVH (simt_sim.oracles.lockstep)",
+        executor=(
+            "exact lockstep execution over the BVH (simt_sim.oracles.lockstep)"
+            if width == 2
+            else f"exact lockstep execution over the {layout_of(bvh)} BVH "
+            "(simt_sim.oracles.lockstep)"
+        ),
         **extra,
         **values,
     )
@@ -918,7 +1193,7 @@ METRICS = (
 
 
 def approximation_error(
-    bvh: BVH,
+    bvh: Tree,
     rays: RayBatch,
     scheme: SchemeInfo,
     ir: KernelIR,

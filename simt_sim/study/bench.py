@@ -32,7 +32,7 @@ from simt_sim.bvh.layouts import layout_of
 from simt_sim.errors import SimtSimError
 from simt_sim.study.workload import Workload
 from simt_sim.tracers import numba_tracer
-from simt_sim.tracers.agreement import agreement
+from simt_sim.tracers.agreement import agreement, occlusion
 from simt_sim.tracers.embree_tracer import THREADS as EMBREE_THREADS
 from simt_sim.tracers.embree_tracer import EmbreeTracer
 from simt_sim.tracers.reference import ReferenceTracer
@@ -172,7 +172,8 @@ def bench_tracers(
     def checked(hits: Hits) -> float:
         if ref is None:
             return float("nan")
-        return agreement(Hits(hits.tri[sample], hits.t[sample]), ref)
+        got = Hits(hits.tri[sample], hits.t[sample])
+        return agreement(occlusion(got) if rays.query == "any" else got, ref)
 
     rows = [
         {

@@ -38,3 +38,11 @@ def agreement(hits: Hits, reference: Hits, *, rtol: float = 1e-4) -> float:
     same = (hits.tri == reference.tri) | close | unknown
     ok = (~a_hit & ~b_hit) | (a_hit & b_hit & same)
     return float(np.count_nonzero(ok)) / len(hits)
+
+
+def occlusion(hits: Hits) -> Hits:
+    """An any-hit result as what it answers, occluded or not: every hit's triangle becomes
+    ``UNKNOWN_TRI``, since any hit the walk meets first is right and the walk's order
+    (another BVH layout, another tracer) decides which one that is."""
+    tri = np.where(hits.hit_mask, UNKNOWN_TRI, hits.tri).astype(hits.tri.dtype)
+    return Hits(tri=tri, t=hits.t)
