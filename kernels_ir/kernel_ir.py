@@ -67,8 +67,9 @@ CLASSES = (
 
 
 #: the BVH layouts the kernels read (names of simt_sim.types.optrace.LAYOUTS): ``bvh2``, the
-#: binary Aila-Laine layout (``common.cuh``), and ``bvh4`` (simt_sim/bvh/wide.py, ``bvh4.cuh``)
-KERNEL_LAYOUTS = ("bvh2", "bvh4")
+#: binary Aila-Laine layout (``common.cuh``), ``bvh4`` (simt_sim/bvh/wide.py, ``bvh4.cuh``) and
+#: ``cwbvh`` (simt_sim/bvh/cwbvh.py, ``cwbvh.cuh``)
+KERNEL_LAYOUTS = ("bvh2", "bvh4", "cwbvh")
 
 
 def kernel_layout(kernel: str) -> str:

@@ -17,7 +17,7 @@ from typing import Any
 from kernels_ir.kernel_ir import BLOCKS
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.scheme import SchemeInfo
-from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS
+from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_WIDE, TRI_HIT, TRI_MISS
 
 _OUTCOME_BLOCK = ("trav_none", "trav_one", "trav_both")
 
@@ -206,6 +206,53 @@ def persistent_group(streams: list[list[int]], addrs: list[list[int]], rec: RefC
     """One fetched group of persistent while-while: pool_fetch, then a while-while warp."""
     issued = rec.charge("pool_fetch", list(range(len(streams))))
     return issued + while_while_warp(streams, addrs, rec)
+
+
+def cwbvh_group(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
+    """One fetched group of the cwbvh persistent while-while kernel: pool_fetch, ray_setup;
+    then, while a lane has ops left, one iteration of the trace loop for those lanes: its
+    ``trav_step`` (one TRAV op each), the triangle loop over each lane's triangle group
+    (its TRI ops up to the next TRAV, LEAF ops skipped: ``tri_test`` while a lane has a
+    triangle left, ``tri_hit`` with the lanes whose triangle is a hit) and
+    ``loop_control``; finally ``finish``. A stream must start with a TRAV op (the root);
+    wide TRAV codes (3 or more children hit) count as TRAV ops."""
+
+    def node_step(o: int) -> bool:
+        return _is_trav(o) or o >= TRAV_WIDE
+
+    for lane, s in enumerate(streams):
+        if s and not node_step(s[0]):
+            raise SimtSimError(f"lane {lane}: a cwbvh op stream starts with a TRAV op, not {s[0]}")
+    everyone = list(range(len(streams)))
+    # each lane's iterations: the triangle tests (TRI op codes) after each of its TRAV ops
+    iterations: list[list[list[int]]] = []
+    for s in streams:
+        its: list[list[int]] = []
+        for o in s:
+            if node_step(o):
+                its.append([])
+            elif _is_tri(o):
+                its[-1].append(o)
+        iterations.append(its)
+    issued = rec.charge("pool_fetch", everyone)
+    issued += rec.charge("ray_setup", everyone)
+    j = 0
+    while True:
+        alive = [lane for lane in everyone if j < len(iterations[lane])]
+        if not alive:
+            break
+        issued += rec.charge("trav_step", alive)
+        k = 0
+        while True:
+            x = [lane for lane in alive if k < len(iterations[lane][j])]
+            if not x:
+                break
+            issued += rec.charge("tri_test", x)
+            issued += rec.charge("tri_hit", [i for i in x if iterations[i][j][k] == TRI_HIT])
+            k += 1
+        issued += rec.charge("loop_control", alive)
+        j += 1
+    return issued + rec.charge("finish", everyone)
 
 
 def packet_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:

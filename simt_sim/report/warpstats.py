@@ -42,14 +42,14 @@ def has_timeline(scheme: SchemeInfo) -> bool:
     return has_warp_counts(scheme) and scheme.reference_warp is not None and scheme.issue_order
 
 
-def warp_schemes() -> tuple[str, ...]:
-    """Names of the schemes with per-warp counts."""
-    return tuple(n for n, s in SCHEMES.items() if has_warp_counts(s))
+def warp_schemes(layout: str = "bvh2") -> tuple[str, ...]:
+    """Names of the schemes with per-warp counts of ``layout``'s traces."""
+    return tuple(n for n, s in SCHEMES.items() if has_warp_counts(s) and layout in s.layouts)
 
 
-def timeline_schemes() -> tuple[str, ...]:
-    """Names of the schemes with an issue timeline."""
-    return tuple(n for n, s in SCHEMES.items() if has_timeline(s))
+def timeline_schemes(layout: str = "bvh2") -> tuple[str, ...]:
+    """Names of the schemes with an issue timeline of ``layout``'s traces."""
+    return tuple(n for n, s in SCHEMES.items() if has_timeline(s) and layout in s.layouts)
 
 
 @dataclass(frozen=True)
@@ -101,12 +101,21 @@ def warp_counts(
     warp_size : int
         Lanes per warp (at most 64).
     """
-    _check_scheme(scheme, has_warp_counts(scheme), warp_schemes(), "per-warp counts")
+    _check_scheme(scheme, has_warp_counts(scheme), warp_schemes(trace.layout), "per-warp counts")
+    _check_layout(scheme, trace)
     if not 1 <= warp_size <= MAX_MASK_LANES:
         raise SimtSimError(f"warp_size must lie in 1..{MAX_MASK_LANES}, got {warp_size}")
     offsets, op, addr = replay_arrays(trace)
     out = scheme.warp_counts(offsets, op, addr, np.ascontiguousarray(costs, np.int64), warp_size)
     return WarpCounts(out[:, 0].copy(), out[:, 1].copy(), warp_size)
+
+
+def _check_layout(scheme: SchemeInfo, trace: OpTrace) -> None:
+    if trace.layout != scheme.layout:
+        raise SimtSimError(
+            f"{scheme.name} is costed for {scheme.layout} traces, not this {trace.layout} one; "
+            f"take scheme.for_layout({trace.layout!r})"
+        )
 
 
 class _Log(RefCounts):
@@ -130,7 +139,8 @@ def warp_timeline(
     Runs the plain-Python reference replay (the rules of the scheme's module docstring)
     on the warp's ``warp_size`` rays. Cheap for one warp, too slow for many.
     """
-    _check_scheme(scheme, has_timeline(scheme), timeline_schemes(), "issue timeline")
+    _check_scheme(scheme, has_timeline(scheme), timeline_schemes(trace.layout), "issue timeline")
+    _check_layout(scheme, trace)
     n_warps = -(-trace.n_rays // warp_size)
     if not 0 <= warp < n_warps:
         raise SimtSimError(f"warp {warp} does not exist; the rays form warps 0..{n_warps - 1}")

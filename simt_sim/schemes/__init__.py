@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from simt_sim.errors import SimtSimError
 from simt_sim.schemes import (
+    cwbvh_persistent_while_while,
     dynamic_fetch,
     if_if,
     megakernel,
@@ -39,6 +40,7 @@ MODULES = (
     packet,
     megakernel,
     wavefront,
+    cwbvh_persistent_while_while,
 )
 
 #: every scheme by name (the names used on the command line and in outputs)

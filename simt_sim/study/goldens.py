@@ -59,11 +59,12 @@ class Golden:
         return Path(directory) / f"{self.scene}.csv"
 
     def spec(self) -> StudySpec:
-        """Every scheme and ray type on the GTX 285; camera 0, 2 spp."""
+        """Every scheme that replays binary traces and every ray type on the GTX 285; camera 0,
+        2 spp."""
         return StudySpec(
             scene=self.scene,
             ray_types=RAY_TYPES,
-            schemes=schemes.names(),
+            schemes=schemes.names(layout="bvh2"),
             gpus=(DEFAULT_GPU,),
             cameras="0",
             resolution=self.resolution,

@@ -29,7 +29,7 @@ class StudySpec:
 
     scene: str = DEFAULT_SCENE
     ray_types: tuple[str, ...] = TRACE_RAY_TYPES
-    schemes: tuple[str, ...] = schemes.names()
+    schemes: tuple[str, ...] = schemes.names(layout="bvh2")
     gpus: tuple[str, ...] = (DEFAULT_GPU,)
     cameras: str = "all"
     resolution: tuple[int, int] = (1024, 768)

@@ -178,7 +178,7 @@ def test_one_triangle_scene_end_to_end(tmp_path):
     spec = StudySpec(scene=str(path), ray_types=("primary", "ao", "diffuse", "path"),
                      resolution=(16, 12), spp=2, cameras="all")  # fmt: skip
     results, table = run_study(spec, progress=False)
-    assert set(table["scheme"]) == set(schemes.names())
+    assert set(table["scheme"]) == set(schemes.names(layout="bvh2"))
     simulated = [r for r in results if r.rays > 0]
     assert len(simulated) == len(results) > 0
     for r in simulated:

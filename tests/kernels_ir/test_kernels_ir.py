@@ -325,7 +325,10 @@ def test_path_tracing_kernels_shade_with_sfu_and_push_with_atomics() -> None:
 def test_load_unknown_kernel_or_arch_lists_what_exists() -> None:
     with pytest.raises(
         KernelIRError,
-        match="kernels: bvh4_persistent_while_while, bvh4_while_while, dynamic_fetch, if_if",
+        match=(
+            "kernels: bvh4_persistent_while_while, bvh4_while_while, "
+            "cwbvh_persistent_while_while, dynamic_fetch, if_if"
+        ),
     ) as err:
         load("while_whiel", "sm_90")
     assert "\n" not in str(err.value)

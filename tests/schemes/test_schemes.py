@@ -24,7 +24,7 @@ from simt_sim.study.spec import StudySpec
 from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS, OpTrace
 
 COSTS = {b: i + 1 for i, b in enumerate(BLOCKS)}  # small distinct costs per block
-TRACE_SCHEMES = schemes.names(TRACE)
+TRACE_SCHEMES = schemes.names(TRACE, layout="bvh2")  # replayed on synthetic binary traces
 CONSERVING = [s for s in TRACE_SCHEMES if s != "packet"]
 
 

@@ -24,7 +24,7 @@ from simt_sim.simt.result import SimResult, merge
 from simt_sim.simt.synth import synthetic_trace
 from simt_sim.trace.paths import trace_paths
 
-TRACE_SCHEMES = names("trace")
+TRACE_SCHEMES = names("trace", layout="bvh2")
 BIG_COST = 2**31 - 7
 """A block cost near int32's limit: a few executions overflow any int32 accumulator."""
 

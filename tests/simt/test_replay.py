@@ -19,7 +19,7 @@ from simt_sim.simt.result import SimResult, merge
 from simt_sim.simt.synth import synthetic_trace, trace_from_lists
 from simt_sim.types.optrace import LEAF, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS, OpTrace
 
-TRACE_SCHEMES = names("trace")
+TRACE_SCHEMES = names("trace", layout="bvh2")
 #: schemes whose idle lanes refill from the pool: their counts follow the launch and costs
 REFILLING = tuple(s for s in TRACE_SCHEMES if "threshold" in get_scheme(s).params)
 COSTS = {b: i + 1 for i, b in enumerate(BLOCKS)}
