@@ -19,6 +19,7 @@ import numba
 import pandas as pd
 
 from simt_sim.bvh.build import build_bvh
+from simt_sim.bvh.layouts import make_tree
 from simt_sim.scene.load import load_scene
 from simt_sim.study.workload import make_workload, parse_resolution
 from simt_sim.trace.record import record
@@ -50,21 +51,29 @@ def drain(bvh, rays) -> None:
         pass
 
 
-def measure(rays, bvh, emb: EmbreeTracer, repeats: int) -> dict:
-    """MRays/s of Embree, the numba tracer and the recorder on ``rays``, and their ratios."""
+def measure(rays, bvh, emb: EmbreeTracer, repeats: int, wide: dict, tracers_only: bool) -> dict:
+    """MRays/s of Embree, the numba tracer (on the binary tree and each tree of ``wide``,
+    layout -> tree) and the recorder on ``rays``, and their ratios; ``tracers_only`` times
+    Embree and the numba tracers on one thread only."""
     all_threads = numba.config.NUMBA_NUM_THREADS
     fns = {
         "embree_1t": (1, lambda: emb.trace_closed(rays)),  # Embree's own query, as bench times
         "numba_1t": (1, lambda: numba_tracer.trace(bvh, rays)),
-        "record_1t": (1, lambda: drain(bvh, rays)),
-        f"numba_{all_threads}t": (all_threads, lambda: numba_tracer.trace(bvh, rays)),
-        f"record_{all_threads}t": (all_threads, lambda: drain(bvh, rays)),
     }
+    for layout, tree in wide.items():
+        fns[f"numba_{layout}_1t"] = (1, lambda tree=tree: numba_tracer.trace(tree, rays))
+    if not tracers_only:
+        fns["record_1t"] = (1, lambda: drain(bvh, rays))
+        fns[f"numba_{all_threads}t"] = (all_threads, lambda: numba_tracer.trace(bvh, rays))
+        fns[f"record_{all_threads}t"] = (all_threads, lambda: drain(bvh, rays))
     seconds = interleaved_medians(fns, repeats)
     row: dict = {"rays": len(rays)}
     row.update({k: len(rays) / s / 1e6 for k, s in seconds.items()})
     row["numba/embree (1t)"] = row["numba_1t"] / row["embree_1t"]
-    row["record/numba (1t)"] = row["record_1t"] / row["numba_1t"]
+    for layout in wide:
+        row[f"{layout}/embree (1t)"] = row[f"numba_{layout}_1t"] / row["embree_1t"]
+    if not tracers_only:
+        row["record/numba (1t)"] = row["record_1t"] / row["numba_1t"]
     return row
 
 
@@ -75,6 +84,10 @@ def main() -> int:
     ap.add_argument("--resolution", default="1024x768")
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--layouts", default="", help="wide layouts to time too, e.g. bvh4,bvh8")
+    ap.add_argument(
+        "--tracers-only", action="store_true", help="Embree and numba on one thread only"
+    )
     args = ap.parse_args()
 
     scene = load_scene(args.scene)
@@ -83,6 +96,7 @@ def main() -> int:
     )["build"]
     bvh = build_bvh(scene.vertices, scene.triangles)
     emb = EmbreeTracer(scene.vertices, scene.triangles)
+    wide = {name: make_tree(bvh, name) for name in args.layouts.split(",") if name}
     rows = []
     for rt in ("primary", "ao", "diffuse"):
         wl = make_workload(
@@ -93,7 +107,8 @@ def main() -> int:
             spp=args.spp,
             bvh=bvh,
         )
-        rows.append({"ray_type": rt, **measure(wl.rays, bvh, emb, args.repeats)})
+        row = measure(wl.rays, bvh, emb, args.repeats, wide, args.tracers_only)
+        rows.append({"ray_type": rt, **row})
     df = pd.DataFrame(rows)
     print(
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
