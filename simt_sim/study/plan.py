@@ -16,7 +16,7 @@ from kernels_ir.kernel_ir import KernelIR
 from simt_sim import progress, schemes
 from simt_sim.bvh.build import build_bvh
 from simt_sim.bvh.layout import BVH
-from simt_sim.bvh.layouts import Tree, make_tree, tree_stats
+from simt_sim.bvh.layouts import NODE_BYTES_OF, Tree, make_tree, tree_stats
 from simt_sim.errors import SimtSimError
 from simt_sim.scene.load import load_scene
 from simt_sim.simt.footprint import decide
@@ -120,5 +120,10 @@ def plan_study(spec: StudySpec) -> StudyPlan:
     )
     announce(scene, bvh)
     tree = make_tree(bvh, spec.bvh)
-    memory = {g.id: decide(spec.memory, tree_stats(tree).bytes, g) for g in gpus}
+    if spec.bvh in NODE_BYTES_OF:
+        memory = {g.id: decide(spec.memory, tree_stats(tree).bytes, g) for g in gpus}
+    else:  # spec.check refused --memory-model on
+        memory = dict.fromkeys(
+            (g.id for g in gpus), (False, f"memory model off: {spec.bvh} is not modelled")
+        )
     return StudyPlan(spec, scene, bvh, tree, cameras, gpus, chosen, irs, memory)

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 from simt_sim import schemes
+from simt_sim.bvh.layouts import NODE_BYTES_OF
 from simt_sim.errors import SimtSimError
 from simt_sim.rays.generate import LAUNCH_SIZE
 from simt_sim.scene.load import DEFAULT_SCENE
@@ -65,6 +66,11 @@ class StudySpec:
                 raise SimtSimError(f"unknown ray type {rt!r}; use any of {', '.join(RAY_TYPES)}")
         if self.bvh not in LAYOUTS:
             raise SimtSimError(f"unknown BVH layout {self.bvh!r}; use one of {', '.join(LAYOUTS)}")
+        if self.memory == "on" and self.bvh not in NODE_BYTES_OF:
+            raise SimtSimError(
+                f"the memory model reads leaves ended by a sentinel, which {self.bvh} has not; "
+                "use --memory-model auto or off"
+            )
         if self.bvh != "bvh2" and PATH_RAYS in self.ray_types:
             raise SimtSimError(
                 f"{PATH_RAYS} rays are traced on the binary tree only; drop them from --rays "

@@ -125,3 +125,6 @@ def test_wide_studies_refuse_what_they_cannot_replay():
     with pytest.raises(SimtSimError, match="binary tree only"):
         StudySpec(bvh="bvh4", schemes=WIDE_SCHEMES, ray_types=("path",)).check()
     StudySpec(bvh="bvh4", schemes=WIDE_SCHEMES, ray_types=("primary",)).check()
+    cw = ("cwbvh_persistent_while_while",)
+    with pytest.raises(SimtSimError, match="memory-model auto or off"):
+        StudySpec(bvh="cwbvh", schemes=cw, ray_types=("ao",), memory="on").check()
