@@ -108,6 +108,31 @@ def log_op(out_op, out_addr, pos, code, addr):
 
 
 @njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def intersect_leaf(
+    woop, woop_i, j, ox, oy, oz, dx, dy, dz, tmin, tmax, any_hit, hit, out_op, out_addr, pos
+):  # fmt: skip
+    """Enter the leaf at float4 ``j`` and test its triangles up to the sentinel, logging
+    LEAF and each TRI op; a closest-hit query shrinks ``tmax`` on every accepted hit.
+
+    Returns ``(hit, tmax, pos, done)``; ``done`` when an any-hit query found its hit.
+    Every layout whose leaves are the binary tree's runs this one loop.
+    """
+    pos = log_op(out_op, out_addr, pos, _OP_LEAF, j)
+    while woop_i[j, 0] != SENTINEL_I32:
+        ok, t = woop_hit_t(woop, j, ox, oy, oz, dx, dy, dz, tmin, tmax)
+        if ok:
+            pos = log_op(out_op, out_addr, pos, _OP_TRI_HIT, j)
+            hit = j
+            tmax = t
+            if any_hit:
+                return hit, tmax, pos, True
+        else:
+            pos = log_op(out_op, out_addr, pos, _OP_TRI_MISS, j)
+        j += 3
+    return hit, tmax, pos, False
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def traverse_ray(
     nodes: np.ndarray,
     nodes_i: np.ndarray,
@@ -187,20 +212,12 @@ def traverse_ray(
                     return hit, tmax if hit >= 0 else _INF, pos, True
                 sp -= 1
                 node = stack[sp]
-        # Leaf: test its triangles up to the sentinel.
-        j = ~node
-        pos = log_op(out_op, out_addr, pos, _OP_LEAF, j)
-        while woop_i[j, 0] != SENTINEL_I32:
-            ok, t = woop_hit_t(woop, j, ox, oy, oz, dx, dy, dz, tmin, tmax)
-            if ok:
-                pos = log_op(out_op, out_addr, pos, _OP_TRI_HIT, j)
-                hit = j
-                tmax = t
-                if any_hit:
-                    return hit, tmax, pos, True
-            else:
-                pos = log_op(out_op, out_addr, pos, _OP_TRI_MISS, j)
-            j += 3
+        hit, tmax, pos, done = intersect_leaf(
+            woop, woop_i, ~node, ox, oy, oz, dx, dy, dz, tmin, tmax, any_hit, hit,
+            out_op, out_addr, pos,
+        )  # fmt: skip
+        if done:
+            return hit, tmax, pos, True
         if sp == 0:
             return hit, tmax if hit >= 0 else _INF, pos, True
         sp -= 1

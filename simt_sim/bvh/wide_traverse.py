@@ -21,9 +21,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from simt_sim.bvh.geometry import BOX_ROUNDING, SENTINEL_I32, inverse_direction, woop_hit_t
+from simt_sim.bvh.geometry import BOX_ROUNDING, inverse_direction
 from simt_sim.bvh.simd_wide import four_child_test
-from simt_sim.bvh.traverse import BLOCK, log_op, ray_arrays
+from simt_sim.bvh.traverse import BLOCK, intersect_leaf, log_op, ray_arrays
 from simt_sim.bvh.wide import PLANES, WideBVH, node_floats
 from simt_sim.errors import SimtSimError
 from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_WIDE, TRI_HIT, TRI_MISS
@@ -166,19 +166,12 @@ def wide_traverse_ray(
                 stack_t[sp] = near[j]
                 sp += 1
             node = kids[0]
-        j = ~node
-        pos = log_op(out_op, out_addr, pos, _OP_LEAF, j)
-        while woop_i[j, 0] != SENTINEL_I32:
-            ok, t = woop_hit_t(woop, j, ox, oy, oz, dx, dy, dz, tmin, tmax)
-            if ok:
-                pos = log_op(out_op, out_addr, pos, _OP_TRI_HIT, j)
-                hit = j
-                tmax = t
-                if any_hit:
-                    return hit, tmax, pos, True
-            else:
-                pos = log_op(out_op, out_addr, pos, _OP_TRI_MISS, j)
-            j += 3
+        hit, tmax, pos, done = intersect_leaf(
+            woop, woop_i, ~node, ox, oy, oz, dx, dy, dz, tmin, tmax, any_hit, hit,
+            out_op, out_addr, pos,
+        )  # fmt: skip
+        if done:
+            return hit, tmax, pos, True
         sp = _pop_to(stack_t, sp, cull, tmax)
         if sp == 0:
             return hit, tmax if hit >= 0 else _INF, pos, True

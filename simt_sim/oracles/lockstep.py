@@ -337,6 +337,36 @@ def _lanes_with(li, lanes, kind, sel):
     return n
 
 
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _intersection_loop(li, lf, stack, lanes, sel, tri_sel, woop, woop_i, any_hit, ops, base,
+                       cnt, hist, costs):  # fmt: skip
+    """While-while's intersection loop, shared by the binary and wide kernels: while any
+    lane stands on a leaf, ``leaf_entry`` (pop, open the leaf), then its triangle loop."""
+    cost = np.int64(0)
+    while True:
+        n = _lanes_with(li, lanes, _K_LEAF, sel)
+        if n == 0:
+            break
+        cost += charge(cnt, hist, costs, LEAF_ENTRY, n)
+        for k in range(n):
+            lane = sel[k]
+            ops[base + lane, _C_LEAF] += 1
+            leaf = li[lane, _NODE]
+            _pop(li, stack, lane)
+            _open_leaf(li, lane, leaf, woop_i)
+        while True:
+            m = 0
+            for k in range(n):
+                if _next(li, sel[k]) == _K_TRI:
+                    tri_sel[m] = sel[k]
+                    m += 1
+            if m == 0:
+                break
+            cost += _tri_iteration(li, lf, tri_sel, m, woop, woop_i, any_hit, ops, base,
+                                   cnt, hist, costs)  # fmt: skip
+    return cost
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _while_while(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, base,
                  cnt, hist, costs):  # fmt: skip
@@ -362,27 +392,8 @@ def _while_while(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, op
             if c < 0:
                 return np.int64(-1)
             cost += c
-        while True:
-            n = _lanes_with(li, lanes, _K_LEAF, sel)
-            if n == 0:
-                break
-            cost += charge(cnt, hist, costs, LEAF_ENTRY, n)
-            for k in range(n):
-                lane = sel[k]
-                ops[base + lane, _C_LEAF] += 1
-                leaf = li[lane, _NODE]
-                _pop(li, stack, lane)
-                _open_leaf(li, lane, leaf, woop_i)
-            while True:
-                m = 0
-                for k in range(n):
-                    if _next(li, sel[k]) == _K_TRI:
-                        tri_sel[m] = sel[k]
-                        m += 1
-                if m == 0:
-                    break
-                cost += _tri_iteration(li, lf, tri_sel, m, woop, woop_i, any_hit, ops, base,
-                                       cnt, hist, costs)  # fmt: skip
+        cost += _intersection_loop(li, lf, stack, lanes, sel, tri_sel, woop, woop_i, any_hit,
+                                   ops, base, cnt, hist, costs)  # fmt: skip
     return cost + charge(cnt, hist, costs, FINISH, lanes)
 
 
@@ -765,27 +776,8 @@ def _wide_while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i,
             if c < 0:
                 return np.int64(-1)
             cost += c
-        while True:
-            n = _lanes_with(li, lanes, _K_LEAF, sel)
-            if n == 0:
-                break
-            cost += charge(cnt, hist, costs, LEAF_ENTRY, n)
-            for k in range(n):
-                lane = sel[k]
-                ops[base + lane, _C_LEAF] += 1
-                leaf = li[lane, _NODE]
-                _pop(li, stack, lane)
-                _open_leaf(li, lane, leaf, woop_i)
-            while True:
-                m = 0
-                for k in range(n):
-                    if _next(li, sel[k]) == _K_TRI:
-                        tri_sel[m] = sel[k]
-                        m += 1
-                if m == 0:
-                    break
-                cost += _tri_iteration(li, lf, tri_sel, m, woop, woop_i, any_hit, ops, base,
-                                       cnt, hist, costs)  # fmt: skip
+        cost += _intersection_loop(li, lf, stack, lanes, sel, tri_sel, woop, woop_i, any_hit,
+                                   ops, base, cnt, hist, costs)  # fmt: skip
     return cost + charge(cnt, hist, costs, FINISH, lanes)
 
 
