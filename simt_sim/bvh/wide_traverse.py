@@ -21,8 +21,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from simt_sim.bvh.geometry import BOX_ROUNDING, inverse_direction
+from simt_sim.bvh.geometry import BOX_ROUNDING, SENTINEL_I32, inverse_direction
 from simt_sim.bvh.simd_wide import four_child_test
+from simt_sim.bvh.simd_woop import woop4
 from simt_sim.bvh.traverse import BLOCK, intersect_leaf, log_op, ray_arrays
 from simt_sim.bvh.wide import PLANES, WideBVH, node_floats
 from simt_sim.errors import SimtSimError
@@ -115,6 +116,35 @@ def _hits_simd(nodes, nodes_i, node, w, nx, ny, nz, fx, fy, fz, ox, oy, oz, idx,
 
 
 @njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _intersect_leaf4(
+    woop, woop_i, j, ox, oy, oz, dx, dy, dz, tmin, tmax, any_hit, hit, out_op, out_addr, pos
+):  # fmt: skip
+    """:func:`~simt_sim.bvh.traverse.intersect_leaf` four triangles per vector test
+    (:func:`~simt_sim.bvh.simd_woop.woop4`): the same hits, ``tmax`` and ops. A lane hit
+    with the chunk's ``tmax`` is taken, in lane order, only if still nearer than the hits
+    the earlier lanes took, which is the scalar loop's test of its shrinking ``tmax``."""
+    pos = log_op(out_op, out_addr, pos, _OP_LEAF, j)
+    n = 0
+    while woop_i[j + 3 * n, 0] != SENTINEL_I32:
+        n += 1
+    for c in range(0, n, 4):
+        lanes = min(4, n - c)
+        first = j + 3 * c
+        mask, t0, t1, t2, t3 = woop4(woop, first, lanes, ox, oy, oz, dx, dy, dz, tmin, tmax)
+        for k in range(lanes):
+            t = t0 if k == 0 else (t1 if k == 1 else (t2 if k == 2 else t3))
+            if (mask >> k) & 1 and t < tmax:
+                pos = log_op(out_op, out_addr, pos, _OP_TRI_HIT, first + 3 * k)
+                hit = first + 3 * k
+                tmax = t
+                if any_hit:
+                    return hit, tmax, pos, True
+            else:
+                pos = log_op(out_op, out_addr, pos, _OP_TRI_MISS, first + 3 * k)
+    return hit, tmax, pos, False
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def wide_traverse_ray(
     nodes, nodes_i, width, simd, cull, woop, woop_i, root, ox, oy, oz, dx, dy, dz, tmin,
     tmax, any_hit, stack, stack_t, near, kids, out_op, out_addr, pos,
@@ -166,10 +196,16 @@ def wide_traverse_ray(
                 stack_t[sp] = near[j]
                 sp += 1
             node = kids[0]
-        hit, tmax, pos, done = intersect_leaf(
-            woop, woop_i, ~node, ox, oy, oz, dx, dy, dz, tmin, tmax, any_hit, hit,
-            out_op, out_addr, pos,
-        )  # fmt: skip
+        if simd:
+            hit, tmax, pos, done = _intersect_leaf4(
+                woop, woop_i, ~node, ox, oy, oz, dx, dy, dz, tmin, tmax, any_hit, hit,
+                out_op, out_addr, pos,
+            )  # fmt: skip
+        else:
+            hit, tmax, pos, done = intersect_leaf(
+                woop, woop_i, ~node, ox, oy, oz, dx, dy, dz, tmin, tmax, any_hit, hit,
+                out_op, out_addr, pos,
+            )  # fmt: skip
         if done:
             return hit, tmax, pos, True
         sp = _pop_to(stack_t, sp, cull, tmax)

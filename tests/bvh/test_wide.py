@@ -11,11 +11,13 @@ from hypothesis import strategies as st
 from numba import njit
 
 from simt_sim.bvh.build import build_bvh
-from simt_sim.bvh.geometry import BOX_ROUNDING, inverse_direction
+from simt_sim.bvh.geometry import BOX_ROUNDING, inverse_direction, woop_hit_t
 from simt_sim.bvh.layouts import make_tree, trace_arrays
 from simt_sim.bvh.simd_wide import four_child_test
+from simt_sim.bvh.simd_woop import woop4
 from simt_sim.bvh.wide import EMPTY, PLANES, collapse, collapse_to_width
 from simt_sim.bvh.wide_traverse import wide_trace_arrays
+from simt_sim.bvh.woop import woop_transform
 from simt_sim.errors import SimtSimError
 from simt_sim.rays.generate import paper_rays
 from simt_sim.trace.record import record_all
@@ -122,7 +124,7 @@ def test_vector_child_test_gives_the_scalar_op_stream(room, layout):
         assert n == counts.shape[0]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _both_tests(node_rows, rays):
     """Per ray: the scalar (tnear, tfar) of four children and four_child_test's mask/tnear."""
     n = rays.shape[0]
@@ -217,3 +219,57 @@ def test_unknown_or_unbuilt_layout_is_refused(room):
         n = len(rays["primary"])
         trace_arrays(wide, rays["primary"], np.zeros(n + 1, np.int64), np.empty(0, np.uint8),
                      np.empty(0, np.int32), cull=True)  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")  # IEEE division, as the traversal compiles it
+def _both_triangle_tests(woop, rays, n):
+    """Per ray: the scalar woop_hit_t of the n triangles at float4 0, 3, ... and woop4's."""
+    m = rays.shape[0]
+    scalar = np.empty((m, 4, 2), np.float32)
+    vector = np.empty((m, 5), np.float32)
+    for i in range(m):
+        r = rays[i]
+        for k in range(n):
+            ok, t = woop_hit_t(woop, 3 * k, r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7])
+            scalar[i, k, 0] = 1.0 if ok else 0.0
+            scalar[i, k, 1] = t
+        mask, t0, t1, t2, t3 = woop4(woop, 0, n, r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7])
+        vector[i, 0] = mask
+        vector[i, 1] = t0
+        vector[i, 2] = t1
+        vector[i, 3] = t2
+        vector[i, 4] = t3
+    return scalar, vector
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 4), st.booleans())
+def test_four_triangle_test_is_the_scalar_test_bit_for_bit(seed, n, extreme):
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-1, 1, (n, 3, 3))
+    if extreme:  # axis-aligned triangles: rays in their plane, zero components
+        flat = rng.random(n) < 0.5
+        p[flat, :, 2] = p[flat, :1, 2]
+    w0, w1, w2 = woop_transform(p[:, 0], p[:, 1], p[:, 2])
+    woop = np.zeros((3 * n + 1, 4), F32)
+    woop[0 : 3 * n : 3], woop[1 : 3 * n : 3], woop[2 : 3 * n : 3] = w0, w1, w2
+    m = 512
+    o = rng.uniform(-2, 2, (m, 3))
+    bary = rng.uniform(-0.2, 1.0, (m, 2))  # aimed at and around the triangles' insides
+    tri = p[rng.integers(0, n, m)]
+    target = (
+        tri[:, 2] + bary[:, :1] * (tri[:, 0] - tri[:, 2]) + bary[:, 1:] * (tri[:, 1] - tri[:, 2])
+    )
+    d = target - o
+    rays = np.concatenate([o, d, np.zeros((m, 1)), rng.uniform(0.5, 4, (m, 1))], 1).astype(F32)
+    if extreme:
+        pick = rng.integers(0, len(SPECIAL), (m, 6))
+        rays[:, :6] = np.where(rng.random((m, 6)) < 0.2, SPECIAL[pick], rays[:, :6])
+    scalar, vector = _both_triangle_tests(woop, rays, n)
+    want_mask = (scalar[:, :n, 0] > 0) @ (1 << np.arange(n))
+    assert extreme or want_mask.any()  # the rays do hit: the test decides something
+    np.testing.assert_array_equal(vector[:, 0].astype(np.int64), want_mask)
+    got_t, want_t = vector[:, 1 : 1 + n], scalar[:, :n, 1]
+    nan = np.isnan(want_t)
+    np.testing.assert_array_equal(nan, np.isnan(got_t))
+    np.testing.assert_array_equal(got_t.view(np.int32)[~nan], want_t.view(np.int32)[~nan])
