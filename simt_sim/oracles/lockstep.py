@@ -68,6 +68,24 @@ charges ``trav_step`` and one outcome block, as those kernels branch: ``trav_non
 child hit), ``trav_one`` (one), ``trav_both`` (two or more: one branch-free ordering and
 push). Leaves are the binary tree's Woop triangles, entered and tested as in the binary
 kernels.
+
+Compressed wide trees: the ``cwbvh_persistent_while_while`` record (its ``layout`` is
+``cwbvh``, its body :data:`CWBVH_BODY`) runs Ylitie, Karras & Laine's trace loop
+(``kernels_ir/cuda/cwbvh_persistent_while_while.cu``) over a
+:class:`~simt_sim.bvh.cwbvh.CwBVH`. A lane holds a node group (child base, imask and the
+hit interior children still to visit, kept in visiting order: slot ``s`` at bit ``s ^
+octant``), a triangle group, and a stack of node groups; it starts at the group of
+node 0 alone. Per fetched group of ``warp_size`` consecutive rays: ``pool_fetch`` and
+``ray_setup``; then while a lane has a node left (in its group or on its stack), one
+iteration for those lanes: ``trav_step`` (each pops a group if its own is empty, takes the
+group's lowest bit, pushes the rest if any, and tests that node's 8 decoded child boxes
+``p + 2^e * q`` in float32 with the binary test's arithmetic; interior children hit become
+its node group, leaf children hit its triangle group), the triangle loop (``tri_test``
+while a lane that stepped has a triangle of its group left, lowest bit first, with
+``tri_hit`` for the accepted hits: a closest-hit lane shrinks ``tmax``, an any-hit lane
+ends) and ``loop_control``; finally ``finish``. Groups go to resident warps by the replay's
+ideal scheduling, as persistent while-while. A LEAF op (per-ray counts) is a hit leaf
+child's first triangle reached in the loop; it costs no block.
 """
 
 from __future__ import annotations
@@ -79,6 +97,18 @@ import numpy as np
 from numba import njit, prange
 
 from kernels_ir.kernel_ir import KernelIR
+from simt_sim.bvh.cwbvh import OFF_CHILD_BASE as CW_OFF_CHILD_BASE
+from simt_sim.bvh.cwbvh import OFF_E as CW_OFF_E
+from simt_sim.bvh.cwbvh import OFF_IMASK as CW_OFF_IMASK
+from simt_sim.bvh.cwbvh import OFF_META as CW_OFF_META
+from simt_sim.bvh.cwbvh import OFF_QHI as CW_OFF_QHI
+from simt_sim.bvh.cwbvh import OFF_QLO as CW_OFF_QLO
+from simt_sim.bvh.cwbvh import OFF_TRI_BASE as CW_OFF_TRI_BASE
+from simt_sim.bvh.cwbvh import POW2 as CW_POW2
+from simt_sim.bvh.cwbvh import WIDTH as CW_WIDTH
+from simt_sim.bvh.cwbvh import CwBVH
+from simt_sim.bvh.cwbvh_traverse import check_cwbvh
+from simt_sim.bvh.cwbvh_traverse import stack_size as cwbvh_stack_size
 from simt_sim.bvh.geometry import (
     BOX_ROUNDING,
     SENTINEL_I32,
@@ -87,7 +117,7 @@ from simt_sim.bvh.geometry import (
     node_child_intervals,
     woop_hit_t,
 )
-from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
+from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1, WOOP_FLOAT4_PER_TRI
 from simt_sim.bvh.layouts import Tree, layout_of
 from simt_sim.bvh.traverse import check_bvh, ray_arrays, stack_size
 from simt_sim.bvh.wide import PLANES, WideBVH
@@ -130,7 +160,9 @@ from simt_sim.types.raybatch import RayBatch
 #: its ``pool_fetch``; the speculative one with dynamic fetch runs in event order
 #: (:func:`_execute_fetch`). Dynamic fetch has none: it visits what while-while visits,
 #: so its replay is exact.
-WHILE_WHILE_BODY, IF_IF_BODY, SPECULATIVE_BODY, PACKET_BODY, SPECULATIVE_FETCH_BODY = range(5)
+WHILE_WHILE_BODY, IF_IF_BODY, SPECULATIVE_BODY, PACKET_BODY, SPECULATIVE_FETCH_BODY, CWBVH_BODY = (
+    range(6)
+)
 MAX_WARP = 64
 """Largest warp size the executor accepts (lane masks are small boolean arrays)."""
 
@@ -824,6 +856,260 @@ def _execute_wide(persistent, nodes, width, woop, tri_index, root, origin, direc
     return cnt, hist, unit_cost, out_tri, out_t, ops, overflow.any()
 
 
+# ---------------------------------------------------------------------------------------
+# The compressed 8-wide BVH (cwbvh): Ylitie, Karras & Laine's trace loop on persistent
+# warps. A lane's float state is the binary executor's ``lf`` row; its integer state is
+# its own int64 row (``lc``): the current node group, the triangle group, its octant, its
+# stack pointer and hit. Written from the node layout (:mod:`simt_sim.bvh.cwbvh`), not
+# from the recorder's routine.
+
+# Lane cwbvh state (columns of ``lc``): node group (child base, imask, hit children still
+# to visit, in visiting order), triangle group (triangle base, triangles still to test,
+# where hit leaves start), octant, stack pointer, hit float4 (-1: none), ended (any hit).
+_G_BASE, _G_IMASK, _G_HITS, _T_BASE, _T_HITS, _T_STARTS, _OCT, _CSP, _CHIT, _CEND = range(10)
+_N_CW = 10
+_CW_INTERIOR_LOW = 24  # a meta's low 5 bits: 24 + slot for an interior child, else an offset
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lowest_bit(m):
+    """Index of the lowest set bit of ``m`` (> 0)."""
+    b = 0
+    while (m >> b) & 1 == 0:
+        b += 1
+    return b
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _bits_below(m, b):
+    """Set bits of ``m`` below bit ``b``."""
+    c = 0
+    for i in range(b):
+        c += (m >> i) & 1
+    return c
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _cw_init_lane(lc, lf, lane):
+    """A loaded lane (``lf`` set by :func:`_init_lane`) at the root: the node group of node
+    0 alone, seen as slot 0 of a virtual parent with child base 0."""
+    octant = 0
+    if lf[lane, _IX] < 0:
+        octant |= 1
+    if lf[lane, _IY] < 0:
+        octant |= 2
+    if lf[lane, _IZ] < 0:
+        octant |= 4
+    lc[lane, _OCT] = octant
+    lc[lane, _G_BASE] = 0
+    lc[lane, _G_IMASK] = 1
+    lc[lane, _G_HITS] = 1 << octant  # slot 0 sits at visiting position 0 ^ octant
+    lc[lane, _T_BASE] = 0
+    lc[lane, _T_HITS] = 0
+    lc[lane, _T_STARTS] = 0
+    lc[lane, _CSP] = 0
+    lc[lane, _CHIT] = -1
+    lc[lane, _CEND] = 0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cw_alive(lc, lane):
+    """Whether the lane runs another iteration: a node left in its group or on its stack."""
+    return lc[lane, _CEND] == 0 and (lc[lane, _G_HITS] != 0 or lc[lane, _CSP] != 0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _cw_step(lc, lf, stack, lane, nodes, nodes_f, nodes_u):
+    """One node step of a lane: take the next child of its node group (popping a group
+    when the current one is empty; pushing the rest of a group that still has children),
+    test that node's 8 child boxes; the interior children hit become the node group, the
+    leaf children hit the triangle group. Returns -1 on stack overflow, else 0."""
+    if lc[lane, _G_HITS] == 0:  # the current group is done: pop one (alive: there is one)
+        sp = lc[lane, _CSP] - 1
+        lc[lane, _CSP] = sp
+        lc[lane, _G_BASE] = stack[lane, sp, 0]
+        lc[lane, _G_IMASK] = stack[lane, sp, 1]
+        lc[lane, _G_HITS] = stack[lane, sp, 2]
+    octant = lc[lane, _OCT]
+    hits = lc[lane, _G_HITS]
+    pos = _lowest_bit(hits)
+    hits &= ~(np.int64(1) << pos)
+    slot = pos ^ octant
+    node = lc[lane, _G_BASE] + _bits_below(lc[lane, _G_IMASK], slot)
+    if hits != 0:
+        sp = lc[lane, _CSP]
+        if sp == stack.shape[1]:
+            return -1
+        stack[lane, sp, 0] = lc[lane, _G_BASE]
+        stack[lane, sp, 1] = lc[lane, _G_IMASK]
+        stack[lane, sp, 2] = hits
+        lc[lane, _CSP] = sp + 1
+    # The node: grid origin p (float32 words 0-2), exponent bytes, quantised planes.
+    ox = lf[lane, _OX]
+    oy = lf[lane, _OY]
+    oz = lf[lane, _OZ]
+    ix = lf[lane, _IX]
+    iy = lf[lane, _IY]
+    iz = lf[lane, _IZ]
+    tmin = lf[lane, _TMIN]
+    tmax = lf[lane, _TMAX]
+    px = nodes_f[node, 0]
+    py = nodes_f[node, 1]
+    pz = nodes_f[node, 2]
+    ex = CW_POW2[nodes[node, CW_OFF_E]]
+    ey = CW_POW2[nodes[node, CW_OFF_E + 1]]
+    ez = CW_POW2[nodes[node, CW_OFF_E + 2]]
+    node_hits = np.int64(0)
+    tri_hits = np.int64(0)
+    tri_starts = np.int64(0)
+    for s in range(CW_WIDTH):
+        meta = np.int64(nodes[node, CW_OFF_META + s])
+        if meta == 0:  # an empty slot
+            continue
+        # decoded planes p + 2^e * q (float32, one rounding), per axis lo and hi
+        lox = px + ex * np.float32(nodes[node, CW_OFF_QLO + s])
+        hix = px + ex * np.float32(nodes[node, CW_OFF_QHI + s])
+        loy = py + ey * np.float32(nodes[node, CW_OFF_QLO + CW_WIDTH + s])
+        hiy = py + ey * np.float32(nodes[node, CW_OFF_QHI + CW_WIDTH + s])
+        loz = pz + ez * np.float32(nodes[node, CW_OFF_QLO + 2 * CW_WIDTH + s])
+        hiz = pz + ez * np.float32(nodes[node, CW_OFF_QHI + 2 * CW_WIDTH + s])
+        # the binary test: enter through lo where the inverse direction is positive
+        sx = ((hix if ix < 0 else lox) - ox) * ix
+        sy = ((hiy if iy < 0 else loy) - oy) * iy
+        sz = ((hiz if iz < 0 else loz) - oz) * iz
+        fx = ((lox if ix < 0 else hix) - ox) * ix
+        fy = ((loy if iy < 0 else hiy) - oy) * iy
+        fz = ((loz if iz < 0 else hiz) - oz) * iz
+        tn = max(max(sx, sy), max(sz, tmin))
+        tf = min(BOX_ROUNDING * min(min(fx, fy), fz), tmax)
+        if tn <= tf:
+            low = meta & 0x1F
+            if low >= _CW_INTERIOR_LOW:
+                node_hits |= np.int64(1) << (s ^ octant)
+            else:  # a leaf: unary triangle count in bits 5-7 at offset ``low``
+                tri_hits |= (meta >> 5) << low
+                tri_starts |= np.int64(1) << low
+    lc[lane, _G_BASE] = np.int64(nodes_u[node, CW_OFF_CHILD_BASE // 4])
+    lc[lane, _G_IMASK] = np.int64(nodes[node, CW_OFF_IMASK])
+    lc[lane, _G_HITS] = node_hits
+    lc[lane, _T_BASE] = np.int64(nodes_u[node, CW_OFF_TRI_BASE // 4])
+    lc[lane, _T_HITS] = tri_hits
+    lc[lane, _T_STARTS] = tri_starts
+    return 0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _cw_tri_test(lc, lf, lane, woop, any_hit, ops, r):
+    """Test the lane's next triangle (its triangle group's lowest bit); returns whether the
+    hit was accepted. An accepted hit shrinks ``tmax``; an any-hit lane ends on it."""
+    b = _lowest_bit(lc[lane, _T_HITS])
+    lc[lane, _T_HITS] &= ~(np.int64(1) << b)
+    if (lc[lane, _T_STARTS] >> b) & 1:  # the first triangle of a hit leaf child
+        ops[r, _C_LEAF] += 1
+    ops[r, _C_TRI] += 1
+    j = WOOP_FLOAT4_PER_TRI * (lc[lane, _T_BASE] + b)
+    ok, t = woop_hit_t(
+        woop, j,
+        lf[lane, _OX], lf[lane, _OY], lf[lane, _OZ],
+        lf[lane, _DX], lf[lane, _DY], lf[lane, _DZ],
+        lf[lane, _TMIN], lf[lane, _TMAX],
+    )  # fmt: skip
+    if ok:
+        lc[lane, _CHIT] = j
+        lf[lane, _TMAX] = t
+        if any_hit:
+            lc[lane, _CEND] = 1
+            lc[lane, _T_HITS] = 0
+            lc[lane, _G_HITS] = 0
+            lc[lane, _CSP] = 0
+    return ok
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _cw_group(lc, lf, stack, lanes, nodes, nodes_f, nodes_u, woop, any_hit, ops, base,
+              cnt, hist, costs):  # fmt: skip
+    """The trace loop of one fetched group after ``pool_fetch``/``ray_setup``: while a lane
+    is alive, ``trav_step`` (each alive lane one node), the triangle loop (``tri_test``
+    while a lane that stepped has a triangle of its group left, ``tri_hit`` with the
+    accepted hits) and ``loop_control``; then ``finish``. Returns the cost, -1 on a stack
+    overflow."""
+    sel = np.empty(lanes, np.int64)
+    cost = np.int64(0)
+    while True:
+        n = 0
+        for lane in range(lanes):
+            if _cw_alive(lc, lane):
+                sel[n] = lane
+                n += 1
+        if n == 0:
+            break
+        cost += charge(cnt, hist, costs, TRAV_STEP, n)
+        for k in range(n):
+            lane = sel[k]
+            if _cw_step(lc, lf, stack, lane, nodes, nodes_f, nodes_u) < 0:
+                return np.int64(-1)
+            ops[base + lane, _C_TRAV] += 1
+        while True:
+            testing = 0
+            hits = 0
+            for k in range(n):
+                lane = sel[k]
+                if lc[lane, _T_HITS] == 0:
+                    continue
+                testing += 1
+                if _cw_tri_test(lc, lf, lane, woop, any_hit, ops, base + lane):
+                    hits += 1
+            if testing == 0:
+                break
+            cost += charge(cnt, hist, costs, TRI_TEST, testing)
+            cost += charge(cnt, hist, costs, TRI_HIT_B, hits)
+        cost += charge(cnt, hist, costs, LOOP_CONTROL, n)
+    return cost + charge(cnt, hist, costs, FINISH, lanes)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _execute_cwbvh(nodes, woop, tri_index, origin, direction, tmin, tmax, any_hit, cap,
+                   warp_size, costs):  # fmt: skip
+    """:func:`_execute` for the cwbvh persistent while-while kernel: every fetched group
+    of ``warp_size`` consecutive rays over a CwBVH, in parallel; returns what
+    :func:`_execute` does."""
+    nodes_f = nodes.view(np.float32)
+    nodes_u = nodes.view(np.uint32)
+    n = origin.shape[0]
+    units = (n + warp_size - 1) // warp_size
+    cnt = np.zeros((units, 2, N_BLOCKS), np.int64)
+    hist = np.zeros((units, N_BLOCKS, warp_size + 1), np.int64)
+    unit_cost = np.zeros(units, np.int64)
+    ops = np.zeros((n, 3), np.int64)
+    out_tri = np.full(n, -1, np.int32)
+    out_t = np.full(n, np.inf, np.float32)
+    overflow = np.zeros(units, np.bool_)
+    for u in prange(units):
+        base = u * warp_size
+        lanes = min(warp_size, n - base)
+        li = np.zeros((lanes, _N_INT), np.int32)
+        lf = np.zeros((lanes, _N_FLOAT), np.float32)
+        lc = np.zeros((lanes, _N_CW), np.int64)
+        stack = np.empty((lanes, cap, 3), np.int64)
+        for lane in range(lanes):
+            _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, 0)
+            _cw_init_lane(lc, lf, lane)
+        c = cnt[u]
+        h = hist[u]
+        cost = charge(c, h, costs, POOL_FETCH, lanes)
+        cost += charge(c, h, costs, RAY_SETUP, lanes)
+        rest = _cw_group(lc, lf, stack, lanes, nodes, nodes_f, nodes_u, woop, any_hit, ops,
+                         base, c, h, costs)  # fmt: skip
+        overflow[u] = rest < 0
+        unit_cost[u] = cost + rest
+        for lane in range(lanes):
+            j = lc[lane, _CHIT]
+            if j >= 0:
+                out_tri[base + lane] = tri_index[j]
+                out_t[base + lane] = lf[lane, _TMAX]
+    return cnt, hist, unit_cost, out_tri, out_t, ops, overflow.any()
+
+
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, tmin, tmax, any_hit,
              cap, warp_size, costs):  # fmt: skip
@@ -1025,9 +1311,13 @@ def _tree_width(tree: Tree, scheme: SchemeInfo) -> int:
     ):
         check_wide(tree)
         return tree.width
+    if isinstance(tree, CwBVH) and scheme.lockstep == CWBVH_BODY:
+        check_cwbvh(tree)
+        return tree.width
     raise SimtSimError(
         f"the lockstep executor has no {layout} kernel body for {scheme.name}: it runs the "
-        f"while-while kernels on {', '.join(WIDE_LAYOUTS)} trees and every body on bvh2"
+        f"while-while kernels on {', '.join(WIDE_LAYOUTS)} trees, "
+        "the cwbvh persistent while-while kernel on cwbvh trees and every body on bvh2"
     )
 
 
@@ -1053,7 +1343,8 @@ def execute(
     bvh : BVH or WideBVH
         The tree the rays traverse, in ``scheme.layout``: a binary BVH (Aila-Laine
         layout), or for a ``bvh4`` record (``scheme.for_layout("bvh4")`` of while-while
-        or persistent while-while) a 4-wide :class:`~simt_sim.bvh.wide.WideBVH`.
+        or persistent while-while) a 4-wide :class:`~simt_sim.bvh.wide.WideBVH`, or for
+        ``cwbvh_persistent_while_while`` a :class:`~simt_sim.bvh.cwbvh.CwBVH`.
     rays : RayBatch
         Rays in warp order; the whole batch is one launch for the persistent schemes.
     scheme : SchemeInfo
@@ -1096,11 +1387,24 @@ def execute(
         raise SimtSimError(f"resident_warps must be >= 1, got {r}")
     origin, direction, tmin, tmax = ray_arrays(rays)
     costs = cost_vector(ir)
-    cap = stack_size(bvh) if width == 2 else wide_stack_size(bvh)
+    cw = isinstance(bvh, CwBVH)
+    if cw:
+        cap = cwbvh_stack_size(bvh)
+    else:
+        cap = stack_size(bvh) if width == 2 else wide_stack_size(bvh)
     args = (bvh.nodes, bvh.woop, bvh.tri_index, bvh.root, origin, direction, tmin, tmax,
             rays.query == "any", cap)  # fmt: skip
     extra = {"resident_warps": r, "launch_size": len(rays), "launches": 1} if persistent else {}
-    if width != 2:  # the wide while-while kernels (checked by _tree_width)
+    if cw:  # the cwbvh persistent while-while kernel (checked by _tree_width)
+        cnt, hist, unit_cost, tri, t, ops, overflow = _execute_cwbvh(
+            bvh.nodes, *args[1:3], *args[4:], g.warp_size, costs
+        )
+        totals = np.zeros(r, np.int64)
+        span = int(schedule_groups(unit_cost, r, totals)) if len(rays) else 0
+        counts = Counts(
+            cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0), totals, span
+        )
+    elif width != 2:  # the wide while-while kernels (checked by _tree_width)
         cnt, hist, unit_cost, tri, t, ops, overflow = _execute_wide(
             persistent, bvh.nodes, width, *args[1:], g.warp_size, costs
         )
@@ -1136,7 +1440,7 @@ def execute(
         raise SimtSimError(
             f"{'' if width == 2 else 'wide '}BVH is deeper than its stats.depth "
             f"({bvh.stats.depth}) says; "
-            f"rebuild it with {'build_bvh' if width == 2 else 'collapse'}"
+            f"rebuild it with {'build_bvh' if width == 2 else 'build_cwbvh' if cw else 'collapse'}"
         )
     card = model_card(
         scheme.name,

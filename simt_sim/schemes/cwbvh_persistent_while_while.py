@@ -22,6 +22,7 @@ import numpy as np
 from numba import njit, prange
 
 from simt_sim.errors import SimtSimError
+from simt_sim.oracles.lockstep import CWBVH_BODY
 from simt_sim.oracles.reference import cwbvh_group
 from simt_sim.simt.engine import (
     FINISH,
@@ -225,5 +226,6 @@ SCHEME = SchemeInfo(
     replay=replay,
     warp_counts=warp_counts,
     reference_warp=cwbvh_group,
+    lockstep=CWBVH_BODY,
     layout="cwbvh",
 )

@@ -27,7 +27,10 @@ from simt_sim.tracers.numba_tracer import trace
 from simt_sim.types.raybatch import RayBatch
 
 #: the schemes whose kernel body the executor runs
-LOCKSTEP_SCHEMES = tuple(n for n, s in SCHEMES.items() if s.lockstep is not None)
+#: the schemes with a body for the binary tree (the wide ones: test_lockstep_wide/_cwbvh)
+LOCKSTEP_SCHEMES = tuple(
+    n for n, s in SCHEMES.items() if s.lockstep is not None and s.layout == "bvh2"
+)
 EXACT_SCHEMES = ("while_while", "if_if", "persistent_while_while")
 SPECULATIVE_SCHEMES = ("persistent_speculative_while_while", "speculative_dynamic_fetch")
 GPU = replace(get_gpu("gtx285"), sms=2, resident_warps_per_sm=2)
