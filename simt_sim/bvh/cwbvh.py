@@ -77,7 +77,6 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from simt_sim.bvh.geometry import SENTINEL_I32
 from simt_sim.bvh.layout import BVH, FLOAT4_BYTES, WOOP_FLOAT4_PER_TRI, BuildStats
 from simt_sim.bvh.wide import WideStats
 from simt_sim.errors import SimtSimError
@@ -103,7 +102,10 @@ OFF_META = 24
 OFF_QLO = 32  # + 8 * axis
 OFF_QHI = 56  # + 8 * axis
 META_INTERIOR = 0b001_00000
-"""Interior slot's meta bits 5-7; bits 0-4 hold ``24 + slot``."""
+"""Interior slot's meta bits 5-7; bits 0-4 hold ``META_INTERIOR_LOW + slot``."""
+META_INTERIOR_LOW = 24
+"""An interior slot's meta bits 0-4 are this plus its slot; a leaf's (its triangle offset)
+are below it."""
 EMPTY_SOURCE = np.iinfo(np.int32).min
 """:attr:`CwBVH.source` of an empty slot."""
 
@@ -213,30 +215,6 @@ def decode_boxes(nodes: np.ndarray) -> np.ndarray:
         out[:, :, 0:3] = (p[:, :, None] + s[:, :, None] * qlo).transpose(0, 2, 1)
         out[:, :, 3:6] = (p[:, :, None] + s[:, :, None] * qhi).transpose(0, 2, 1)
     out[nodes[:, OFF_META : OFF_META + WIDTH] == 0] = np.nan
-    return out
-
-
-def binary_child_boxes(bvh: BVH) -> np.ndarray:
-    """float32 (n_nodes, 2, 6) child boxes of every binary node (lo xyz, hi xyz)."""
-    n = bvh.nodes
-    boxes = np.empty((n.shape[0], 2, 6), dtype=np.float32)
-    for c, (x, y, z) in enumerate(((0, 2, 8), (4, 6, 10))):
-        boxes[:, c, :3] = n[:, [x, y, z]]
-        boxes[:, c, 3:] = n[:, [x + 1, y + 1, z + 1]]
-    return boxes
-
-
-@njit(cache=True, nogil=True)
-def _leaf_sizes(woop_i: np.ndarray, starts: np.ndarray) -> np.ndarray:
-    """Triangles of each binary leaf starting at float4 ``starts[k]`` (up to its sentinel)."""
-    out = np.empty(starts.shape[0], dtype=np.int64)
-    for k in range(starts.shape[0]):
-        j = starts[k]
-        c = 0
-        while woop_i[j, 0] != SENTINEL_I32:
-            c += 1
-            j += WOOP_FLOAT4_PER_TRI
-        out[k] = c
     return out
 
 
@@ -415,24 +393,23 @@ def quantise_axis(lo: np.ndarray, hi: np.ndarray, base: np.float32, extent: floa
 def build_cwbvh(bvh: BVH) -> CwBVH:
     """The compressed 8-wide BVH of binary ``bvh`` (module docstring: SAH-optimal DP
     collapse, octant slot order, conservative 8-bit quantisation)."""
-    woop_i = bvh.woop.view(np.int32)
     child = np.ascontiguousarray(bvh.children, dtype=np.int64)
     n_bin = child.shape[0]
-    cbox = binary_child_boxes(bvh)
+    cbox = bvh.child_boxes()
     if bvh.root >= 0:
         rows = np.arange(n_bin)
         if (child[child >= 0] <= np.repeat(rows, 2)[(child >= 0).ravel()]).any():
             raise SimtSimError("binary BVH children must follow their parent; use build_bvh")
         leaf_tris = np.zeros((n_bin, 2), dtype=np.int64)
         is_leaf = child < 0
-        leaf_tris[is_leaf] = _leaf_sizes(woop_i, ~child[is_leaf])
+        leaf_tris[is_leaf] = bvh.leaf_sizes(~child[is_leaf])
         root_box = np.concatenate([cbox[bvh.root, :, :3].min(0), cbox[bvh.root, :, 3:].max(0)])
     else:
         leaf_tris = np.zeros((0, 2), dtype=np.int64)
         root_box = None
     big = int(leaf_tris.max()) if leaf_tris.size else 0
     if bvh.root < 0:
-        big = int(_leaf_sizes(woop_i, np.array([~bvh.root], dtype=np.int64))[0])
+        big = int(bvh.leaf_sizes(np.array([~bvh.root]))[0])
     if big > MAX_BINARY_LEAF:
         raise SimtSimError(
             f"binary leaves of {big} triangles do not fit a cwbvh node (at most"
@@ -570,7 +547,7 @@ def build_cwbvh(bvh: BVH) -> CwBVH:
             sbox[s] = box
             if kind == "node":
                 imask |= 1 << s
-                row[OFF_META + s] = META_INTERIOR | (24 + s)
+                row[OFF_META + s] = META_INTERIOR | (META_INTERIOR_LOW + s)
                 new_children.append((s, ref, box))
             else:
                 cnt = len(starts)
@@ -651,7 +628,7 @@ def _sah(nodes: np.ndarray, dec_boxes: np.ndarray) -> float:
     root_area = float(area(root_box))
     a = area(np.where(np.isnan(dec_boxes), 0.0, dec_boxes))  # (n, 8)
     interior = (meta >> 5) == 1
-    interior &= (meta & 0x1F) >= 24
+    interior &= (meta & 0x1F) >= META_INTERIOR_LOW
     leaf = (meta != 0) & ~interior
     counts = np.zeros(meta.shape, dtype=np.int64)
     for b in range(3):

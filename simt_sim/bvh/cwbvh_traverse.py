@@ -37,6 +37,7 @@ import numpy as np
 from numba import njit, prange
 
 from simt_sim.bvh.cwbvh import (
+    META_INTERIOR_LOW,
     NODE_BYTES,
     OFF_CHILD_BASE,
     OFF_E,
@@ -161,7 +162,7 @@ def cwbvh_traverse_ray(
             if tn <= tf:
                 n_hit += 1
                 low = meta & 0x1F
-                if low >= 24:  # interior (meta 0b001_11sss)
+                if low >= META_INTERIOR_LOW:  # interior (meta 0b001_11sss)
                     node_hits |= 1 << (s ^ octant)
                 else:  # leaf: unary count in bits 5-7, offset in bits 0-4
                     tri_hits |= (meta >> 5) << low

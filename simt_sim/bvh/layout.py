@@ -85,3 +85,19 @@ class BVH:
     def children(self) -> np.ndarray:
         """int32 (n_nodes, 2) view of the child indices."""
         return self.nodes[:, COL_CHILD0 : COL_CHILD1 + 1].view(np.int32)
+
+    def child_boxes(self) -> np.ndarray:
+        """float32 (n_nodes, 2, 6): each node's two child boxes (lo xyz, hi xyz), what the
+        wide layouts are collapsed from."""
+        boxes = np.empty((self.nodes.shape[0], 2, 6), dtype=np.float32)
+        for c, (x, y, z) in enumerate(((0, 2, 8), (4, 6, 10))):
+            boxes[:, c, :3] = self.nodes[:, [x, y, z]]
+            boxes[:, c, 3:] = self.nodes[:, [x + 1, y + 1, z + 1]]
+        return boxes
+
+    def leaf_sizes(self, starts: np.ndarray) -> np.ndarray:
+        """int64 triangles of the leaves starting at float4s ``starts`` (up to each one's
+        sentinel)."""
+        sentinels = np.flatnonzero(self.woop.view(np.uint32)[:, 0] == SENTINEL_BITS)
+        starts = np.asarray(starts, dtype=np.int64)
+        return (sentinels[np.searchsorted(sentinels, starts)] - starts) // WOOP_FLOAT4_PER_TRI

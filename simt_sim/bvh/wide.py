@@ -112,30 +112,9 @@ class WideBVH:
         return self.binary.stats
 
 
-def _binary_boxes(bvh: BVH) -> np.ndarray:
-    """float64 (n_nodes, 2, 6) child boxes of every binary node: (lo xyz, hi xyz)."""
-    n = bvh.nodes.astype(np.float64)
-    boxes = np.empty((n.shape[0], 2, 6))
-    for c, (x, y, z) in enumerate(((0, 2, 8), (4, 6, 10))):
-        boxes[:, c, :3] = n[:, [x, y, z]]
-        boxes[:, c, 3:] = n[:, [x + 1, y + 1, z + 1]]
-    return boxes
-
-
 def _area(box: np.ndarray) -> float:
     d = np.maximum(box[3:] - box[:3], 0.0)
     return float(2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0]))
-
-
-def _leaf_triangles(bvh: BVH, child: int) -> int:
-    """Triangles in the binary leaf ``child`` (< 0): float4s up to its sentinel over 3."""
-    woop_i = bvh.woop.view(np.int32)
-    j = ~child
-    count = 0
-    while woop_i[j, 0] != np.int32(np.uint32(0x80000000).view(np.int32)):
-        count += 1
-        j += 3
-    return count
 
 
 def collapse(bvh: BVH, layout: str) -> WideBVH:
@@ -153,12 +132,12 @@ def collapse_to_width(bvh: BVH, width: int) -> WideBVH:
     if not 2 <= width <= 8:
         raise SimtSimError(f"a wide BVH has 2 to 8 children per node, not {width}")
     layout = f"bvh{width}"
-    boxes = _binary_boxes(bvh)
+    boxes = bvh.child_boxes().astype(np.float64)
     child = bvh.children
     cols = node_floats(width)
     if bvh.root < 0:  # the whole scene is one leaf: no interior node to collapse
         nodes = np.zeros((0, cols), dtype=np.float32)
-        n_tri = _leaf_triangles(bvh, bvh.root)
+        n_tri = int(bvh.leaf_sizes(np.array([~bvh.root]))[0])
         stats = _stats(layout, width, nodes, 0, 1, 0, float(n_tri), bvh)
         return WideBVH(nodes=nodes, root=bvh.root, width=width, binary=bvh, stats=stats)
 
@@ -172,7 +151,8 @@ def collapse_to_width(bvh: BVH, width: int) -> WideBVH:
     leaves = 0
     depth = 0
     used = 0
-    leaf_cache: dict[int, int] = {}
+    leaves_of = child[child < 0]
+    leaf_size = dict(zip(leaves_of.tolist(), bvh.leaf_sizes(~leaves_of).tolist(), strict=True))
     while pending:
         b, parent, slot, d = pending.pop()
         depth = max(depth, d)
@@ -197,10 +177,7 @@ def collapse_to_width(bvh: BVH, width: int) -> WideBVH:
             if c < 0:
                 kids[s] = c
                 leaves += 1
-                n_tri = leaf_cache.get(c)
-                if n_tri is None:
-                    n_tri = leaf_cache[c] = _leaf_triangles(bvh, c)
-                sah_leaves += _area(box) * n_tri
+                sah_leaves += _area(box) * leaf_size[c]
         row[PLANES * width :] = kids.view(np.float32)
         used += len(slots)
         me = len(rows)

@@ -97,6 +97,7 @@ import numpy as np
 from numba import njit, prange
 
 from kernels_ir.kernel_ir import KernelIR
+from simt_sim.bvh.cwbvh import META_INTERIOR_LOW, CwBVH
 from simt_sim.bvh.cwbvh import OFF_CHILD_BASE as CW_OFF_CHILD_BASE
 from simt_sim.bvh.cwbvh import OFF_E as CW_OFF_E
 from simt_sim.bvh.cwbvh import OFF_IMASK as CW_OFF_IMASK
@@ -106,7 +107,6 @@ from simt_sim.bvh.cwbvh import OFF_QLO as CW_OFF_QLO
 from simt_sim.bvh.cwbvh import OFF_TRI_BASE as CW_OFF_TRI_BASE
 from simt_sim.bvh.cwbvh import POW2 as CW_POW2
 from simt_sim.bvh.cwbvh import WIDTH as CW_WIDTH
-from simt_sim.bvh.cwbvh import CwBVH
 from simt_sim.bvh.cwbvh_traverse import check_cwbvh
 from simt_sim.bvh.cwbvh_traverse import stack_size as cwbvh_stack_size
 from simt_sim.bvh.geometry import (
@@ -813,6 +813,36 @@ def _wide_while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i,
     return cost + charge(cnt, hist, costs, FINISH, lanes)
 
 
+@njit(cache=True, nogil=True)
+def _unit_outputs(n, warp_size):
+    """The outputs of an executor over ``n`` rays in units of ``warp_size``: the unit count,
+    per-unit counters ``cnt`` (units, 2, N_BLOCKS) and ``hist`` (units, N_BLOCKS,
+    warp_size + 1), per-unit cost, per-ray op counts, hit triangle and ``t``, per-unit
+    stack overflow."""
+    units = (n + warp_size - 1) // warp_size
+    return (
+        units,
+        np.zeros((units, 2, N_BLOCKS), np.int64),
+        np.zeros((units, N_BLOCKS, warp_size + 1), np.int64),
+        np.zeros(units, np.int64),
+        np.zeros((n, 3), np.int64),
+        np.full(n, -1, np.int32),
+        np.full(n, np.inf, np.float32),
+        np.zeros(units, np.bool_),
+    )
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _store_hits(hit, lf, lanes, base, tri_index, out_tri, out_t):
+    """Each lane's hit (a float4 of ``woop`` in ``hit``, -1: none) as a scene triangle and
+    its ``t``, at the unit's rays ``base ..``."""
+    for lane in range(lanes):
+        j = hit[lane]
+        if j >= 0:
+            out_tri[base + lane] = tri_index[j]
+            out_t[base + lane] = lf[lane, _TMAX]
+
+
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _execute_wide(persistent, nodes, width, woop, tri_index, root, origin, direction, tmin,
                   tmax, any_hit, cap, warp_size, costs):  # fmt: skip
@@ -821,14 +851,7 @@ def _execute_wide(persistent, nodes, width, woop, tri_index, root, origin, direc
     nodes_i = nodes.view(np.int32)
     woop_i = woop.view(np.int32)
     n = origin.shape[0]
-    units = (n + warp_size - 1) // warp_size
-    cnt = np.zeros((units, 2, N_BLOCKS), np.int64)
-    hist = np.zeros((units, N_BLOCKS, warp_size + 1), np.int64)
-    unit_cost = np.zeros(units, np.int64)
-    ops = np.zeros((n, 3), np.int64)
-    out_tri = np.full(n, -1, np.int32)
-    out_t = np.full(n, np.inf, np.float32)
-    overflow = np.zeros(units, np.bool_)
+    units, cnt, hist, unit_cost, ops, out_tri, out_t, overflow = _unit_outputs(n, warp_size)
     for u in prange(units):
         base = u * warp_size
         lanes = min(warp_size, n - base)
@@ -848,11 +871,7 @@ def _execute_wide(persistent, nodes, width, woop, tri_index, root, origin, direc
                                  any_hit, ops, base, c, h, costs)  # fmt: skip
         overflow[u] = rest < 0
         unit_cost[u] = cost + rest
-        for lane in range(lanes):
-            j = li[lane, _HIT]
-            if j >= 0:
-                out_tri[base + lane] = tri_index[j]
-                out_t[base + lane] = lf[lane, _TMAX]
+        _store_hits(li[:, _HIT], lf, lanes, base, tri_index, out_tri, out_t)
     return cnt, hist, unit_cost, out_tri, out_t, ops, overflow.any()
 
 
@@ -868,7 +887,6 @@ def _execute_wide(persistent, nodes, width, woop, tri_index, root, origin, direc
 # where hit leaves start), octant, stack pointer, hit float4 (-1: none), ended (any hit).
 _G_BASE, _G_IMASK, _G_HITS, _T_BASE, _T_HITS, _T_STARTS, _OCT, _CSP, _CHIT, _CEND = range(10)
 _N_CW = 10
-_CW_INTERIOR_LOW = 24  # a meta's low 5 bits: 24 + slot for an interior child, else an offset
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -984,7 +1002,7 @@ def _cw_step(lc, lf, stack, lane, nodes, nodes_f, nodes_u):
         tf = min(BOX_ROUNDING * min(min(fx, fy), fz), tmax)
         if tn <= tf:
             low = meta & 0x1F
-            if low >= _CW_INTERIOR_LOW:
+            if low >= META_INTERIOR_LOW:
                 node_hits |= np.int64(1) << (s ^ octant)
             else:  # a leaf: unary triangle count in bits 5-7 at offset ``low``
                 tri_hits |= (meta >> 5) << low
@@ -1076,14 +1094,7 @@ def _execute_cwbvh(nodes, woop, tri_index, origin, direction, tmin, tmax, any_hi
     nodes_f = nodes.view(np.float32)
     nodes_u = nodes.view(np.uint32)
     n = origin.shape[0]
-    units = (n + warp_size - 1) // warp_size
-    cnt = np.zeros((units, 2, N_BLOCKS), np.int64)
-    hist = np.zeros((units, N_BLOCKS, warp_size + 1), np.int64)
-    unit_cost = np.zeros(units, np.int64)
-    ops = np.zeros((n, 3), np.int64)
-    out_tri = np.full(n, -1, np.int32)
-    out_t = np.full(n, np.inf, np.float32)
-    overflow = np.zeros(units, np.bool_)
+    units, cnt, hist, unit_cost, ops, out_tri, out_t, overflow = _unit_outputs(n, warp_size)
     for u in prange(units):
         base = u * warp_size
         lanes = min(warp_size, n - base)
@@ -1102,11 +1113,7 @@ def _execute_cwbvh(nodes, woop, tri_index, origin, direction, tmin, tmax, any_hi
                          base, c, h, costs)  # fmt: skip
         overflow[u] = rest < 0
         unit_cost[u] = cost + rest
-        for lane in range(lanes):
-            j = lc[lane, _CHIT]
-            if j >= 0:
-                out_tri[base + lane] = tri_index[j]
-                out_t[base + lane] = lf[lane, _TMAX]
+        _store_hits(lc[:, _CHIT], lf, lanes, base, tri_index, out_tri, out_t)
     return cnt, hist, unit_cost, out_tri, out_t, ops, overflow.any()
 
 
@@ -1122,14 +1129,7 @@ def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, 
     nodes_i = nodes.view(np.int32)
     woop_i = woop.view(np.int32)
     n = origin.shape[0]
-    units = (n + warp_size - 1) // warp_size
-    cnt = np.zeros((units, 2, N_BLOCKS), np.int64)
-    hist = np.zeros((units, N_BLOCKS, warp_size + 1), np.int64)
-    unit_cost = np.zeros(units, np.int64)
-    ops = np.zeros((n, 3), np.int64)
-    out_tri = np.full(n, -1, np.int32)
-    out_t = np.full(n, np.inf, np.float32)
-    overflow = np.zeros(units, np.bool_)
+    units, cnt, hist, unit_cost, ops, out_tri, out_t, overflow = _unit_outputs(n, warp_size)
     for u in prange(units):
         base = u * warp_size
         lanes = min(warp_size, n - base)
@@ -1158,11 +1158,7 @@ def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, 
                            any_hit, ops, base, c, h, costs)  # fmt: skip
         overflow[u] = rest < 0
         unit_cost[u] = cost + rest
-        for lane in range(lanes):
-            j = li[lane, _HIT]
-            if j >= 0:
-                out_tri[base + lane] = tri_index[j]
-                out_t[base + lane] = lf[lane, _TMAX]
+        _store_hits(li[:, _HIT], lf, lanes, base, tri_index, out_tri, out_t)
     return cnt, hist, unit_cost, out_tri, out_t, ops, overflow.any()
 
 
@@ -1287,6 +1283,17 @@ def _gpu(gpu: GpuConfig | None, warp_size: int | None) -> GpuConfig:
 WIDE_LAYOUTS = {"bvh4": 4}
 
 
+def _unit_counts(cnt, hist, unit_cost, resident: int) -> Counts:
+    """The counters of all units; with ``resident`` warps (persistent kernels, else 0) the
+    units are dealt to them by the replay's ideal scheduling (warp totals and makespan)."""
+    totals = None
+    span = 0
+    if resident:
+        totals = np.zeros(resident, np.int64)
+        span = int(schedule_groups(unit_cost, resident, totals)) if unit_cost.shape[0] else 0
+    return Counts(cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0), totals, span)
+
+
 def _tree_width(tree: Tree, scheme: SchemeInfo) -> int:
     """Children per node of ``tree`` (2: binary) once it is checked to be what ``scheme``'s
     kernels run on; a mismatch is refused in one line."""
@@ -1399,23 +1406,12 @@ def execute(
         cnt, hist, unit_cost, tri, t, ops, overflow = _execute_cwbvh(
             bvh.nodes, *args[1:3], *args[4:], g.warp_size, costs
         )
-        totals = np.zeros(r, np.int64)
-        span = int(schedule_groups(unit_cost, r, totals)) if len(rays) else 0
-        counts = Counts(
-            cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0), totals, span
-        )
+        counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0)
     elif width != 2:  # the wide while-while kernels (checked by _tree_width)
         cnt, hist, unit_cost, tri, t, ops, overflow = _execute_wide(
             persistent, bvh.nodes, width, *args[1:], g.warp_size, costs
         )
-        totals = None
-        span = 0
-        if persistent:
-            totals = np.zeros(r, np.int64)
-            span = int(schedule_groups(unit_cost, r, totals)) if len(rays) else 0
-        counts = Counts(
-            cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0), totals, span
-        )
+        counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0)
     elif scheme.lockstep == SPECULATIVE_FETCH_BODY:
         threshold = int(values["threshold"])
         if threshold < 1:
@@ -1428,14 +1424,7 @@ def execute(
         cnt, hist, unit_cost, tri, t, ops, overflow = _execute(
             scheme.lockstep, persistent, *args, g.warp_size, costs
         )
-        totals = None
-        span = 0
-        if persistent:
-            totals = np.zeros(r, np.int64)
-            span = int(schedule_groups(unit_cost, r, totals)) if len(rays) else 0
-        counts = Counts(
-            cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0), totals, span
-        )
+        counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0)
     if overflow:
         raise SimtSimError(
             f"{'' if width == 2 else 'wide '}BVH is deeper than its stats.depth "

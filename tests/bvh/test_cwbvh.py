@@ -16,7 +16,6 @@ from simt_sim.bvh.cwbvh import (
     OFF_QHI,
     OFF_QLO,
     POW2,
-    binary_child_boxes,
     build_cwbvh,
     min_cost_assignment,
     quantise_axis,
@@ -103,7 +102,7 @@ def _all_cases(room, small_room, soups):
 
 def _leaf_box_of_float4(bvh) -> dict[int, np.ndarray]:
     """Binary leaf box (lo xyz, hi xyz) of every Woop float4 that starts a triangle."""
-    boxes = binary_child_boxes(bvh)
+    boxes = bvh.child_boxes()
     out = {}
     kids = bvh.children
     wi = bvh.woop.view(np.int32)
@@ -203,7 +202,7 @@ def test_decoded_boxes_contain_their_binary_boxes(room, small_room, soups):
         assert np.all(dec[..., 3:][used] >= src[..., 3:][used])
         assert np.isnan(dec[~used]).all()
         # each source box is the binary tree's box of the reference the slot stands for
-        boxes = binary_child_boxes(bvh)
+        boxes = bvh.child_boxes()
         where = {int(c): (n, j) for (n, j), c in np.ndenumerate(bvh.children)}
         for k, s in zip(*np.nonzero(used), strict=True):
             n, j = where[int(cw.source[k, s])]
@@ -311,11 +310,11 @@ def test_collapse_reaches_the_dp_optimum(room, small_room, soups):
         for b in range(3):
             ntri += (meta >> (5 + b)) & 1 & leaf
         a = area(np.nan_to_num(cw.source_boxes))
-        rb = binary_child_boxes(bvh)[bvh.root]
+        rb = bvh.child_boxes()[bvh.root]
         root = area(np.concatenate([rb[:, :3].min(0), rb[:, 3:].max(0)]))
         built = C_NODE * (root + (a * interior).sum()) + C_PRIM * (a * ntri).sum()
         assert built == pytest.approx(cw.collapse_cost, rel=1e-9)
-        boxes = binary_child_boxes(bvh)
+        boxes = bvh.child_boxes()
         kids = bvh.children
         tris = np.zeros(kids.shape, np.int64)
         wi = bvh.woop.view(np.int32)
