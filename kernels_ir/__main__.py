@@ -1,4 +1,8 @@
-"""``python -m kernels_ir build [--check]`` and ``python -m kernels_ir show KERNEL``."""
+"""``python -m kernels_ir build [--check]``, ``show KERNEL``, ``summary`` and ``dyncount``.
+
+``dyncount`` is the one command that needs the simulator (scenes, rays, the replay): it
+runs a kernel's SASS on real warps and sets the count beside the replay's
+(:mod:`simt_sim.study.dyncount`); the rest of ``kernels_ir`` stands on its own."""
 
 from __future__ import annotations
 
@@ -45,7 +49,21 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--tests", choices=TESTS, default=DEFAULT_TESTS)
     t = sub.add_parser("summary", help="print kernels x blocks for one arch (markdown)")
     t.add_argument("--arch", default="sm_90")
+    d = sub.add_parser(
+        "dyncount",
+        help="walk a kernel's SASS on real warps and compare its instruction count with "
+        "the replay's",
+    )
+    d.add_argument("--kernel", required=True, help="a binary-tree trace kernel: while_while, ...")
+    d.add_argument("--scene", default="room", help="scene name or mesh path (default room)")
+    d.add_argument("--rays", default="primary", help="primary, ao or diffuse")
+    d.add_argument("--warps", type=int, default=16, help="warps, spread over the image")
+    d.add_argument("--gpu", default=None, help="GPU whose IR and rules the replay uses")
+    d.add_argument("--camera", type=int, default=0)
+    d.add_argument("--spp", type=int, default=4, help="secondary rays per primary hit")
     args = parser.parse_args(argv)
+    if args.cmd == "dyncount":
+        return _dyncount(args)
     try:
         if args.cmd == "build":
             if args.check:
@@ -82,6 +100,26 @@ def main(argv: list[str] | None = None) -> int:
     except KernelIRError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+
+
+def _dyncount(args: argparse.Namespace) -> int:
+    from simt_sim.errors import SimtSimError
+    from simt_sim.study.dyncount import DEFAULT_GPU, dyncount, scheme_of_kernel
+
+    try:
+        result = dyncount(
+            scheme_of_kernel(args.kernel), args.scene, args.rays, warps=args.warps,
+            gpu_id=args.gpu or DEFAULT_GPU, camera=args.camera, spp=args.spp,
+        )  # fmt: skip
+    except (SimtSimError, KernelIRError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    print(result.summary())
+    print(result.table.to_string())
+    return 0
 
 
 if __name__ == "__main__":

@@ -225,7 +225,6 @@ def by_frequency(
         by_loop.setdefault(block, Counter())[loop] += 1
         if not cfg.runs_every_iteration(i):
             conditional.setdefault(block, set()).add(loop)
-    home = {b: max(c, key=lambda h: (c[h], _depth(cfg, h))) for b, c in by_loop.items()}
     own: dict[int | None, str] = {}
     steady: dict[int | None, Counter[str]] = {}
     for i, block in enumerate(line_blocks):
@@ -249,6 +248,14 @@ def by_frequency(
             block = steady[key].most_common(1)[0][0]
         if block is not None:
             own[key] = block
+    # a block's home: the loop it is the own block of (the deepest, for a block that
+    # owns several), else the loop holding most of its code; a loop's own block can have
+    # most of its lines outside the loop (if-if's loop condition: the entry test and the
+    # exit), and those run once per entry, not per iteration
+    home = {b: max(c, key=lambda h: (c[h], _depth(cfg, h))) for b, c in by_loop.items()}
+    for key in sorted(own, key=lambda k: _depth(cfg, k)):
+        if own[key] in home and key in by_loop[own[key]]:
+            home[own[key]] = key
     out: list[str | None] = list(line_blocks)
     for i, block in enumerate(line_blocks):
         if block is None or cfg.block_of[i] not in cfg.reachable:
@@ -312,6 +319,64 @@ def _depth(cfg: ControlFlow, key: int | None) -> int:
     return 0 if key is None else cfg.loops[key].depth
 
 
+class Placement(NamedTuple):
+    """Where each instruction of a listing is charged (:func:`place_instructions`).
+
+    ``block[i]``: instruction ``i``'s block (:data:`UNATTRIBUTED` for none); a compiler
+    subroutine's instruction has its most frequent caller's block (``callers`` has them
+    all, with call counts). ``fallback``: the indices of divergent-warp fallbacks
+    (:func:`divergent_only`), whose ``block`` is their marker block.
+    """
+
+    block: list[str]
+    fallback: frozenset[int]
+    callers: dict[str, Counter[str]]
+
+
+def place_instructions(
+    instructions: Sequence[SassInstruction],
+    owner: dict[int, str],
+    kernel_file: str,
+    loops: dict[int, int] | None = None,
+) -> Placement:
+    """The block each instruction is charged to: the marker block moved by
+    :func:`by_frequency` for the kernel's own code, the marker block for a divergent-warp
+    fallback, the caller's for a compiler subroutine up to its last ``RET`` (what follows
+    is padding, :data:`UNATTRIBUTED`).
+
+    Raises
+    ------
+    KernelIRError
+        If a subroutine calls another one (not emitted by nvcc for these kernels).
+    """
+    want = PurePath(kernel_file).name
+    fallback_idx = divergent_only(instructions)
+    kernel = [i for i, ins in enumerate(instructions) if not ins.function.startswith("$")]
+    lines = [
+        instructions[i].line if PurePath(instructions[i].file).name == want else None
+        for i in kernel
+    ]
+    cfg = build_cfg([instructions[i] for i in kernel])
+    placed = by_frequency(cfg, lines, owner, loops or {})
+    block = [UNATTRIBUTED] * len(instructions)
+    for i, line, freq in zip(kernel, lines, placed, strict=True):
+        marker = owner.get(line) if line is not None else None
+        block[i] = (marker if i in fallback_idx else freq) or UNATTRIBUTED
+    callers: dict[str, Counter[str]] = {}
+    for i, ins in enumerate(instructions):
+        if ins.function.startswith("$"):
+            if base_opcode(ins.opcode) == "CALL":
+                raise KernelIRError(f"subroutine {ins.function} calls another; not supported")
+        elif base_opcode(ins.opcode) == "CALL":
+            callers.setdefault(branch_target(ins) or "", Counter())[block[i]] += 1
+    last_ret = _last_returns(instructions)
+    for i, ins in enumerate(instructions):
+        sites = callers.get(ins.function)
+        if ins.function.startswith("$") and sites and i <= last_ret.get(ins.function, -1):
+            block[i] = sites.most_common(1)[0][0]
+    return Placement(block, frozenset(fallback_idx), callers)
+
+
 def map_blocks(
     instructions: Iterable[SassInstruction],
     owner: dict[int, str],
@@ -334,55 +399,31 @@ def map_blocks(
     KernelIRError
         If a subroutine calls another one (not emitted by nvcc for these kernels).
     """
-    want = PurePath(kernel_file).name
     instructions = list(instructions)
-    fallback_idx = divergent_only(instructions)
+    placement = place_instructions(instructions, owner, kernel_file, loops)
     counts: dict[str, dict[str, int]] = {}
     fallback: dict[str, dict[str, int]] = {}
     moved: dict[str, dict[str, int]] = {}
 
     def charge(i: int, block: str, cls: str, times: int = 1) -> None:
-        row = (fallback if i in fallback_idx else counts).setdefault(
-            block, dict.fromkeys(CLASSES, 0)
-        )
+        spare = i in placement.fallback
+        row = (fallback if spare else counts).setdefault(block, dict.fromkeys(CLASSES, 0))
         row[cls] += times
-        if cls in MEMORY_CLASSES and i not in fallback_idx:
+        if cls in MEMORY_CLASSES and not spare:
             per = moved.setdefault(block, dict.fromkeys(MEMORY_CLASSES, 0))
             per[cls] += times * access_bytes(instructions[i].opcode)
 
-    kernel = [i for i, ins in enumerate(instructions) if not ins.function.startswith("$")]
-    lines = [
-        instructions[i].line if PurePath(instructions[i].file).name == want else None
-        for i in kernel
-    ]
-    cfg = build_cfg([instructions[i] for i in kernel])
-    placed = by_frequency(cfg, lines, owner, loops or {})
-    line_blocks = [owner.get(line) if line is not None else None for line in lines]
-    block_at = {
-        i: (line if i in fallback_idx else freq)
-        for i, line, freq in zip(kernel, line_blocks, placed, strict=True)
-    }
-    callers: dict[str, Counter[str]] = {}
     last_ret = _last_returns(instructions)
     for i, ins in enumerate(instructions):
         cls = classify(ins.opcode)
-        if ins.function.startswith("$"):
-            if base_opcode(ins.opcode) == "CALL":
-                raise KernelIRError(f"subroutine {ins.function} calls another; not supported")
+        if cls is None:
             continue
-        block = block_at[i] or UNATTRIBUTED
-        if base_opcode(ins.opcode) == "CALL":
-            callers.setdefault(branch_target(ins) or "", Counter())[block] += 1
-        if cls is not None:
-            charge(i, block, cls)
-    for i, ins in enumerate(instructions):
-        cls = classify(ins.opcode)
-        if not ins.function.startswith("$") or cls is None:
-            continue
-        sites = callers.get(ins.function)
-        if not sites or i > last_ret.get(ins.function, -1):
+        sites = placement.callers.get(ins.function)
+        if not ins.function.startswith("$"):
+            charge(i, placement.block[i], cls)
+        elif not sites or i > last_ret.get(ins.function, -1):
             charge(i, UNATTRIBUTED, cls)
-            continue
-        for block, times in sites.items():
-            charge(i, block, cls, times)
+        else:
+            for block, times in sites.items():
+                charge(i, block, cls, times)
     return BlockMap(counts, fallback, moved)

@@ -21,7 +21,7 @@ from pathlib import Path
 from kernels_ir.blocks import UNATTRIBUTED, map_blocks, parse_loops, parse_markers
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
-from kernels_ir.sass import parse_listing
+from kernels_ir.sass import SassInstruction, parse_listing
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 CUDA_DIR = PACKAGE_DIR / "cuda"
@@ -138,6 +138,38 @@ def ir_filename(kernel: str, arch: str, tests: str = DEFAULT_TESTS) -> str:
     return f"{kernel}.{arch}.json" if tests == DEFAULT_TESTS else f"{kernel}.{arch}.{tests}.json"
 
 
+def _compile(
+    kernel: str, arch: str, tools: Toolchain, workdir: Path, tests: str
+) -> tuple[list[str], str, list[SassInstruction]]:
+    """Compile and disassemble one kernel: its flags, the compiler's log, and the
+    instructions of the kernel and of the compiler subroutines (``$__internal_*``) it
+    calls, in listing order."""
+    cubin = workdir / f"{kernel}.{arch}.{tests}.cubin"
+    flags = [f"-arch={arch}", *FLAGS, *TEST_DEFINES[tests]]
+    cmd = [str(tools.nvcc), *flags, "-o", str(cubin), f"{kernel}.cu"]
+    proc = _run(cmd, CUDA_DIR)
+    log = proc.stdout + proc.stderr
+    warnings = [ln for ln in log.splitlines() if "warning" in ln.lower()]
+    if warnings:
+        raise KernelIRError(f"{kernel} {arch}: compiler warning: {warnings[0].strip()}")
+    listing = _run([str(tools.nvdisasm), "-c", "-g", "-gi", str(cubin)], CUDA_DIR).stdout
+    instructions = [
+        i for i in parse_listing(listing) if i.function == kernel or i.function.startswith("$")
+    ]
+    return flags, log, instructions
+
+
+def compile_listing(kernel: str, arch: str, tests: str = DEFAULT_TESTS) -> list[SassInstruction]:
+    """The SASS of one kernel as the IR build compiles it (same flags), for the walker."""
+    if kernel not in KERNELS:
+        raise KernelIRError(f"unknown kernel {kernel!r}; kernels: {', '.join(KERNELS)}")
+    if arch not in ARCHS:
+        raise KernelIRError(f"unknown arch {arch!r}; archs: {', '.join(ARCHS)}")
+    tools = find_toolchain()
+    with tempfile.TemporaryDirectory() as tmp:
+        return _compile(kernel, arch, tools, Path(tmp), tests)[2]
+
+
 def build_one(
     kernel: str, arch: str, tools: Toolchain, workdir: Path, tests: str = DEFAULT_TESTS
 ) -> dict:
@@ -149,20 +181,8 @@ def build_one(
     KernelIRError
         On a compiler warning or error, or when a marked block gets no instruction.
     """
-    cubin = workdir / f"{kernel}.{arch}.{tests}.cubin"
-    flags = [f"-arch={arch}", *FLAGS, *TEST_DEFINES[tests]]
-    cmd = [str(tools.nvcc), *flags, "-o", str(cubin), f"{kernel}.cu"]
-    proc = _run(cmd, CUDA_DIR)
-    log = proc.stdout + proc.stderr
-    warnings = [ln for ln in log.splitlines() if "warning" in ln.lower()]
-    if warnings:
-        raise KernelIRError(f"{kernel} {arch}: compiler warning: {warnings[0].strip()}")
+    flags, log, instructions = _compile(kernel, arch, tools, workdir, tests)
     registers, notes = _ptxas_info(log, kernel)
-    listing = _run([str(tools.nvdisasm), "-c", "-g", "-gi", str(cubin)], CUDA_DIR).stdout
-    # the kernel and the compiler subroutines ($__internal_*) it calls
-    instructions = [
-        i for i in parse_listing(listing) if i.function == kernel or i.function.startswith("$")
-    ]
     source = (CUDA_DIR / f"{kernel}.cu").read_text()
     owner = parse_markers(source, f"{kernel}.cu")
     counts, fallback, moved = map_blocks(instructions, owner, f"{kernel}.cu", parse_loops(source))

@@ -71,7 +71,7 @@ class SassInstruction:
     ``file``/``line`` are the outermost location of the instruction's inline chain
     (``""``/0 when the listing has no line information for it); ``labels`` are the local
     labels (``.L_x_3``) that name its address; ``guarded`` is true for an instruction under
-    a predicate (``@P0 BRA``).
+    a predicate (``@P0 BRA``), and ``guard`` is that predicate (``"!P0"``; ``""`` for none).
     """
 
     function: str
@@ -82,6 +82,7 @@ class SassInstruction:
     line: int
     labels: tuple[str, ...] = ()
     guarded: bool = False
+    guard: str = ""
 
 
 def base_opcode(opcode: str) -> str:
@@ -140,10 +141,13 @@ def parse_listing(text: str) -> list[SassInstruction]:
         if m:
             raw_text = m.group("text").strip()
             body = _PRED.sub("", raw_text)
+            guard = raw_text[: len(raw_text) - len(body)].strip().lstrip("@")
             opcode = body.split(None, 1)[0]
             off = int(m.group("off"), 16)
             out.append(
-                SassInstruction(func, off, opcode, body, *loc, tuple(labels), body != raw_text)
+                SassInstruction(
+                    func, off, opcode, body, *loc, tuple(labels), body != raw_text, guard
+                )
             )
             labels = []
     if not out:

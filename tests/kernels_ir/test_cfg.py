@@ -141,6 +141,39 @@ def test_by_frequency_moves_a_guard_and_a_preheader_and_keeps_the_body() -> None
     assert total == {"ray_setup": 5, "loop_control": 5, "trav_step": 3, "finish": 2}
 
 
+#: the same loop where the loop statement's code lies mostly outside the loop (if-if on
+#: sm_75: a three-instruction entry test and the exit's BSYNC, a two-instruction latch)
+ENTRY_HEAVY = [
+    *[(3, f"MOV R{k}, c[0x0][0x160]") for k in range(1, 6)],
+    (5, "ISETP.NE.AND P0, PT, R2, RZ, PT"),
+    (5, "MOV R9, 0x1"),
+    (5, "@!P0 BRA `(.L_x_2)"),
+    ".L_x_0",
+    (7, "ISETP.NE.AND P1, PT, R3, RZ, PT"),
+    (7, "@!P1 BRA `(.L_x_1)"),
+    (8, "FADD R4, R4, 1"),
+    (8, "FADD R5, R5, 1"),
+    (8, "FADD R6, R6, 1"),
+    ".L_x_1",
+    (5, "ISETP.NE.AND P0, PT, R2, RZ, PT"),
+    (5, "@P0 BRA `(.L_x_0)"),
+    ".L_x_2",
+    (5, "BSYNC B0"),
+    (13, "STG.E [R8], R4"),
+    (13, "EXIT"),
+]
+
+
+def test_a_loops_own_block_stays_home_in_the_loop_when_most_of_it_is_outside() -> None:
+    """The loop statement's block is the loop's own block even where most of its code is
+    the entry test and the exit (found by the SASS walk on if-if): those run once per
+    thread and go to the code around the loop; the latch and the if's test stay in it."""
+    ins = parse_listing(_listing(ENTRY_HEAVY))
+    counts, _, _ = map_blocks(ins, parse_markers(SOURCE, "k.cu"), "k.cu", parse_loops(SOURCE))
+    total = {b: sum(row.values()) for b, row in counts.items()}
+    assert total == {"ray_setup": 9, "loop_control": 4, "trav_step": 3, "finish": 2}
+
+
 def test_map_blocks_without_source_loops_still_attributes_by_frequency() -> None:
     ins = parse_listing(_listing(LOOP))
     counts, _, _ = map_blocks(ins, parse_markers(SOURCE, "k.cu"), "k.cu")

@@ -370,6 +370,7 @@ def test_package_reexports_kernel_ir() -> None:
 # ------------------------------------------------------------- rebuild (needs toolchain)
 
 
+@pytest.mark.toolchain
 @pytest.mark.skipif(not toolchain_available(), reason=NO_TOOLCHAIN)
 def test_rebuild_of_one_kernel_is_byte_identical() -> None:
     with tempfile.TemporaryDirectory() as tmp:

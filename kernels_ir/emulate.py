@@ -1,0 +1,327 @@
+"""Run a kernel's SASS for whole warps and count the warp instructions it issues.
+
+This is the independent count the replay is judged against: no source marker, block map
+or op stream decides anything here. Every lane runs the compiled code on the real BVH and
+rays (:mod:`kernels_ir.opcodes`), each branch goes the way the lane's own predicate says,
+and the warp issues an instruction once for every group of lanes that executes it
+together. Lanes are scheduled the way ideal SIMT reconvergence would: the lowest program
+counter among the lanes that can run goes next, with every lane at that address (so a
+diverged ``if`` runs its sides one after the other and a loop runs until its last lane
+leaves it); the Volta-style convergence barriers (``BSSY``/``BSYNC``) make lanes wait for
+the others of their region, ``BREAK`` and ``EXIT`` release them, ``WARPSYNC`` waits for
+the lanes it names, and ``BRA.DIV`` takes the divergent-warp fallback exactly when the
+executing lanes are not all of the warp's live lanes. The result is a count per SASS
+instruction, which :func:`kernels_ir.blocks.instruction_blocks` turns into counts per
+block.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from kernels_ir.errors import KernelIRError
+from kernels_ir.opcodes import (
+    LANES,
+    GlobalMemory,
+    LaneState,
+    Operand,
+    read_bits,
+    read_pred,
+    semantics,
+    split_operands,
+)
+from kernels_ir.sass import SassInstruction, base_opcode, classify
+
+PARAM_BASE = {"sm_75": 0x160, "sm_80": 0x160, "sm_86": 0x160, "sm_89": 0x160}
+"""Offset of the first kernel parameter in constant bank 0, per architecture the walker
+runs (the Turing/Ampere/Ada ABI; Hopper and Blackwell move parameters and add opcodes)."""
+BLOCK_DIM = 0x0
+"""``c[0x0][0x0]``: ``blockDim.x``; ``c[0x0][0xc]`` is ``gridDim.x``."""
+GRID_DIM = 0xC
+LOCAL_TOP = 0x28
+"""``c[0x0][0x28]``: the top of a thread's local-memory stack (the kernel subtracts its
+frame from it)."""
+LOCAL_BYTES = 4096
+MAX_STEPS = 50_000_000
+"""Issued instructions after which one warp's run is stopped as a runaway."""
+
+_SIGNATURE = re.compile(r'extern\s+"C"\s+__global__\s+void\s+(?P<name>\w+)\s*\((?P<params>[^)]*)\)')
+
+
+def param_layout(source: str, kernel: str) -> dict[str, tuple[int, int]]:
+    """Each parameter's (offset from the first, size in bytes) from the kernel's C
+    signature: pointers are 8 bytes, ``int``/``float`` 4, each aligned to its size."""
+    for m in _SIGNATURE.finditer(source):
+        if m.group("name") != kernel:
+            continue
+        out: dict[str, tuple[int, int]] = {}
+        offset = 0
+        for decl in m.group("params").split(","):
+            name = re.findall(r"\w+", decl)[-1]
+            size = 8 if "*" in decl else 4
+            offset = -(-offset // size) * size
+            out[name] = (offset, size)
+            offset += size
+        return out
+    raise KernelIRError(f'no `extern "C" __global__ void {kernel}(...)` in the source')
+
+
+@dataclass(frozen=True)
+class Decoded:
+    """An instruction with its operands parsed once."""
+
+    ins: SassInstruction
+    base: str
+    opcode: str
+    operands: tuple[Operand, ...]
+    guard: Operand | None
+    counted: bool
+
+
+def _decode(instructions: Sequence[SassInstruction]) -> list[Decoded]:
+    out = []
+    for ins in instructions:
+        opcode, ops = split_operands(ins.text)
+        guard = split_operands(f"X {ins.guard}")[1][0] if ins.guard else None
+        out.append(
+            Decoded(
+                ins, base_opcode(opcode), opcode, tuple(ops), guard, classify(opcode) is not None
+            )
+        )
+    return out
+
+
+_CONTROL = {
+    "BRA", "EXIT", "BSSY", "BSYNC", "BREAK", "BMOV", "WARPSYNC", "YIELD", "NOP", "CALL", "RET",
+}  # fmt: skip
+
+
+class Program:
+    """A kernel's instructions (the kernel function and the compiler subroutines it calls,
+    in listing order), decoded, with the index of every label and address."""
+
+    def __init__(self, instructions: Sequence[SassInstruction], kernel: str) -> None:
+        self.kernel = kernel
+        self.code = _decode(instructions)
+        self.at_label = {lab: i for i, d in enumerate(self.code) for lab in d.ins.labels}
+        self.at_offset = {d.ins.offset: i for i, d in enumerate(self.code)}
+        subs = {d.ins.function for d in self.code if d.ins.function != kernel}
+        for d in self.code:
+            if d.ins.function != kernel and d.ins.function in subs:
+                self.at_label.setdefault(d.ins.function, self.at_offset[d.ins.offset])
+        for f in subs:
+            first = next(i for i, d in enumerate(self.code) if d.ins.function == f)
+            self.at_label[f] = first
+        for d in self.code:
+            if d.base not in _CONTROL:
+                semantics(d.ins)  # refuse an unmodelled opcode before running anything
+
+    def target(self, op: Operand) -> int:
+        if op.text not in self.at_label:
+            raise KernelIRError(f"branch to unknown label {op.text!r}")
+        return self.at_label[op.text]
+
+
+@dataclass
+class WarpRun:
+    """What one warp did: ``issued[i]`` warp issues of instruction ``i`` and
+    ``lanes[i]`` the lanes that were executing it, summed over those issues."""
+
+    issued: np.ndarray
+    lanes: np.ndarray
+
+
+def run_warp(
+    program: Program,
+    const: bytes,
+    memory: GlobalMemory,
+    *,
+    ctaid: int,
+    threads: int = LANES,
+) -> WarpRun:
+    """Run one warp (block ``ctaid`` of one warp, ``threads`` lanes launched) to the end.
+
+    Raises
+    ------
+    KernelIRError
+        On an unmodelled opcode, a memory access outside the buffers, a deadlock (lanes
+        waiting on a barrier no other lane can reach) or a runaway warp.
+    """
+    s = LaneState(const, memory, LOCAL_BYTES // 4, ctaid=ctaid)
+    code = program.code
+    n = len(code)
+    issued = np.zeros(n, np.int64)
+    lanes_sum = np.zeros(n, np.int64)
+    pc = np.zeros(LANES, np.int64)
+    alive = np.arange(LANES) < threads
+    waiting = np.full(LANES, -1, np.int64)  # barrier (0..15) or 100 + pc of a WARPSYNC
+    barrier = np.zeros((16, LANES), bool)
+    steps = 0
+    lane_ids = np.arange(LANES)
+
+    def release() -> None:
+        for b in range(16):
+            w = waiting == b
+            if w.any() and not (barrier[b] & alive & ~w).any():
+                pc[w] += 1
+                waiting[w] = -1
+        for key in set(waiting[waiting >= 100].tolist()):
+            w = waiting == key
+            need = _warpsync_mask(s, code[key - 100], w) & alive
+            if not (need & ~w).any():
+                pc[w] += 1
+                waiting[w] = -1
+
+    while True:
+        runnable = alive & (waiting < 0)
+        if not runnable.any():
+            if (alive & (waiting >= 0)).any():
+                stuck = sorted(set(pc[alive].tolist()))
+                raise KernelIRError(f"{program.kernel}: warp deadlocked at {stuck}")
+            break
+        steps += 1
+        if steps > MAX_STEPS:
+            raise KernelIRError(f"{program.kernel}: warp still running after {MAX_STEPS} issues")
+        i = int(pc[runnable].min())
+        group = runnable & (pc == i)
+        d = code[i]
+        if d.counted:
+            issued[i] += 1
+            lanes_sum[i] += int(group.sum())
+        m = group & read_pred(s, d.guard) if d.guard is not None else group.copy()
+        op = d.base
+        if op not in _CONTROL:
+            semantics(d.ins)(s, d.opcode, list(d.operands), m)
+            pc[group] += 1
+        elif op == "BRA":
+            mods = d.opcode.split(".")
+            if "DIV" in mods or "CONV" in mods:  # to a _sync intrinsic's (non-)fallback
+                diverged = bool((group != alive).any())
+                take = m if diverged == ("DIV" in mods) else np.zeros(LANES, bool)
+            else:
+                take = m
+                if len(d.operands) > 1:  # "@P0 BRA P2, target": both must hold
+                    take = take & read_pred(s, d.operands[0])
+            pc[group] += 1
+            pc[take] = program.target(d.operands[-1])
+        elif op == "EXIT":
+            alive &= ~m
+            pc[group & ~m] += 1
+            release()
+        elif op == "BSSY":
+            b = d.operands[0].n
+            barrier[b] = m | (waiting == b)  # a diverged group joins the lanes already there
+            pc[group] += 1
+        elif op == "BSYNC":
+            waiting[m] = d.operands[0].n
+            pc[group & ~m] += 1
+            release()
+        elif op == "BREAK":
+            barrier[d.operands[0].n] &= ~m
+            pc[group] += 1
+            release()
+        elif op == "BMOV":
+            if d.operands[0].kind != "r" or d.operands[1].kind != "b" or "CLEAR" not in d.opcode:
+                raise KernelIRError(f"{d.ins.text!r}: only BMOV.32.CLEAR RZ, Bn is modelled")
+            barrier[d.operands[1].n] = False
+            pc[group] += 1
+        elif op == "WARPSYNC":
+            waiting[m] = 100 + i
+            pc[group & ~m] += 1
+            release()
+        elif op == "CALL":
+            pc[group] += 1
+            pc[m] = program.target(d.operands[-1])
+        elif op == "RET":
+            back = read_bits(s, d.operands[0])
+            pc[group] += 1
+            for lane in lane_ids[m]:
+                pc[lane] = program.at_offset[int(back[lane])]
+        else:  # YIELD, NOP
+            pc[group] += 1
+    return WarpRun(issued, lanes_sum)
+
+
+def _warpsync_mask(s: LaneState, d: Decoded, lanes: np.ndarray) -> np.ndarray:
+    bits = read_bits(s, d.operands[0])
+    first = int(np.flatnonzero(lanes)[0])
+    word = int(bits[first])
+    return ((word >> np.arange(LANES)) & 1).astype(bool)
+
+
+def constant_bank(
+    arch: str,
+    layout: Mapping[str, tuple[int, int]],
+    values: Mapping[str, int],
+    *,
+    block_dim: int,
+    grid_dim: int,
+) -> bytes:
+    """Constant bank 0 of a launch: launch dimensions, the local stack top, parameters."""
+    if arch not in PARAM_BASE:
+        raise KernelIRError(
+            f"the SASS walker runs {', '.join(PARAM_BASE)} code, not {arch}; pick one of those"
+        )
+    base = PARAM_BASE[arch]
+    end = base + max(off + size for off, size in layout.values())
+    bank = bytearray(end + 16)
+    bank[BLOCK_DIM : BLOCK_DIM + 12] = np.array([block_dim, 1, 1], np.uint32).tobytes()
+    bank[GRID_DIM : GRID_DIM + 12] = np.array([grid_dim, 1, 1], np.uint32).tobytes()
+    bank[LOCAL_TOP : LOCAL_TOP + 4] = np.uint32(LOCAL_BYTES).tobytes()
+    missing = set(layout) - set(values)
+    if missing:
+        raise KernelIRError(f"no value for kernel parameters {sorted(missing)}")
+    for name, (off, size) in layout.items():
+        bank[base + off : base + off + size] = int(values[name] & (1 << 8 * size) - 1).to_bytes(
+            size, "little"
+        )
+    return bytes(bank)
+
+
+@dataclass
+class KernelRun:
+    """A launch the walker ran: per-instruction issues and lanes summed over its warps,
+    warps run, and the final contents of every array parameter (uint32 words)."""
+
+    program: Program
+    issued: np.ndarray
+    lanes: np.ndarray
+    warps: int
+    outputs: dict[str, np.ndarray]
+
+
+def run_kernel(
+    program: Program,
+    arch: str,
+    source: str,
+    params: Mapping[str, np.ndarray | int],
+    *,
+    ctaids: Sequence[int],
+    grid_dim: int,
+) -> KernelRun:
+    """Launch ``program`` with blocks of one warp: run blocks ``ctaids`` of a grid of
+    ``grid_dim`` (a persistent kernel: one block, which fetches every ray from the pool).
+
+    ``params`` maps each parameter of the kernel's signature (:func:`param_layout`) to an
+    array (placed in global memory) or an int.
+    """
+    layout = param_layout(source, program.kernel)
+    memory = GlobalMemory()
+    values = {
+        name: memory.add(v) if isinstance(v, np.ndarray) else int(v) for name, v in params.items()
+    }
+    const = constant_bank(arch, layout, values, block_dim=LANES, grid_dim=grid_dim)
+    issued = np.zeros(len(program.code), np.int64)
+    lanes = np.zeros(len(program.code), np.int64)
+    for ctaid in ctaids:
+        run = run_warp(program, const, memory, ctaid=ctaid)
+        issued += run.issued
+        lanes += run.lanes
+    outputs = {
+        name: memory.words(values[name]) for name, v in params.items() if isinstance(v, np.ndarray)
+    }
+    return KernelRun(program, issued, lanes, len(ctaids), outputs)

@@ -1,0 +1,209 @@
+"""The replay's instruction count against a walk of the kernel's own SASS.
+
+The replay charges each warp step what the block map says the step's block costs
+(``kernels_ir`` IR). :mod:`kernels_ir.emulate` instead runs the compiled kernel, lane by
+lane, on the same BVH bytes and rays, and counts every warp instruction it issues, with
+no block map or op stream involved. Here both count the same warps; the walk's count per
+instruction is grouped by the block the IR charges it to, so a difference points at the
+block (and the source lines) that cause it. ``python -m kernels_ir dyncount`` prints it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from kernels_ir import load as load_ir
+from kernels_ir.blocks import UNATTRIBUTED, parse_loops, parse_markers, place_instructions
+from kernels_ir.build import CUDA_DIR, compile_listing
+from kernels_ir.emulate import PARAM_BASE, Program, run_kernel
+from kernels_ir.errors import KernelIRError
+from kernels_ir.kernel_ir import BLOCKS
+from kernels_ir.sass import SassInstruction
+from simt_sim import schemes
+from simt_sim.bvh.layout import BVH
+from simt_sim.errors import SimtSimError
+from simt_sim.simt.gpus import get_gpu
+from simt_sim.simt.replay import simulate_traces
+from simt_sim.study.workload import make_workload
+from simt_sim.trace.record import record_all
+from simt_sim.tracers.cuda_tracer import POOL_PARAM, pack_bvh, pack_rays
+from simt_sim.types.raybatch import RayBatch
+
+WARP = 32
+DEFAULT_GPU = "rtx2080ti"
+"""A GPU with independent thread scheduling whose IR is sm_75: the walk runs Volta-style
+code, divergent-warp fallbacks included, which the replay charges on such GPUs only."""
+FALLBACK = "fallback"
+"""Row of a divergent-warp fallback outside the traversal step (the IR charges none)."""
+DIVERGED = "trav_diverged"
+
+
+@dataclass(frozen=True)
+class DynCount:
+    """Both counts of one kernel on the same warps: ``table`` has one row per block
+    (``walk``, ``replay`` warp instructions), ``hits_agree`` the share of rays whose hit
+    triangle the walk and the recorder agree on (the walk's own correctness check)."""
+
+    scheme: str
+    scene: str
+    ray_type: str
+    arch: str
+    gpu: str
+    warps: int
+    rays: int
+    table: pd.DataFrame
+    hits_agree: float
+
+    @property
+    def walk(self) -> int:
+        return int(self.table["walk"].sum())
+
+    @property
+    def replay(self) -> int:
+        return int(self.table["replay"].sum())
+
+    @property
+    def difference(self) -> float:
+        """(replay - walk) / walk: positive where the replay charges more."""
+        return (self.replay - self.walk) / self.walk
+
+    def summary(self) -> str:
+        return (
+            f"{self.scheme} on {self.scene} {self.ray_type}, {self.warps} warps "
+            f"({self.rays} rays), {self.arch} / {self.gpu}: SASS walk {self.walk} warp "
+            f"instructions, replay {self.replay}, difference {100 * self.difference:+.2f}% "
+            f"(hits agree on {100 * self.hits_agree:.2f}% of rays)"
+        )
+
+
+def scheme_of_kernel(kernel: str) -> str:
+    """The binary-tree trace scheme that replays ``kernel`` (the walker's kernels)."""
+    for name in schemes.names("trace", layout="bvh2"):
+        if schemes.get_scheme(name).kernel == kernel:
+            return name
+    known = sorted({schemes.get_scheme(n).kernel for n in schemes.names("trace", layout="bvh2")})
+    raise SimtSimError(
+        f"no binary-tree trace scheme runs kernel {kernel!r}; kernels: {', '.join(known)}"
+    )
+
+
+def pick_warps(n_rays: int, warps: int) -> np.ndarray:
+    """Indices of ``warps`` whole warps spread evenly over ``n_rays`` rays, in order."""
+    total = n_rays // WARP
+    if warps < 1 or total < 1:
+        raise SimtSimError(f"--warps must be 1 .. {total} (the rays make {total} whole warps)")
+    chosen = np.unique(np.linspace(0, total - 1, min(warps, total)).round().astype(np.int64))
+    return (chosen[:, None] * WARP + np.arange(WARP)).ravel()
+
+
+def walk_blocks(kernel: str, issued: np.ndarray, instructions: list[SassInstruction]) -> pd.Series:
+    """Issued warp instructions per IR block (a divergent-warp fallback of the traversal
+    step is ``trav_diverged``, as the IR build names it; any other is :data:`FALLBACK`)."""
+    source = (CUDA_DIR / f"{kernel}.cu").read_text()
+    placement = place_instructions(
+        instructions, parse_markers(source, f"{kernel}.cu"), f"{kernel}.cu", parse_loops(source)
+    )
+    out: dict[str, int] = {}
+    for i, times in enumerate(issued):
+        if not times:
+            continue
+        block = placement.block[i]
+        if i in placement.fallback:
+            block = DIVERGED if block == "trav_step" else FALLBACK
+        out[block] = out.get(block, 0) + int(times)
+    return pd.Series(out, dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class Walk:
+    """A kernel's SASS run on a ray batch: its instructions, the warp issues and executing
+    lanes of each, the warps run and the hit triangle of every ray."""
+
+    instructions: list[SassInstruction]
+    issued: np.ndarray
+    lanes: np.ndarray
+    warps: int
+    hit_tri: np.ndarray
+
+
+def walk_kernel(kernel: str, arch: str, bvh: BVH, rays: RayBatch, *, persistent: bool) -> Walk:
+    """Run ``kernel``'s ``arch`` SASS over ``bvh`` on ``rays`` (whole warps, in order):
+    one block per warp, or for a persistent kernel one warp that fetches every ray from
+    the pool."""
+    try:
+        instructions = compile_listing(kernel, arch)
+        program = Program(instructions, kernel)
+    except KernelIRError as exc:
+        raise SimtSimError(str(exc)) from exc
+    packed, tree = pack_rays(rays), pack_bvh(bvh)
+    n = packed.shape[1]
+    if n % WARP:
+        raise SimtSimError(f"the walk runs whole warps; got {n} rays")
+    params: dict[str, np.ndarray | int] = {
+        "nodes": tree["nodes"], "woop": tree["woop"], "tri_index": tree["tri_index"],
+        "root": int(tree["root"]), "ray_o": packed[0], "ray_d": packed[1], "num_rays": n,
+        "any_hit": int(rays.query == "any"), "hit_tri": np.full(n, -7, np.int32),
+        "hit_t": np.zeros(n, np.float32),
+    }  # fmt: skip
+    if persistent:
+        params[POOL_PARAM] = np.zeros(1, np.int32)
+    warps = n // WARP
+    try:
+        run = run_kernel(
+            program, arch, (CUDA_DIR / f"{kernel}.cu").read_text(), params,
+            ctaids=[0] if persistent else range(warps), grid_dim=1 if persistent else warps,
+        )  # fmt: skip
+    except KernelIRError as exc:
+        raise SimtSimError(f"{kernel}: {exc}") from exc
+    return Walk(instructions, run.issued, run.lanes, warps, run.outputs["hit_tri"].view(np.int32))
+
+
+def dyncount(
+    scheme_name: str,
+    scene: str,
+    ray_type: str,
+    *,
+    warps: int = 16,
+    gpu_id: str = DEFAULT_GPU,
+    resolution: tuple[int, int] = (256, 192),
+    spp: int = 4,
+    camera: int = 0,
+) -> DynCount:
+    """Count ``warps`` warps of ``scene``'s ``ray_type`` rays (camera ``camera``) with the
+    SASS walk and with the replay of ``scheme_name`` on ``gpu_id``.
+
+    Persistent kernels run as one resident warp that fetches the chosen warps' rays from
+    the pool in order, and the replay is given one resident warp to match.
+    """
+    scheme = schemes.get_scheme(scheme_name)
+    if scheme.layout != "bvh2" or scheme.kind != "trace":
+        raise SimtSimError(f"dyncount walks the binary-tree trace kernels, not {scheme_name!r}")
+    gpu = get_gpu(gpu_id)
+    arch = gpu.ir_arch
+    if arch not in PARAM_BASE:
+        raise SimtSimError(
+            f"the SASS walker runs {', '.join(PARAM_BASE)} code; {gpu_id} is costed with "
+            f"{arch}: pick another --gpu"
+        )
+    wl = make_workload(scene, ray_type, cameras=str(camera), resolution=resolution, spp=spp)
+    rays: RayBatch = wl.rays.take(pick_warps(len(wl.rays.tmin), warps))
+    kernel = scheme.kernel
+    run = walk_kernel(kernel, arch, wl.bvh, rays, persistent=scheme.launch.persistent)
+    trace = record_all(wl.bvh, rays)
+    agree = float(np.mean(run.hit_tri == trace.hits.tri))
+    ir = load_ir(kernel, arch)
+    resident = 1 if scheme.launch.persistent else None
+    result = simulate_traces([trace], scheme, ir, gpu, scene=scene, resident_warps=resident)
+    walk = walk_blocks(kernel, run.issued, run.instructions)
+    replay = pd.Series(result.block_instructions, dtype=np.int64)
+    table = pd.DataFrame({"walk": walk, "replay": replay}).fillna(0).astype(np.int64)
+    table = table[(table != 0).any(axis=1)]
+    order = [b for b in (*BLOCKS, FALLBACK, UNATTRIBUTED) if b in table.index]
+    table = table.loc[order + [b for b in table.index if b not in order]]
+    table["replay - walk"] = table["replay"] - table["walk"]
+    return DynCount(
+        scheme_name, scene, ray_type, arch, gpu_id, run.warps, len(rays.tmin), table, agree
+    )

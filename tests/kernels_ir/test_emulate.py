@@ -1,0 +1,170 @@
+"""The SASS walker (kernels_ir.opcodes, kernels_ir.emulate): instruction semantics against
+exact arithmetic, and warp issue counts on hand-made listings whose counts are known."""
+
+from __future__ import annotations
+
+from fractions import Fraction
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from kernels_ir.emulate import GlobalMemory, Program, constant_bank, param_layout, run_warp
+from kernels_ir.errors import KernelIRError
+from kernels_ir.opcodes import LANES, fma32, lop3, parse_operand
+from kernels_ir.sass import parse_listing
+
+floats = st.floats(-(2.0**60), 2.0**60, width=32)
+
+
+def _round32(x: Fraction) -> np.float32:
+    """The float32 nearest ``x`` (ties to even), from exact rationals."""
+    f = np.float32(float(x))  # one rounding from the nearest double; fix it up exactly
+    for g in (np.nextafter(f, np.float32(-np.inf)), np.nextafter(f, np.float32(np.inf))):
+        if abs(Fraction(float(g)) - x) < abs(Fraction(float(f)) - x) or (
+            abs(Fraction(float(g)) - x) == abs(Fraction(float(f)) - x)
+            and int(g.view(np.uint32)) % 2 == 0
+        ):
+            f = g
+    return f
+
+
+@settings(max_examples=300, deadline=None)
+@given(floats, floats, floats)
+def test_fma32_rounds_once(a: float, b: float, c: float) -> None:
+    exact = Fraction(a) * Fraction(b) + Fraction(c)
+    got = fma32(*(np.full(LANES, v, np.float32) for v in (a, b, c)))[0]
+    want = _round32(exact)
+    if np.isfinite(want) and abs(float(want)) < 3e38:
+        assert got == want or (got == 0 and want == 0)
+
+
+def test_fma32_differs_from_two_roundings_where_it_must() -> None:
+    a = np.full(LANES, 1 + 2.0**-12, np.float32)
+    c = np.full(LANES, -(1 + 2.0**-11), np.float32)
+    # (1 + 2^-12)^2 - (1 + 2^-11) = 2^-24 exactly; a*b rounded first loses it
+    assert fma32(a, a, c)[0] == np.float32(2.0**-24)
+    assert (a * a + c)[0] == 0
+
+
+@given(st.integers(0, 2**32 - 1), st.integers(0, 2**32 - 1), st.integers(0, 2**32 - 1),
+       st.integers(0, 255))  # fmt: skip
+def test_lop3_is_the_truth_table(a: int, b: int, c: int, lut: int) -> None:
+    got = int(lop3(*(np.full(LANES, v, np.uint32) for v in (a, b, c)), lut)[0])
+    want = 0
+    for bit in range(32):
+        k = (a >> bit & 1) * 4 + (b >> bit & 1) * 2 + (c >> bit & 1)
+        want |= (lut >> k & 1) << bit
+    assert got == want
+
+
+def test_operands_parse_with_their_modifiers() -> None:
+    op = parse_operand("-|R12|.reuse")
+    assert (op.kind, op.n, op.neg, op.absolute) == ("r", 12, True, True)
+    mem = parse_operand("[R6.64+UR4]")
+    assert mem.kind == "mem" and mem.base.n == 6 and mem.offset.kind == "ur"
+    assert parse_operand("c[0x0][0x160]").value == 0x160
+    assert parse_operand("!P3").invert and parse_operand("-0x1").kind == "imm"
+    with pytest.raises(KernelIRError, match="cannot parse"):
+        parse_operand("what?")
+
+
+def _program(rows: list[str]) -> Program:
+    out = [".text.k:"]
+    offset = 0
+    for row in rows:
+        if row.endswith(":"):
+            out.append(row)
+            continue
+        out.append('        //## File "k.cu", line 1')
+        out.append(f"        /*{offset:04x}*/                   {row} ;")
+        offset += 0x10
+    return Program(parse_listing("\n".join(out) + "\n"), "k")
+
+
+def _run(rows: list[str]):
+    const = constant_bank("sm_75", {"out": (0, 8)}, {"out": 0}, block_dim=32, grid_dim=1)
+    return run_warp(_program(rows), const, GlobalMemory(), ctaid=0)
+
+
+def test_a_diverged_if_issues_both_sides_and_reconverges() -> None:
+    run = _run([
+        "S2R R0, SR_LANEID",
+        "ISETP.GE.AND P0, PT, R0, 0x10, PT",
+        "BSSY B0, `(.L_x_1)",
+        "@P0 BRA `(.L_x_0)",
+        "FADD R4, R4, 1",
+        "BRA `(.L_x_1)",
+        ".L_x_0:",
+        "FADD R5, R5, 1",
+        ".L_x_1:",
+        "BSYNC B0",
+        "FADD R6, R6, 1",
+        "EXIT",
+    ])  # fmt: skip
+    # each side once with its 16 lanes; the first side waits at the join for the second
+    # (lowest address first), and the whole warp issues the BSYNC and what follows
+    assert run.issued.tolist() == [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
+    assert run.lanes.tolist() == [32, 32, 32, 32, 16, 16, 16, 32, 32, 32]
+
+
+def test_a_loop_runs_until_its_last_lane_leaves() -> None:
+    run = _run([
+        "S2R R0, SR_LANEID",
+        "IADD3 R0, R0, 0x1, RZ",
+        ".L_x_0:",
+        "IADD3 R0, R0, -0x1, RZ",
+        "ISETP.GT.AND P0, PT, R0, RZ, PT",
+        "@P0 BRA `(.L_x_0)",
+        "EXIT",
+    ])  # fmt: skip
+    # lane k runs the body k + 1 times: 32 issues, 1 + 2 + ... + 32 lane executions
+    assert run.issued[2:5].tolist() == [32, 32, 32]
+    assert run.lanes[2] == sum(range(1, 33))
+    assert run.issued[5] == 1 and run.lanes[5] == 32
+
+
+def test_the_divergent_fallback_runs_only_for_a_diverged_warp() -> None:
+    rows = [
+        "S2R R0, SR_LANEID",
+        "ISETP.GE.AND P0, PT, R0, {cut}, PT",
+        "@P0 EXIT",
+        "BRA.DIV `(.L_x_0)",
+        "VOTE.ANY R1, PT, PT",
+        ".L_x_1:",
+        "EXIT",
+        ".L_x_0:",
+        "MOV R1, 0x0",
+        "BRA `(.L_x_1)",
+    ]
+    whole = _run([r.format(cut="0x20") for r in rows])
+    assert whole.issued.tolist() == [1, 1, 1, 1, 1, 1, 0, 0]
+    # lanes 16..31 exited: the 16 left are every live lane, so still no fallback
+    half = _run([r.format(cut="0x10") for r in rows])
+    assert half.issued.tolist() == [1, 1, 1, 1, 1, 1, 0, 0]
+
+
+def test_a_deadlock_and_an_unmodelled_opcode_are_refused() -> None:
+    with pytest.raises(KernelIRError, match="deadlocked"):
+        _run([
+            "S2R R0, SR_LANEID",
+            "ISETP.GE.AND P0, PT, R0, 0x10, PT",
+            "BSSY B0, `(.L_x_0)",
+            "@P0 BRA `(.L_x_0)",
+            "WARPSYNC 0xffffffff",
+            ".L_x_0:",
+            "BSYNC B0",
+            "EXIT",
+        ])  # fmt: skip
+    with pytest.raises(KernelIRError, match="not modelled"):
+        _program(["HMMA.16816.F32 R0, R4, R8, R0", "EXIT"])
+
+
+def test_param_layout_aligns_pointers_and_ints() -> None:
+    src = 'extern "C" __global__ void k(const float4* a, int n, float* b, int m, int* c)\n{}'
+    assert param_layout(src, "k") == {
+        "a": (0, 8), "n": (8, 4), "b": (16, 8), "m": (24, 4), "c": (32, 8),
+    }  # fmt: skip
+    with pytest.raises(KernelIRError, match="no `extern"):
+        param_layout(src, "other")

@@ -1,0 +1,71 @@
+"""The replay against a walk of the kernels' SASS (simt_sim.study.dyncount, ``python -m
+kernels_ir dyncount``): the walk must trace the rays as the recorder does, issue every
+instruction with all lanes for a warp of identical rays, and meet the replay exactly on
+the blocks whose frequency the replay knows exactly. Needs the CUDA compiler wheels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kernels_ir.__main__ import main
+from kernels_ir.build import toolchain_available
+from simt_sim.errors import SimtSimError
+from simt_sim.study.dyncount import dyncount, pick_warps, scheme_of_kernel, walk_kernel
+from simt_sim.study.workload import make_workload
+
+pytestmark = [
+    pytest.mark.toolchain,
+    pytest.mark.skipif(
+        not toolchain_available(), reason="needs pip install -e '.[cuda-toolchain]'"
+    ),
+]
+
+#: blocks whose executions the replay takes from the op stream with nothing in between:
+#: a node step's outcomes, the ray's set-up and its hit store (whose last branch, in the
+#: persistent kernel, goes back to the fetch only for a warp with rays left over: never
+#: taken on whole warps, and charged by the replay)
+EXACT = ("trav_both", "trav_one", "ray_setup", "finish")
+
+
+@pytest.mark.parametrize("kernel", ["while_while", "if_if", "persistent_while_while"])
+def test_walk_meets_the_replay_where_the_replay_is_exact(kernel: str) -> None:
+    d = dyncount(scheme_of_kernel(kernel), "room", "diffuse", warps=4, resolution=(32, 24))
+    assert d.hits_agree == 1.0
+    assert d.warps == 4 and d.rays == 128
+    for block in EXACT[:3] if kernel.startswith("persistent") else EXACT:
+        assert d.table.loc[block, "walk"] == d.table.loc[block, "replay"], block
+    assert d.walk == d.table["walk"].sum() > 0
+    # the rest is the replay's known over-charge (a triangle test's early outs): small,
+    # and in one direction
+    assert 0 < d.difference < 0.15
+    assert d.table.loc["tri_test", "replay - walk"] > 0
+
+
+def test_a_warp_of_identical_rays_issues_every_instruction_with_all_lanes() -> None:
+    wl = make_workload("room", "ao", cameras="0", resolution=(32, 24), spp=1)
+    one = wl.rays.take(np.full(32, 200))
+    run = walk_kernel("while_while", "sm_75", wl.bvh, one, persistent=False)
+    issued = run.issued > 0
+    assert issued.sum() > 50
+    assert (run.lanes[issued] == 32 * run.issued[issued]).all()
+    assert (run.hit_tri == run.hit_tri[0]).all()
+
+
+def test_pick_warps_spreads_whole_warps() -> None:
+    idx = pick_warps(32 * 10, 3)
+    assert idx.reshape(3, 32)[:, 0].tolist() == [0, 128, 288]
+    with pytest.raises(SimtSimError, match="--warps"):
+        pick_warps(20, 1)
+
+
+def test_command_prints_both_counts_and_refuses_bad_input(capsys) -> None:
+    argv = ["dyncount", "--kernel", "while_while", "--warps", "2", "--rays", "primary"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "SASS walk" in out and "replay" in out and "tri_test" in out
+    assert main(["dyncount", "--kernel", "no_such_kernel"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: no binary-tree trace scheme runs kernel") and "\n" == err[-1]
+    assert main(["dyncount", "--kernel", "while_while", "--gpu", "h100"]) == 2
+    assert "pick another --gpu" in capsys.readouterr().err
