@@ -202,7 +202,8 @@ def by_frequency(
     at least :data:`_SAME_LOOP` of the SASS loop's lines that no loop nested inside it has
     taken (a compiler spin loop, all on one line, takes none). Where that statement is in
     no region (a ``while (true)`` before the first marker), and outside every loop, it is
-    the block with the most code run on every iteration (``pool_fetch``, ``ray_setup``).
+    the block with the most code run on every iteration; the function's own block is the
+    block it starts in (``ray_setup``, or ``pool_fetch`` for a persistent kernel).
     Then, with ``L`` the instruction's innermost loop:
 
     - ``L`` encloses its block's home (a loop preheader or exit, run once per entry of the
@@ -212,6 +213,10 @@ def by_frequency(
       only on some iterations) and this instruction runs on every iteration (the ``if``'s
       test, hoisted address arithmetic, the reconvergence after the ``if``): to ``L``'s
       own block.
+
+    - ``L`` is the function and its own block is the instruction's, whose home is a loop
+      (the set-up before a persistent kernel's fetch loop, marked as the fetch): to no
+      block (``None``), since it runs once per thread and no block is charged so.
 
     Everything else keeps its marker block.
     """
@@ -244,7 +249,9 @@ def by_frequency(
             # one source line and claims nothing: the source loop is its enclosing one's
             claimed.add(statement)
         block = owner.get(statement) if statement is not None else None
-        if block is None and steady.get(key):
+        if key is None:  # the function's own block: where the thread starts
+            block = next((b for b in line_blocks if b is not None), None)
+        elif block is None and steady.get(key):
             block = steady[key].most_common(1)[0][0]
         if block is not None:
             own[key] = block
@@ -261,9 +268,14 @@ def by_frequency(
         if block is None or cfg.block_of[i] not in cfg.reachable:
             continue
         loop = cfg.loop_of(i)
+        preheader = loop != home[block] and cfg.encloses(loop, home[block])
+        if loop is None and preheader and own.get(None) == block:
+            # before (or after) a persistent kernel's fetch loop, in its own block: once
+            # per thread, which no block of the replay is charged as
+            out[i] = None
+            continue
         if loop not in own or own[loop] == block:
             continue
-        preheader = loop != home[block] and cfg.encloses(loop, home[block])
         guard = (
             loop == home[block]
             and loop in conditional.get(block, set())

@@ -262,7 +262,7 @@ def fma32(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
         odd = (s.view(np.int64) & 1) == 1
         fix = np.isfinite(s) & (err != 0) & ~odd
         s = np.where(fix, np.nextafter(s, np.where(err > 0, np.inf, -np.inf)), s)
-    return s.astype(np.float32)
+        return s.astype(np.float32)  # overflow to +-inf as the hardware does
 
 
 def _cmp(name: str, a: np.ndarray, b: np.ndarray, unsigned_float: bool) -> np.ndarray:

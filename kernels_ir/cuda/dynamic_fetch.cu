@@ -94,6 +94,7 @@ extern "C" __global__ void dynamic_fetch(const float4* __restrict__ nodes,
             // @block finish
             if (node == SIMT_SENTINEL) {
                 simt_store_hit(tri_index, hit_tri, hit_t, ray, hit_addr, t_best);
+                break;  // so that the lanes counted below are those still holding a ray
             }
             // @block loop_control
             if (!pool_empty && __popc(__activemask()) < SIMT_DYNAMIC_FETCH_THRESHOLD) break;
