@@ -45,7 +45,8 @@ DIVERGED = "trav_diverged"
 class DynCount:
     """Both counts of one kernel on the same warps: ``table`` has one row per block
     (``walk``, ``replay`` warp instructions), ``hits_agree`` the share of rays whose hit
-    triangle the walk and the recorder agree on (the walk's own correctness check)."""
+    triangle (for any-hit rays: whether occluded) the walk and the recorder agree on,
+    the walk's own correctness check."""
 
     scheme: str
     scene: str
@@ -172,11 +173,22 @@ def dyncount(
     spp: int = 4,
     camera: int = 0,
 ) -> DynCount:
-    """Count ``warps`` warps of ``scene``'s ``ray_type`` rays (camera ``camera``) with the
-    SASS walk and with the replay of ``scheme_name`` on ``gpu_id``.
+    """Count ``warps`` warps of ``scene``'s ``ray_type`` rays (camera ``camera``, spread
+    over the image) with the SASS walk and with the replay of ``scheme_name`` on
+    ``gpu_id`` (:func:`compare_counts`)."""
+    wl = make_workload(scene, ray_type, cameras=str(camera), resolution=resolution, spp=spp)
+    rays = wl.rays.take(pick_warps(len(wl.rays.tmin), warps))
+    return compare_counts(scheme_name, wl.scene.name, wl.bvh, rays, gpu_id=gpu_id)
 
-    Persistent kernels run as one resident warp that fetches the chosen warps' rays from
-    the pool in order, and the replay is given one resident warp to match.
+
+def compare_counts(
+    scheme_name: str, scene: str, bvh: BVH, rays: RayBatch, *, gpu_id: str = DEFAULT_GPU
+) -> DynCount:
+    """Walk ``scheme_name``'s kernel over ``bvh`` on ``rays`` (whole warps) and replay the
+    recorded traces of the same rays on ``gpu_id``, whose IR architecture the walk runs.
+
+    Persistent kernels run as one resident warp that fetches the rays from the pool in
+    order, and the replay is given one resident warp to match.
     """
     scheme = schemes.get_scheme(scheme_name)
     if scheme.layout != "bvh2" or scheme.kind != "trace":
@@ -188,12 +200,13 @@ def dyncount(
             f"the SASS walker runs {', '.join(PARAM_BASE)} code; {gpu_id} is costed with "
             f"{arch}: pick another --gpu"
         )
-    wl = make_workload(scene, ray_type, cameras=str(camera), resolution=resolution, spp=spp)
-    rays: RayBatch = wl.rays.take(pick_warps(len(wl.rays.tmin), warps))
     kernel = scheme.kernel
-    run = walk_kernel(kernel, arch, wl.bvh, rays, persistent=scheme.launch.persistent)
-    trace = record_all(wl.bvh, rays)
-    agree = float(np.mean(run.hit_tri == trace.hits.tri))
+    run = walk_kernel(kernel, arch, bvh, rays, persistent=scheme.launch.persistent)
+    trace = record_all(bvh, rays)
+    if rays.query == "any":  # any hit will do: agreeing is agreeing on occlusion
+        agree = float(np.mean((run.hit_tri >= 0) == (trace.hits.tri >= 0)))
+    else:
+        agree = float(np.mean(run.hit_tri == trace.hits.tri))
     ir = load_ir(kernel, arch)
     resident = 1 if scheme.launch.persistent else None
     result = simulate_traces([trace], scheme, ir, gpu, scene=scene, resident_warps=resident)
@@ -205,5 +218,5 @@ def dyncount(
     table = table.loc[order + [b for b in table.index if b not in order]]
     table["replay - walk"] = table["replay"] - table["walk"]
     return DynCount(
-        scheme_name, scene, ray_type, arch, gpu_id, run.warps, len(rays.tmin), table, agree
+        scheme_name, scene, rays.ray_type, arch, gpu_id, run.warps, len(rays.tmin), table, agree
     )

@@ -1,0 +1,99 @@
+"""The replay's instruction count against the SASS walk, for every walked kernel.
+
+For each scene and ray type, camera 0 at 256x192 with 4 secondary rays per primary hit,
+16 warps spread over the image: every binary-tree trace kernel's SASS (sm_75) is run
+lane by lane on those warps (``python -m kernels_ir dyncount`` does one of them) and set
+beside the replay of the same rays on the RTX 2080 Ti. Replaces the generated blocks of
+docs/kernels_ir.md: the difference per kernel, scene and ray type, and where it comes
+from (per block, summed over the scenes and ray types).
+
+    python experiments/dyncount.py              # room, cornell-box and conference
+    python experiments/dyncount.py --scenes room --warps 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+
+from simt_sim import schemes
+from simt_sim.atomic import write_atomic
+from simt_sim.study.dyncount import compare_counts, pick_warps
+from simt_sim.study.workload import make_workload
+from simt_sim.types.raybatch import TRACE_RAY_TYPES
+
+REPO = Path(__file__).resolve().parents[1]
+DOC = REPO / "docs" / "kernels_ir.md"
+KERNELS = (
+    "while_while", "if_if", "persistent_while_while", "dynamic_fetch",
+    "persistent_speculative_while_while", "speculative_dynamic_fetch", "packet",
+)  # fmt: skip
+
+
+def splice(text: str, name: str, block: str) -> str:
+    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
+    head, rest = text.split(start)
+    _, tail = rest.split(end)
+    return f"{head}{start}\n{block}\n{end}{tail}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scenes", default="room,cornell-box,conference")
+    ap.add_argument("--warps", type=int, default=16)
+    ap.add_argument("--no-write", action="store_true", help="print only")
+    args = ap.parse_args(argv)
+    names = {schemes.get_scheme(n).kernel: n for n in schemes.names("trace", layout="bvh2")}
+    rows, blocks = [], []
+    t0 = time.perf_counter()
+    for scene in args.scenes.split(","):
+        for ray_type in TRACE_RAY_TYPES:
+            wl = make_workload(scene, ray_type, cameras="0", resolution=(256, 192), spp=4)
+            rays = wl.rays.take(pick_warps(len(wl.rays.tmin), args.warps))
+            for kernel in KERNELS:
+                d = compare_counts(names[kernel], scene, wl.bvh, rays)
+                print(d.summary(), flush=True)
+                rows.append({
+                    "kernel": kernel, "scene": scene, "rays": ray_type,
+                    "walk": d.walk, "replay": d.replay,
+                    "replay vs walk": f"{100 * d.difference:+.1f}%",
+                    "hits agree": f"{100 * d.hits_agree:.1f}%",
+                })  # fmt: skip
+                for block, diff in d.table["replay - walk"].items():
+                    blocks.append({"kernel": kernel, "block": block, "diff": diff})
+    table = pd.DataFrame(rows)
+    per_block = pd.DataFrame(blocks)
+    walked = table.groupby("kernel")["walk"].sum()
+    share = per_block.groupby(["kernel", "block"])["diff"].sum().unstack(fill_value=0)
+    share = share.div(walked, axis=0).mul(100).round(1).reindex(KERNELS)
+    share = share.loc[:, (share.abs() >= 0.1).any(axis=0)]
+    seconds = time.perf_counter() - t0
+    command = "python experiments/dyncount.py" + (
+        f" --scenes {args.scenes}" if args.scenes != "room,cornell-box,conference" else ""
+    )
+    header = (
+        f"`{command}` ({seconds:.0f} s; sm_75, RTX 2080 Ti rules, camera 0 at 256x192, "
+        f"4 secondary rays per hit, {args.warps} warps spread over the image)\n\n"
+    )
+    print(table.to_string(index=False))
+    print(share.to_string())
+    if not args.no_write:
+        text = DOC.read_text()
+        text = splice(text, "dyncount", header + table.to_markdown(index=False))
+        text = splice(
+            text,
+            "dyncount-blocks",
+            "Replay minus walk per block, in % of the walk's instructions (all scenes and "
+            "ray types together; positive: the replay charges more):\n\n" + share.to_markdown(),
+        )
+        write_atomic(DOC, text)
+        print(f"wrote {DOC}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
