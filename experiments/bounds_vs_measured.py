@@ -20,6 +20,7 @@ from pathlib import Path
 import pandas as pd
 
 from simt_sim.atomic import write_atomic
+from simt_sim.report.markdown import splice
 from simt_sim.simt.gpus import PIPES, load_gpus
 from simt_sim.study.published import check_published
 from simt_sim.study.sampling import check_fraction
@@ -61,13 +62,6 @@ def bound_table(check: pd.DataFrame, watertight: pd.DataFrame) -> str:
         watertight_ratio=watertight["ratio"].to_numpy(),
     )
     return out.to_markdown(index=False, floatfmt=".3g")
-
-
-def splice(text: str, name: str, block: str) -> str:
-    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
-    head, rest = text.split(start)
-    _, tail = rest.split(end)
-    return f"{head}{start}\n{block}\n{end}{tail}"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -22,6 +22,7 @@ import pandas as pd
 
 from simt_sim import schemes
 from simt_sim.atomic import write_atomic
+from simt_sim.report.markdown import splice
 from simt_sim.study.dyncount import compare_counts, pick_warps
 from simt_sim.study.workload import make_workload
 from simt_sim.types.raybatch import TRACE_RAY_TYPES
@@ -32,13 +33,6 @@ KERNELS = (
     "while_while", "if_if", "persistent_while_while", "dynamic_fetch",
     "persistent_speculative_while_while", "speculative_dynamic_fetch", "packet",
 )  # fmt: skip
-
-
-def splice(text: str, name: str, block: str) -> str:
-    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
-    head, rest = text.split(start)
-    _, tail = rest.split(end)
-    return f"{head}{start}\n{block}\n{end}{tail}"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -24,6 +24,7 @@ import pandas as pd
 from simt_sim import schemes
 from simt_sim.atomic import write_atomic
 from simt_sim.bvh.layouts import LAYOUTS, NODE_BYTES_OF, make_tree, tree_stats
+from simt_sim.report.markdown import splice
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.memory import memory_counts
 from simt_sim.study.plan import plan_study
@@ -45,13 +46,6 @@ GPUS = ("gtx285", "rtx4090")
 BINARY_SCHEMES = ("while_while", "persistent_while_while", "speculative_dynamic_fetch")
 #: rays per ray type checked against the float64 reference (spread over the sample)
 CHECK_RAYS = 4096
-
-
-def splice(text: str, name: str, block: str) -> str:
-    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
-    head, rest = text.split(start)
-    _, tail = rest.split(end)
-    return f"{head}{start}\n{block}\n{end}{tail}"
 
 
 def spec_for(scene: str, layout: str, args: argparse.Namespace) -> StudySpec:

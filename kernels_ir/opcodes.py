@@ -533,75 +533,41 @@ def _uldc(s, opc, o, m):
             s.ur[o[0].n + k] = s.const_word(o[1].value + 4 * k)
 
 
-def _ldg(s, opc, o, m):
-    n = _words(opc)
-    addr = address(s, o[1], wide=".E" in opc or o[1].base.kind == "ur")  # type: ignore[union-attr]
-    for lane in np.flatnonzero(m):
-        buf, i = s.memory.index(int(addr[lane]), n)
-        for k in range(n):
-            if o[0].n + k != RZ:
-                s.r[o[0].n + k][lane] = buf[i + k]
+def _locate(s: LaneState, space: str, addr: np.ndarray, lane: int, n: int):
+    """The word array and first word of ``lane``'s ``n``-word access at byte ``addr[lane]``
+    of ``space`` (``global``, ``local``: the lane's own stack, ``shared``: the block's)."""
+    a = int(addr[lane])
+    if space == "global":
+        return s.memory.index(a, n)
+    words = s.local[lane] if space == "local" else s.shared
+    if a % 4 or not 0 <= a // 4 <= words.size - n:
+        raise KernelIRError(f"{space} access at {a:#x} out of range")
+    return words, a // 4
 
 
-def _stg(s, opc, o, m):
-    n = _words(opc)
-    addr = address(s, o[0], wide=True)
-    for lane in np.flatnonzero(m):
-        buf, i = s.memory.index(int(addr[lane]), n)
-        for k in range(n):
-            buf[i + k] = 0 if o[1].n == RZ else s.r[o[1].n + k][lane]
+def _loader(space: str) -> Semantics:
+    def load(s, opc, o, m):
+        n = _words(opc)
+        addr = address(s, o[1], wide=space == "global")
+        for lane in np.flatnonzero(m):
+            buf, i = _locate(s, space, addr, lane, n)
+            for k in range(n):
+                if o[0].n + k != RZ:
+                    s.r[o[0].n + k][lane] = buf[i + k]
+
+    return load
 
 
-def _local_index(s: LaneState, addr: np.ndarray, lane: int, n: int) -> int:
-    word = int(addr[lane]) // 4
-    if int(addr[lane]) % 4 or not 0 <= word <= s.local_words - n:
-        raise KernelIRError(f"local access at {int(addr[lane]):#x} out of the lane's stack")
-    return word
+def _storer(space: str) -> Semantics:
+    def store(s, opc, o, m):
+        n = _words(opc)
+        addr = address(s, o[0], wide=space == "global")
+        for lane in np.flatnonzero(m):  # lanes in order: the last writer wins
+            buf, i = _locate(s, space, addr, lane, n)
+            for k in range(n):
+                buf[i + k] = 0 if o[1].n == RZ else s.r[o[1].n + k][lane]
 
-
-def _ldl(s, opc, o, m):
-    n = _words(opc)
-    addr = address(s, o[1], wide=False)
-    for lane in np.flatnonzero(m):
-        i = _local_index(s, addr, lane, n)
-        for k in range(n):
-            if o[0].n + k != RZ:
-                s.r[o[0].n + k][lane] = s.local[lane, i + k]
-
-
-def _stl(s, opc, o, m):
-    n = _words(opc)
-    addr = address(s, o[0], wide=False)
-    for lane in np.flatnonzero(m):
-        i = _local_index(s, addr, lane, n)
-        for k in range(n):
-            s.local[lane, i + k] = 0 if o[1].n == RZ else s.r[o[1].n + k][lane]
-
-
-def _shared_index(s: LaneState, addr: np.ndarray, lane: int, n: int) -> int:
-    word = int(addr[lane]) // 4
-    if int(addr[lane]) % 4 or not 0 <= word <= s.shared_words - n:
-        raise KernelIRError(f"shared access at {int(addr[lane]):#x} out of the block's memory")
-    return word
-
-
-def _lds(s, opc, o, m):
-    n = _words(opc)
-    addr = address(s, o[1], wide=False)
-    for lane in np.flatnonzero(m):
-        i = _shared_index(s, addr, lane, n)
-        for k in range(n):
-            if o[0].n + k != RZ:
-                s.r[o[0].n + k][lane] = s.shared[i + k]
-
-
-def _sts(s, opc, o, m):
-    n = _words(opc)
-    addr = address(s, o[0], wide=False)
-    for lane in np.flatnonzero(m):  # lanes in order: the last writer wins
-        i = _shared_index(s, addr, lane, n)
-        for k in range(n):
-            s.shared[i + k] = 0 if o[1].n == RZ else s.r[o[1].n + k][lane]
+    return store
 
 
 def _atomg(s, opc, o, m):
@@ -652,8 +618,9 @@ SEMANTICS: dict[str, Semantics] = {
     "FSETP": _fsetp, "MUFU": _mufu, "ISETP": _isetp, "IADD3": _iadd3, "IMAD": _imad,
     "LEA": _lea, "SHF": _shf, "LOP3": _lop3, "MOV": _mov, "SEL": _sel, "PRMT": _prmt,
     "POPC": _popc, "FLO": _flo, "BREV": _brev, "S2R": _s2r, "CS2R": _cs2r, "ULDC": _uldc,
-    "LDG": _ldg, "STG": _stg, "LDL": _ldl, "STL": _stl, "ATOMG": _atomg, "VOTE": _vote,
-    "VOTEU": _vote, "SHFL": _shfl, "LDS": _lds, "STS": _sts,
+    "LDG": _loader("global"), "STG": _storer("global"), "LDL": _loader("local"),
+    "STL": _storer("local"), "LDS": _loader("shared"), "STS": _storer("shared"),
+    "ATOMG": _atomg, "VOTE": _vote, "VOTEU": _vote, "SHFL": _shfl,
     # uniform-datapath twins: the same operation on values every lane shares
     "UISETP": _isetp, "USEL": _sel, "UMOV": _mov, "UIADD3": _iadd3,
 }  # fmt: skip

@@ -8,10 +8,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kernels_ir import load
 from kernels_ir.__main__ import main
 from kernels_ir.build import toolchain_available
+from simt_sim import schemes
 from simt_sim.errors import SimtSimError
-from simt_sim.study.dyncount import dyncount, pick_warps, scheme_of_kernel, walk_kernel
+from simt_sim.oracles.lockstep import execute
+from simt_sim.simt.gpus import get_gpu
+from simt_sim.study.dyncount import (
+    compare_counts,
+    dyncount,
+    pick_warps,
+    scheme_of_kernel,
+    walk_kernel,
+)
 from simt_sim.study.workload import make_workload
 
 pytestmark = [
@@ -69,3 +79,19 @@ def test_command_prints_both_counts_and_refuses_bad_input(capsys) -> None:
     assert err.startswith("error: no binary-tree trace scheme runs kernel") and "\n" == err[-1]
     assert main(["dyncount", "--kernel", "while_while", "--gpu", "h100"]) == 2
     assert "pick another --gpu" in capsys.readouterr().err
+
+
+def test_walk_meets_the_exact_packet_kernel_where_the_replay_cannot() -> None:
+    """The packet replay approximates Aila & Laine's packet kernel (finished any-hit lanes
+    keep steering); the lockstep executor runs that kernel exactly. The walk of the
+    compiled kernel must agree with the executor block for block where both count the
+    same steps, and is far from the replay there."""
+    wl = make_workload("room", "ao", cameras="0", resolution=(64, 48), spp=4)
+    rays = wl.rays.take(pick_warps(len(wl.rays.tmin), 4))
+    d = compare_counts("packet", "room", wl.bvh, rays)
+    exact = execute(
+        wl.bvh, rays, schemes.get_scheme("packet"), load("packet", "sm_75"), get_gpu("rtx2080ti")
+    ).result.block_instructions
+    for block in ("ray_setup", "trav_both", "leaf_entry", "finish"):
+        assert d.table.loc[block, "walk"] == exact[block], block
+    assert d.table.loc["leaf_entry", "replay"] < exact["leaf_entry"]
