@@ -335,6 +335,30 @@ def _ffma(s, opc, o, m):
     write(s, o[0], fma32(read_float(s, o[1]), read_float(s, o[2]), read_float(s, o[3])), m)
 
 
+def _half2(bits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The (low, high) float16 halves of 32-bit words, as float32."""
+    b = bits.astype(np.uint32)
+    lo = (b & 0xFFFF).astype(np.uint16).view(np.float16).astype(np.float32)
+    hi = (b >> 16).astype(np.uint16).view(np.float16).astype(np.float32)
+    return lo, hi
+
+
+def _hfma2(s, opc, o, m):
+    """Packed half2 ``a * b + c``; nvcc's use of it with ``-RZ, RZ`` is a move of the
+    constant whose halves are the two immediates (high half first)."""
+    alo, ahi = _half2(read_bits(s, o[1]))
+    blo, bhi = _half2(read_bits(s, o[2]))
+    if len(o) == 5:  # c given as two immediates: high half, low half
+        chi = np.full(LANES, float(o[3].text), np.float32)
+        clo = np.full(LANES, float(o[4].text), np.float32)
+    else:
+        clo, chi = _half2(read_bits(s, o[3]))
+    sign = -1.0 if o[1].neg else 1.0
+    lo = fma32(sign * alo, blo, clo).astype(np.float16).view(np.uint16).astype(np.int64)
+    hi = fma32(sign * ahi, bhi, chi).astype(np.float16).view(np.uint16).astype(np.int64)
+    write(s, o[0], lo | hi << 16, m)
+
+
 def _fmnmx(s, opc, o, m):
     a, b = read_float(s, o[1]), read_float(s, o[2])
     pick_min = read_pred(s, o[3])
@@ -584,12 +608,18 @@ def _atomg(s, opc, o, m):
 
 
 def _vote(s, opc, o, m):
-    if ".ANY" not in opc:
+    """``VOTE.ANY``/``VOTE.ALL`` Rd, Pd, P: Rd the ballot of P over the executing lanes, Pd
+    whether any (all) of them hold P."""
+    mode = opc.split(".")[1]
+    if mode not in ("ANY", "ALL"):
         raise KernelIRError(f"{opc} is not modelled")
-    v = read_pred(s, o[2]) & m
+    dest, pred, src = (None, *o) if len(o) == 2 else o  # "VOTE.ANY P0, P1": no Rd
+    v = read_pred(s, src) & m
     ballot = int(np.sum(v.astype(np.int64) << np.arange(LANES)))
-    write(s, o[0], np.full(LANES, ballot, np.int64), m)
-    write(s, o[1], np.full(LANES, ballot != 0), m)
+    agree = ballot != 0 if mode == "ANY" else not (m & ~v).any()
+    if dest is not None:
+        write(s, dest, np.full(LANES, ballot, np.int64), m)
+    write(s, pred, np.full(LANES, agree), m)
 
 
 def _shfl(s, opc, o, m):
@@ -622,7 +652,8 @@ SEMANTICS: dict[str, Semantics] = {
     "STL": _storer("local"), "LDS": _loader("shared"), "STS": _storer("shared"),
     "ATOMG": _atomg, "VOTE": _vote, "VOTEU": _vote, "SHFL": _shfl,
     # uniform-datapath twins: the same operation on values every lane shares
-    "UISETP": _isetp, "USEL": _sel, "UMOV": _mov, "UIADD3": _iadd3,
+    "UISETP": _isetp, "USEL": _sel, "UMOV": _mov, "UIADD3": _iadd3, "R2UR": _mov,
+    "HFMA2": _hfma2,
 }  # fmt: skip
 
 

@@ -195,10 +195,12 @@ def compare_counts(
         raise SimtSimError(f"dyncount walks the binary-tree trace kernels, not {scheme_name!r}")
     gpu = get_gpu(gpu_id)
     arch = gpu.ir_arch
-    if arch not in PARAM_BASE:
+    if arch not in PARAM_BASE or not gpu.independent_thread_scheduling:
         raise SimtSimError(
-            f"the SASS walker runs {', '.join(PARAM_BASE)} code; {gpu_id} is costed with "
-            f"{arch}: pick another --gpu"
+            f"the SASS walker runs {', '.join(PARAM_BASE)} code as a GPU with independent "
+            f"thread scheduling does; {gpu_id} is costed with {arch}"
+            f"{'' if gpu.independent_thread_scheduling else ' and has none'}: pick another "
+            "--gpu (rtx2080ti, a100, rtx4090)"
         )
     kernel = scheme.kernel
     run = walk_kernel(kernel, arch, bvh, rays, persistent=scheme.launch.persistent)

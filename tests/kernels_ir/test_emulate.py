@@ -12,7 +12,15 @@ from hypothesis import strategies as st
 
 from kernels_ir.emulate import GlobalMemory, Program, constant_bank, param_layout, run_warp
 from kernels_ir.errors import KernelIRError
-from kernels_ir.opcodes import LANES, fma32, lop3, parse_operand
+from kernels_ir.opcodes import (
+    LANES,
+    SEMANTICS,
+    LaneState,
+    fma32,
+    lop3,
+    parse_operand,
+    split_operands,
+)
 from kernels_ir.sass import parse_listing
 
 floats = st.floats(-(2.0**60), 2.0**60, width=32)
@@ -168,3 +176,27 @@ def test_param_layout_aligns_pointers_and_ints() -> None:
     }  # fmt: skip
     with pytest.raises(KernelIRError, match="no `extern"):
         param_layout(src, "other")
+
+
+def _exec(state: LaneState, text: str, lanes: np.ndarray | None = None) -> None:
+    opcode, ops = split_operands(text)
+    mask = np.ones(LANES, bool) if lanes is None else lanes
+    SEMANTICS[opcode.split(".")[0]](state, opcode, ops, mask)
+
+
+def test_votes_moves_and_packed_constants() -> None:
+    s = LaneState(bytes(512), GlobalMemory(), 16)
+    s.p[0] = np.arange(LANES) < 8
+    _exec(s, "VOTE.ALL R1, P1, P0")
+    assert int(s.r[1][0]) == 0xFF and not s.p[1].any()
+    _exec(s, "VOTE.ALL R1, P1, P0", np.arange(LANES) < 4)  # only lanes that hold P0 vote
+    assert int(s.r[1][0]) == 0xF and s.p[1][:4].all()
+    _exec(s, "VOTE.ANY P2, P0")
+    assert s.p[2].all()
+    # nvcc's half2 move of a constant: high half first, 2^-20 is the float16 bits 0x10
+    _exec(s, "HFMA2.MMA R3, -RZ, RZ, 0, 9.5367431640625e-07")
+    assert (s.r[3] == 0x10).all()
+    _exec(s, "HFMA2.MMA R4, -RZ, RZ, 1, 0")
+    assert (s.r[4] == 0x3C000000).all()
+    _exec(s, "R2UR UR5, R3")
+    assert int(s.ur[5]) == 0x10
