@@ -33,6 +33,29 @@ KERNELS = (
     "while_while", "if_if", "persistent_while_while", "dynamic_fetch",
     "persistent_speculative_while_while", "speculative_dynamic_fetch", "packet",
 )  # fmt: skip
+#: the paper table's ratios (docs/paper_table.md): scheme kernel -> label
+RATIOS = {
+    "if_if": "if_if / while_while",
+    "persistent_speculative_while_while": "speculative / while_while",
+    "persistent_while_while": "persistent / while_while",
+    "packet": "packet / while_while",
+}
+
+
+def scheme_ratios(table: pd.DataFrame) -> pd.DataFrame:
+    """Per scene and ray type, each paper-table scheme's speed over while-while's, from the
+    replay's and from the walk's instruction counts on the same warps."""
+    out = []
+    for (scene, rays), g in table.groupby(["scene", "rays"], sort=False):
+        by = g.set_index("kernel")
+        for kernel, label in RATIOS.items():
+            replay = by.loc["while_while", "replay"] / by.loc[kernel, "replay"]
+            walk = by.loc["while_while", "walk"] / by.loc[kernel, "walk"]
+            out.append({
+                "scene": scene, "rays": rays, "ratio": label, "replay": round(replay, 3),
+                "walk": round(walk, 3), "moves": f"{100 * (walk / replay - 1):+.1f}%",
+            })  # fmt: skip
+    return pd.DataFrame(out)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -73,8 +96,10 @@ def main(argv: list[str] | None = None) -> int:
         f"`{command}` ({seconds:.0f} s; sm_75, RTX 2080 Ti rules, camera 0 at 256x192, "
         f"4 secondary rays per hit, {args.warps} warps spread over the image)\n\n"
     )
+    ratios = scheme_ratios(table)
     print(table.to_string(index=False))
     print(share.to_string())
+    print(ratios.to_string(index=False))
     if not args.no_write:
         text = DOC.read_text()
         text = splice(text, "dyncount", header + table.to_markdown(index=False))
@@ -83,6 +108,14 @@ def main(argv: list[str] | None = None) -> int:
             "dyncount-blocks",
             "Replay minus walk per block, in % of the walk's instructions (all scenes and "
             "ray types together; positive: the replay charges more):\n\n" + share.to_markdown(),
+        )
+        text = splice(
+            text,
+            "dyncount-ratios",
+            "The paper table's ratios on these warps (a scheme's speed over while-while's on "
+            "the same rays: while-while's warp instructions over the scheme's), counted by "
+            "the replay and by the walk; `moves` is how far the walk's count moves the "
+            "replay's ratio:\n\n" + ratios.to_markdown(index=False),
         )
         write_atomic(DOC, text)
         print(f"wrote {DOC}")
