@@ -61,6 +61,12 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--gpu", default=None, help="GPU whose IR and rules the replay uses")
     d.add_argument("--camera", type=int, default=0)
     d.add_argument("--spp", type=int, default=4, help="secondary rays per primary hit")
+    d.add_argument(
+        "--split",
+        action="store_true",
+        help="lanes that went different ways issue apart until a convergence barrier "
+        "(default: lanes at one address issue together)",
+    )
     args = parser.parse_args(argv)
     if args.cmd == "dyncount":
         return _dyncount(args)
@@ -110,6 +116,7 @@ def _dyncount(args: argparse.Namespace) -> int:
         result = dyncount(
             scheme_of_kernel(args.kernel), args.scene, args.rays, warps=args.warps,
             gpu_id=args.gpu or DEFAULT_GPU, camera=args.camera, spp=args.spp,
+            merge=not args.split,
         )  # fmt: skip
     except (SimtSimError, KernelIRError) as exc:
         print(f"error: {exc}", file=sys.stderr)

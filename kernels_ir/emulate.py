@@ -11,7 +11,7 @@ leaves it); the Volta-style convergence barriers (``BSSY``/``BSYNC``) make lanes
 the others of their region, ``BREAK`` and ``EXIT`` release them, ``WARPSYNC`` waits for
 the lanes it names, and ``BRA.DIV`` takes the divergent-warp fallback exactly when the
 executing lanes are not all of the warp's live lanes. The result is a count per SASS
-instruction, which :func:`kernels_ir.blocks.instruction_blocks` turns into counts per
+instruction, which :func:`kernels_ir.blocks.place_instructions` groups into counts per
 block.
 """
 
@@ -109,13 +109,9 @@ class Program:
         self.code = _decode(instructions)
         self.at_label = {lab: i for i, d in enumerate(self.code) for lab in d.ins.labels}
         self.at_offset = {d.ins.offset: i for i, d in enumerate(self.code)}
-        subs = {d.ins.function for d in self.code if d.ins.function != kernel}
-        for d in self.code:
-            if d.ins.function != kernel and d.ins.function in subs:
-                self.at_label.setdefault(d.ins.function, self.at_offset[d.ins.offset])
-        for f in subs:
-            first = next(i for i, d in enumerate(self.code) if d.ins.function == f)
-            self.at_label[f] = first
+        for i, d in enumerate(self.code):  # a CALL names a subroutine by its function
+            if d.ins.function != kernel:
+                self.at_label.setdefault(d.ins.function, i)
         for d in self.code:
             if d.base not in _CONTROL:
                 semantics(d.ins)  # refuse an unmodelled opcode before running anything
@@ -142,8 +138,15 @@ def run_warp(
     *,
     ctaid: int,
     threads: int = LANES,
+    merge: bool = True,
 ) -> WarpRun:
     """Run one warp (block ``ctaid`` of one warp, ``threads`` lanes launched) to the end.
+
+    ``merge``: lanes that reach one address issue together wherever they come from (ideal
+    reconvergence, the default). Without it, lanes that went different ways run as separate
+    groups until a convergence barrier (``BSYNC``, ``WARPSYNC``) or an ``EXIT`` brings them
+    together, as a GPU with independent thread scheduling need not merge them sooner; the
+    group that issued last goes on while it can.
 
     Raises
     ------
@@ -162,6 +165,8 @@ def run_warp(
     barrier = np.zeros((16, LANES), bool)
     steps = 0
     lane_ids = np.arange(LANES)
+    together = np.zeros(LANES, np.int64)  # without merge: lanes of one id issue together
+    current = 0  # the id of the group that issued last
 
     def release() -> None:
         for b in range(16):
@@ -169,12 +174,14 @@ def run_warp(
             if w.any() and not (barrier[b] & alive & ~w).any():
                 pc[w] += 1
                 waiting[w] = -1
+                together[w] = together.max() + 1
         for key in set(waiting[waiting >= 100].tolist()):
             w = waiting == key
             need = _warpsync_mask(s, code[key - 100], w) & alive
             if not (need & ~w).any():
                 pc[w] += 1
                 waiting[w] = -1
+                together[w] = together.max() + 1
 
     while True:
         runnable = alive & (waiting < 0)
@@ -186,6 +193,12 @@ def run_warp(
         steps += 1
         if steps > MAX_STEPS:
             raise KernelIRError(f"{program.kernel}: warp still running after {MAX_STEPS} issues")
+        if not merge:
+            mine = runnable & (together == current)
+            if not mine.any():  # the last group is blocked or done: the lowest address goes
+                current = int(together[runnable][np.argmin(pc[runnable])])
+                mine = runnable & (together == current)
+            runnable = mine
         i = int(pc[runnable].min())
         group = runnable & (pc == i)
         d = code[i]
@@ -208,6 +221,8 @@ def run_warp(
                     take = take & read_pred(s, d.operands[0])
             pc[group] += 1
             pc[take] = program.target(d.operands[-1])
+            if not merge and take.any() and (group & ~take).any():  # the group splits
+                together[take] = together.max() + 1
         elif op == "EXIT":
             alive &= ~m
             pc[group & ~m] += 1
@@ -302,12 +317,13 @@ def run_kernel(
     *,
     ctaids: Sequence[int],
     grid_dim: int,
+    merge: bool = True,
 ) -> KernelRun:
     """Launch ``program`` with blocks of one warp: run blocks ``ctaids`` of a grid of
     ``grid_dim`` (a persistent kernel: one block, which fetches every ray from the pool).
 
     ``params`` maps each parameter of the kernel's signature (:func:`param_layout`) to an
-    array (placed in global memory) or an int.
+    array (placed in global memory) or an int; ``merge`` is :func:`run_warp`'s.
     """
     layout = param_layout(source, program.kernel)
     memory = GlobalMemory()
@@ -318,7 +334,7 @@ def run_kernel(
     issued = np.zeros(len(program.code), np.int64)
     lanes = np.zeros(len(program.code), np.int64)
     for ctaid in ctaids:
-        run = run_warp(program, const, memory, ctaid=ctaid)
+        run = run_warp(program, const, memory, ctaid=ctaid, merge=merge)
         issued += run.issued
         lanes += run.lanes
     outputs = {

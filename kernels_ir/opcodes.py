@@ -39,7 +39,6 @@ class LaneState:
     const: bytes
     memory: GlobalMemory
     local_words: int
-    lane_base: int = 0
     r: np.ndarray = field(default_factory=lambda: np.zeros((256, LANES), np.uint32))
     p: np.ndarray = field(default_factory=lambda: np.zeros((8, LANES), bool))
     ur: np.ndarray = field(default_factory=lambda: np.zeros(64, np.uint32))

@@ -130,10 +130,12 @@ class Walk:
     hit_tri: np.ndarray
 
 
-def walk_kernel(kernel: str, arch: str, bvh: BVH, rays: RayBatch, *, persistent: bool) -> Walk:
+def walk_kernel(
+    kernel: str, arch: str, bvh: BVH, rays: RayBatch, *, persistent: bool, merge: bool = True
+) -> Walk:
     """Run ``kernel``'s ``arch`` SASS over ``bvh`` on ``rays`` (whole warps, in order):
     one block per warp, or for a persistent kernel one warp that fetches every ray from
-    the pool."""
+    the pool. ``merge``: the walk's schedule (:func:`kernels_ir.emulate.run_warp`)."""
     try:
         instructions = compile_listing(kernel, arch)
         program = Program(instructions, kernel)
@@ -156,6 +158,7 @@ def walk_kernel(kernel: str, arch: str, bvh: BVH, rays: RayBatch, *, persistent:
         run = run_kernel(
             program, arch, (CUDA_DIR / f"{kernel}.cu").read_text(), params,
             ctaids=[0] if persistent else range(warps), grid_dim=1 if persistent else warps,
+            merge=merge,
         )  # fmt: skip
     except KernelIRError as exc:
         raise SimtSimError(f"{kernel}: {exc}") from exc
@@ -172,17 +175,24 @@ def dyncount(
     resolution: tuple[int, int] = (256, 192),
     spp: int = 4,
     camera: int = 0,
+    merge: bool = True,
 ) -> DynCount:
     """Count ``warps`` warps of ``scene``'s ``ray_type`` rays (camera ``camera``, spread
     over the image) with the SASS walk and with the replay of ``scheme_name`` on
     ``gpu_id`` (:func:`compare_counts`)."""
     wl = make_workload(scene, ray_type, cameras=str(camera), resolution=resolution, spp=spp)
     rays = wl.rays.take(pick_warps(len(wl.rays.tmin), warps))
-    return compare_counts(scheme_name, wl.scene.name, wl.bvh, rays, gpu_id=gpu_id)
+    return compare_counts(scheme_name, wl.scene.name, wl.bvh, rays, gpu_id=gpu_id, merge=merge)
 
 
 def compare_counts(
-    scheme_name: str, scene: str, bvh: BVH, rays: RayBatch, *, gpu_id: str = DEFAULT_GPU
+    scheme_name: str,
+    scene: str,
+    bvh: BVH,
+    rays: RayBatch,
+    *,
+    gpu_id: str = DEFAULT_GPU,
+    merge: bool = True,
 ) -> DynCount:
     """Walk ``scheme_name``'s kernel over ``bvh`` on ``rays`` (whole warps) and replay the
     recorded traces of the same rays on ``gpu_id``, whose IR architecture the walk runs.
@@ -203,7 +213,7 @@ def compare_counts(
             "--gpu (rtx2080ti, a100, rtx4090)"
         )
     kernel = scheme.kernel
-    run = walk_kernel(kernel, arch, bvh, rays, persistent=scheme.launch.persistent)
+    run = walk_kernel(kernel, arch, bvh, rays, persistent=scheme.launch.persistent, merge=merge)
     trace = record_all(bvh, rays)
     if rays.query == "any":  # any hit will do: agreeing is agreeing on occlusion
         agree = float(np.mean((run.hit_tri >= 0) == (trace.hits.tri >= 0)))

@@ -91,30 +91,42 @@ def _program(rows: list[str]) -> Program:
     return Program(parse_listing("\n".join(out) + "\n"), "k")
 
 
-def _run(rows: list[str]):
+def _run(rows: list[str], merge: bool = True):
     const = constant_bank("sm_75", {"out": (0, 8)}, {"out": 0}, block_dim=32, grid_dim=1)
-    return run_warp(_program(rows), const, GlobalMemory(), ctaid=0)
+    return run_warp(_program(rows), const, GlobalMemory(), ctaid=0, merge=merge)
+
+
+DIVERGED_IF = [
+    "S2R R0, SR_LANEID",
+    "ISETP.GE.AND P0, PT, R0, 0x10, PT",
+    "BSSY B0, `(.L_x_1)",
+    "@P0 BRA `(.L_x_0)",
+    "FADD R4, R4, 1",
+    "BRA `(.L_x_1)",
+    ".L_x_0:",
+    "FADD R5, R5, 1",
+    ".L_x_1:",
+    "BSYNC B0",
+    "FADD R6, R6, 1",
+    "EXIT",
+]
 
 
 def test_a_diverged_if_issues_both_sides_and_reconverges() -> None:
-    run = _run([
-        "S2R R0, SR_LANEID",
-        "ISETP.GE.AND P0, PT, R0, 0x10, PT",
-        "BSSY B0, `(.L_x_1)",
-        "@P0 BRA `(.L_x_0)",
-        "FADD R4, R4, 1",
-        "BRA `(.L_x_1)",
-        ".L_x_0:",
-        "FADD R5, R5, 1",
-        ".L_x_1:",
-        "BSYNC B0",
-        "FADD R6, R6, 1",
-        "EXIT",
-    ])  # fmt: skip
+    run = _run(DIVERGED_IF)
     # each side once with its 16 lanes; the first side waits at the join for the second
     # (lowest address first), and the whole warp issues the BSYNC and what follows
     assert run.issued.tolist() == [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
     assert run.lanes.tolist() == [32, 32, 32, 32, 16, 16, 16, 32, 32, 32]
+
+
+def test_without_merging_each_side_reaches_the_barrier_on_its_own() -> None:
+    merged = _run(DIVERGED_IF)
+    split = _run(DIVERGED_IF, merge=False)
+    # the sides issue the BSYNC once each; the barrier then makes the warp whole again
+    assert split.issued.tolist() == [1, 1, 1, 1, 1, 1, 1, 2, 1, 1]
+    assert split.lanes.tolist() == [32, 32, 32, 32, 16, 16, 16, 32, 32, 32]
+    assert split.issued.sum() == merged.issued.sum() + 1
 
 
 def test_a_loop_runs_until_its_last_lane_leaves() -> None:
