@@ -302,7 +302,6 @@ class KernelRun:
     """A launch the walker ran: per-instruction issues and lanes summed over its warps,
     warps run, and the final contents of every array parameter (uint32 words)."""
 
-    program: Program
     issued: np.ndarray
     lanes: np.ndarray
     warps: int
@@ -340,4 +339,4 @@ def run_kernel(
     outputs = {
         name: memory.words(values[name]) for name, v in params.items() if isinstance(v, np.ndarray)
     }
-    return KernelRun(program, issued, lanes, len(ctaids), outputs)
+    return KernelRun(issued, lanes, len(ctaids), outputs)

@@ -11,6 +11,7 @@ block (and the source lines) that cause it. ``python -m kernels_ir dyncount`` pr
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 import pandas as pd
@@ -130,6 +131,13 @@ class Walk:
     hit_tri: np.ndarray
 
 
+@cache
+def compiled(kernel: str, arch: str) -> Program:
+    """``kernel``'s ``arch`` SASS, decoded: compiled once per process (an experiment walks
+    each kernel on many workloads)."""
+    return Program(compile_listing(kernel, arch), kernel)
+
+
 def walk_kernel(
     kernel: str, arch: str, bvh: BVH, rays: RayBatch, *, persistent: bool, merge: bool = True
 ) -> Walk:
@@ -137,8 +145,7 @@ def walk_kernel(
     one block per warp, or for a persistent kernel one warp that fetches every ray from
     the pool. ``merge``: the walk's schedule (:func:`kernels_ir.emulate.run_warp`)."""
     try:
-        instructions = compile_listing(kernel, arch)
-        program = Program(instructions, kernel)
+        program = compiled(kernel, arch)
     except KernelIRError as exc:
         raise SimtSimError(str(exc)) from exc
     packed, tree = pack_rays(rays), pack_bvh(bvh)
@@ -162,6 +169,7 @@ def walk_kernel(
         )  # fmt: skip
     except KernelIRError as exc:
         raise SimtSimError(f"{kernel}: {exc}") from exc
+    instructions = [d.ins for d in program.code]
     return Walk(instructions, run.issued, run.lanes, warps, run.outputs["hit_tri"].view(np.int32))
 
 
