@@ -20,7 +20,10 @@ trav_diverged      ... taken by a diverged warp: the divergent-warp fallback of 
                    warp vote (sm_75..sm_89 speculative; made by the build, no marker)
 postpone           speculative: a lane parks the leaf it found and keeps traversing
 leaf_entry         a leaf is entered (LEAF)
-tri_test           one triangle test (TRI_*)
+tri_test           one triangle test: its t stage (TRI_*; in a kernel without the
+                   stage blocks below, the whole test)
+tri_u              ... the u stage, for a t in range (TRI_MISS_U, TRI_MISS, TRI_HIT)
+tri_v              ... the v stage, for a u inside (TRI_MISS, TRI_HIT)
 tri_hit            an accepted hit: shrink tmax / record (TRI_HIT)
 finish             a ray terminates: store its result
 shade              path tracing: shade a hit, sample the next direction
@@ -47,6 +50,8 @@ BLOCKS = (
     "postpone",
     "leaf_entry",
     "tri_test",
+    "tri_u",
+    "tri_v",
     "tri_hit",
     "finish",
     "shade",

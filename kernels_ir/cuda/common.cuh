@@ -179,69 +179,69 @@ __device__ __forceinline__ bool simt_is_tri_end(float4 w0)
     return __float_as_uint(w0.x) == SIMT_TRI_END;
 }
 
-// Woop test of the triangle at float4 `tri` whose first float4 `w0` is already loaded.
-// Watertight (the default), a hit needs tmin < t < tmax and (u, v) inside the triangle up to their rounding-error
-// bounds eu, ev: u >= -eu, v >= -ev, u + v <= 1 + eu + ev (watertight; the bounds and
-// their derivation are simt_sim.geometry.woop_hit_t's). Then *t_out = t.
-__device__ __forceinline__ bool simt_intersect_woop(const float4* __restrict__ woop, int tri,
-                                                    float4 w0, const Ray& r, float tmax,
-                                                    float* t_out)
+// Woop test of the triangle at float4 `tri` whose first float4 `w0` is already loaded, in
+// its three stages (simt_sim.geometry.woop_test): t from w0, then u from w1, then v from
+// w2, each run only where the one before passed. A kernel calls each stage on a line of its
+// own block (tri_test, tri_u, tri_v) so that the IR charges a stage only to the lanes, and
+// the warps, that reach it. Watertight (the default), a hit needs tmin < t < tmax and
+// (u, v) inside the triangle up to their rounding-error bounds eu, ev: u >= -eu, v >= -ev,
+// u + v <= 1 + eu + ev (the bounds and their derivation are simt_sim.geometry's).
+struct SimtWoop {
+    float t, dz, u, eu, px, py, pz, slope;
+};
+
+// Stage t: whether tmin < t < tmax; fills s->t (the hit's t when the later stages pass).
+__device__ __forceinline__ bool simt_woop_t(float4 w0, const Ray& r, float tmax, SimtWoop* s)
 {
     const float oz = w0.w - r.orig.x * w0.x - r.orig.y * w0.y - r.orig.z * w0.z;
-    const float dz = r.dir.x * w0.x + r.dir.y * w0.y + r.dir.z * w0.z;
-    const float t = oz * simt_rcp(dz);
+    s->dz = r.dir.x * w0.x + r.dir.y * w0.y + r.dir.z * w0.z;
+    s->t = oz * simt_rcp(s->dz);
+    return s->t > r.tmin && s->t < tmax;
+}
+
+// Stage u, after a t in range: whether u is inside.
+__device__ __forceinline__ bool simt_woop_u(const float4* __restrict__ woop, int tri, float4 w0,
+                                            const Ray& r, SimtWoop* s)
+{
+    const float4 w1 = __ldg(woop + tri + 1);
+    const float ox = w1.w + r.orig.x * w1.x + r.orig.y * w1.y + r.orig.z * w1.z;
+    const float dx = r.dir.x * w1.x + r.dir.y * w1.y + r.dir.z * w1.z;
+    s->u = ox + s->t * dx;
 #ifdef SIMT_PUBLISHED_TESTS
-    if (t > r.tmin && t < tmax) {
-        const float4 w1 = __ldg(woop + tri + 1);
-        const float ox = w1.w + r.orig.x * w1.x + r.orig.y * w1.y + r.orig.z * w1.z;
-        const float dx = r.dir.x * w1.x + r.dir.y * w1.y + r.dir.z * w1.z;
-        const float u = ox + t * dx;
-        if (u >= 0.0f) {
-            const float4 w2 = __ldg(woop + tri + 2);
-            const float oy = w2.w + r.orig.x * w2.x + r.orig.y * w2.y + r.orig.z * w2.z;
-            const float dy = r.dir.x * w2.x + r.dir.y * w2.y + r.dir.z * w2.z;
-            const float v = oy + t * dy;
-            if (v >= 0.0f && u + v <= 1.0f) {
-                *t_out = t;
-                return true;
-            }
-        }
-    }
+    (void)w0;
+    return s->u >= 0.0f;
 #else
-    if (t > r.tmin && t < tmax) {
-        // per axis |o_i| + 2 |t d_i|; slope: the error of t over |D.w0|
-        const float t2 = fabsf(t + t);
-        const float px = fabsf(r.orig.x) + t2 * fabsf(r.dir.x);
-        const float py = fabsf(r.orig.y) + t2 * fabsf(r.dir.y);
-        const float pz = fabsf(r.orig.z) + t2 * fabsf(r.dir.z);
-        const float slope =
-            (fabsf(w0.w) + px * fabsf(w0.x) + py * fabsf(w0.y) + pz * fabsf(w0.z)) *
-            simt_rcp(fabsf(dz));
-        const float4 w1 = __ldg(woop + tri + 1);
-        const float ox = w1.w + r.orig.x * w1.x + r.orig.y * w1.y + r.orig.z * w1.z;
-        const float dx = r.dir.x * w1.x + r.dir.y * w1.y + r.dir.z * w1.z;
-        const float u = ox + t * dx;
-        const float eu =
-            SIMT_TRI_ROUNDING *
-            ((fabsf(w1.w) + px * fabsf(w1.x) + py * fabsf(w1.y) + pz * fabsf(w1.z)) +
-             (0.5f * fabsf(u) + slope * fabsf(dx)));
-        if (u >= -eu) {
-            const float4 w2 = __ldg(woop + tri + 2);
-            const float oy = w2.w + r.orig.x * w2.x + r.orig.y * w2.y + r.orig.z * w2.z;
-            const float dy = r.dir.x * w2.x + r.dir.y * w2.y + r.dir.z * w2.z;
-            const float v = oy + t * dy;
-            const float ev =
-                SIMT_TRI_ROUNDING *
-                ((fabsf(w2.w) + px * fabsf(w2.x) + py * fabsf(w2.y) + pz * fabsf(w2.z)) +
-                 (0.5f * fabsf(v) + slope * fabsf(dy)));
-            if (v >= -ev && u + v <= 1.0f + (eu + ev)) {
-                *t_out = t;
-                return true;
-            }
-        }
-    }
+    // per axis |o_i| + 2 |t d_i|; slope: the error of t over |D.w0|
+    const float t2 = fabsf(s->t + s->t);
+    s->px = fabsf(r.orig.x) + t2 * fabsf(r.dir.x);
+    s->py = fabsf(r.orig.y) + t2 * fabsf(r.dir.y);
+    s->pz = fabsf(r.orig.z) + t2 * fabsf(r.dir.z);
+    s->slope = (fabsf(w0.w) + s->px * fabsf(w0.x) + s->py * fabsf(w0.y) + s->pz * fabsf(w0.z)) *
+               simt_rcp(fabsf(s->dz));
+    s->eu = SIMT_TRI_ROUNDING *
+            ((fabsf(w1.w) + s->px * fabsf(w1.x) + s->py * fabsf(w1.y) + s->pz * fabsf(w1.z)) +
+             (0.5f * fabsf(s->u) + s->slope * fabsf(dx)));
+    return s->u >= -s->eu;
 #endif
-    return false;
+}
+
+// Stage v, after a u inside: whether the triangle is hit (at s->t).
+__device__ __forceinline__ bool simt_woop_v(const float4* __restrict__ woop, int tri,
+                                            const Ray& r, const SimtWoop* s)
+{
+    const float4 w2 = __ldg(woop + tri + 2);
+    const float oy = w2.w + r.orig.x * w2.x + r.orig.y * w2.y + r.orig.z * w2.z;
+    const float dy = r.dir.x * w2.x + r.dir.y * w2.y + r.dir.z * w2.z;
+    const float v = oy + s->t * dy;
+#ifdef SIMT_PUBLISHED_TESTS
+    return v >= 0.0f && s->u + v <= 1.0f;
+#else
+    const float ev =
+        SIMT_TRI_ROUNDING *
+        ((fabsf(w2.w) + s->px * fabsf(w2.x) + s->py * fabsf(w2.y) + s->pz * fabsf(w2.z)) +
+         (0.5f * fabsf(v) + s->slope * fabsf(dy)));
+    return v >= -ev && s->u + v <= 1.0f + (s->eu + ev);
+#endif
 }
 
 // Result of a trace kernel: scene triangle index (-1: miss) and t (inf: miss).

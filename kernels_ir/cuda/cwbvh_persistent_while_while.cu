@@ -71,8 +71,19 @@ extern "C" __global__ void cwbvh_persistent_while_while(const float4* __restrict
                     tri_hits &= tri_hits - 1u;
                     const int tri = 3 * ((int)h.tri_base + b);
                     const float4 w0 = __ldg(woop + tri);
-                    float t;
-                    const bool hit = simt_intersect_woop(woop, tri, w0, r, t_best, &t);
+                    SimtWoop s;
+                    bool hit = simt_woop_t(w0, r, t_best, &s);
+                    if (hit) {
+                        // @block tri_u
+                        hit = simt_woop_u(woop, tri, w0, r, &s);
+                        if (hit) {
+                            // @block tri_v
+                            hit = simt_woop_v(woop, tri, r, &s);
+                            // @block tri_u
+                        }
+                        // @block tri_test
+                    }
+                    const float t = s.t;
                     // @block tri_hit
                     if (hit) {
                         t_best = t;

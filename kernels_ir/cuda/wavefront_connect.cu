@@ -58,8 +58,18 @@ extern "C" __global__ void wavefront_connect(const float4* __restrict__ nodes,
             for (;; tri += 3) {
                 const float4 w0 = __ldg(woop + tri);
                 if (simt_is_tri_end(w0)) break;
-                float t;
-                const bool hit = simt_intersect_woop(woop, tri, w0, r, r.tmax, &t);
+                SimtWoop s;
+                bool hit = simt_woop_t(w0, r, r.tmax, &s);
+                if (hit) {
+                    // @block tri_u
+                    hit = simt_woop_u(woop, tri, w0, r, &s);
+                    if (hit) {
+                        // @block tri_v
+                        hit = simt_woop_v(woop, tri, r, &s);
+                        // @block tri_u
+                    }
+                    // @block tri_test
+                }
                 // @block tri_hit
                 if (hit) {
                     occluded = true;

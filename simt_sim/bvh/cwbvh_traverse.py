@@ -18,7 +18,7 @@ order. A step:
    current node group, the leaf children hit the triangle group (``count`` bits at their
    offset from the node's triangle base, the meta's unary count);
 3. test the triangle group in memory order (lowest bit first): a LEAF op (its first
-   triangle's float4) where a hit leaf child's range starts, TRI_HIT / TRI_MISS per
+   triangle's float4) where a hit leaf child's range starts, TRI_HIT / a miss code per
    triangle; a closest-hit query shrinks ``tmax``, an any-hit query ends at the first hit;
 4. when the current node group is empty, pop one; the ray ends when the stack is empty.
 
@@ -50,17 +50,16 @@ from simt_sim.bvh.cwbvh import (
     WIDTH,
     CwBVH,
 )
-from simt_sim.bvh.geometry import BOX_ROUNDING, inverse_direction, woop_hit_t
+from simt_sim.bvh.geometry import BOX_ROUNDING, inverse_direction, woop_test
 from simt_sim.bvh.layout import WOOP_FLOAT4_PER_TRI
-from simt_sim.bvh.traverse import BLOCK, log_op, ray_arrays
+from simt_sim.bvh.traverse import BLOCK, log_op, miss_code, ray_arrays
 from simt_sim.bvh.wide_traverse import trav_op
 from simt_sim.errors import SimtSimError
-from simt_sim.types.optrace import LEAF, TRI_HIT, TRI_MISS
+from simt_sim.types.optrace import LEAF, TRI_HIT
 from simt_sim.types.raybatch import RayBatch
 
 _INF = np.float32(np.inf)
 _OP_LEAF = np.uint8(LEAF)
-_OP_TRI_MISS = np.uint8(TRI_MISS)
 _OP_TRI_HIT = np.uint8(TRI_HIT)
 
 POPC8 = np.array([bin(i).count("1") for i in range(256)], dtype=np.int64)
@@ -181,7 +180,7 @@ def cwbvh_traverse_ray(
             j = WOOP_FLOAT4_PER_TRI * (t_base + b)
             if (tri_starts >> b) & 1:
                 pos = log_op(out_op, out_addr, pos, _OP_LEAF, j)
-            ok, t = woop_hit_t(woop, j, ox, oy, oz, dx, dy, dz, tmin, tmax)
+            ok, stages, t = woop_test(woop, j, ox, oy, oz, dx, dy, dz, tmin, tmax)
             if ok:
                 pos = log_op(out_op, out_addr, pos, _OP_TRI_HIT, j)
                 hit = j
@@ -189,7 +188,7 @@ def cwbvh_traverse_ray(
                 if any_hit:
                     return hit, tmax, pos, True
             else:
-                pos = log_op(out_op, out_addr, pos, _OP_TRI_MISS, j)
+                pos = log_op(out_op, out_addr, pos, miss_code(stages), j)
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")

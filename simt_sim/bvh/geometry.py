@@ -178,7 +178,7 @@ def node_child_intervals(
 
 
 @njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def woop_hit_t(
+def woop_test(
     woop: np.ndarray,
     j: int,
     ox: np.float32,
@@ -189,8 +189,10 @@ def woop_hit_t(
     dz: np.float32,
     tmin: np.float32,
     tmax: np.float32,
-) -> tuple[bool, np.float32]:
-    """Woop test of the triangle at float4 ``j``: ``(hit, t)``.
+) -> tuple[bool, int, np.float32]:
+    """Woop test of the triangle at float4 ``j``: ``(hit, stages, t)``, ``stages`` the
+    number of its three stages that ran (t, u, v: 1 when the t range rejected it, 2 when
+    u did, 3 otherwise), which is how far a kernel's test runs before it leaves.
 
     Follows the layout docstring: ``t = (w0.w - O.w0) / (D.w0)`` must satisfy
     ``tmin < t < tmax``, then ``u = w1.w + O.w1 + t D.w1``, ``v = w2.w + O.w2 + t D.w2``
@@ -234,5 +236,25 @@ def woop_hit_t(
                 + (_HALF * abs(v) + slope * abs(dv))
             )
             if v >= -ev and u + v <= _ONE + (eu + ev):
-                return True, t
-    return False, t
+                return True, 3, t
+            return False, 3, t
+        return False, 2, t
+    return False, 1, t
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def woop_hit_t(
+    woop: np.ndarray,
+    j: int,
+    ox: np.float32,
+    oy: np.float32,
+    oz: np.float32,
+    dx: np.float32,
+    dy: np.float32,
+    dz: np.float32,
+    tmin: np.float32,
+    tmax: np.float32,
+) -> tuple[bool, np.float32]:
+    """:func:`woop_test` without its stages: ``(hit, t)``, for the tracers."""
+    hit, _, t = woop_test(woop, j, ox, oy, oz, dx, dy, dz, tmin, tmax)
+    return hit, t

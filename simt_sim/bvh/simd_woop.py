@@ -40,10 +40,12 @@ def _const(x: float) -> ir.Constant:
 
 @intrinsic
 def woop4(typingctx, woop, j, n, ox, oy, oz, dx, dy, dz, tmin, tmax):
-    """``(hit mask, t0..t3)`` of the ``n`` (1..4) triangles at float4 ``j``, ``j + 3``, ...
+    """``(stage masks, t0..t3)`` of the ``n`` (1..4) triangles at float4 ``j``, ``j + 3``, ...
 
-    Bit ``k`` is set where triangle ``k`` passes the scalar test with this ``tmax``;
-    lanes ``k >= n`` re-read triangle ``j`` and are masked off (no read past the leaf).
+    Bit ``k`` of the mask is set where triangle ``k`` passes the scalar test with this
+    ``tmax``, bit ``4 + k`` where it passes the u stage (reaches v) and bit ``8 + k`` where
+    its t is in range (reaches u): the stages :func:`~simt_sim.bvh.geometry.woop_test`
+    counts. Lanes ``k >= n`` re-read triangle ``j`` and are masked off (no read past the leaf).
     ``woop`` is C-contiguous float32 (s, 4).
     """
     floats = (ox, oy, oz, dx, dy, dz, tmin, tmax)
@@ -135,16 +137,18 @@ def woop4(typingctx, woop, j, n, ox, oy, oz, dx, dy, dz, tmin, tmax):
 
         u, eu = coordinate(1)
         v, ev = coordinate(2)
-        ok = builder.and_(in_range, builder.fcmp_ordered(">=", u, builder.fneg(eu)))
-        ok = builder.and_(ok, builder.fcmp_ordered(">=", v, builder.fneg(ev)))
+        u_ok = builder.and_(in_range, builder.fcmp_ordered(">=", u, builder.fneg(eu)))
+        ok = builder.and_(u_ok, builder.fcmp_ordered(">=", v, builder.fneg(ev)))
         ok = builder.and_(
             ok, builder.fcmp_ordered("<=", fadd(u, v), fadd(_const(1.0), fadd(eu, ev)))
         )
         mask = ir.Constant(_I32, 0)
         for k in range(LANES):
             valid = builder.icmp_signed("<", intp(k), n_v)
-            bit = builder.and_(builder.extract_element(ok, _I32(k)), valid)
-            mask = builder.or_(mask, builder.shl(builder.zext(bit, _I32), _I32(k)))
+            for field, passed in enumerate((ok, u_ok, in_range)):
+                bit = builder.and_(builder.extract_element(passed, _I32(k)), valid)
+                shift = _I32(k + LANES * field)
+                mask = builder.or_(mask, builder.shl(builder.zext(bit, _I32), shift))
         out = [mask] + [builder.extract_element(t, _I32(k)) for k in range(LANES)]
         return context.make_tuple(builder, signature.return_type, out)
 

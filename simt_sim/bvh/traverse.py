@@ -20,11 +20,20 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from simt_sim.bvh.geometry import MIN_DIRECTION, SENTINEL_I32, inverse_direction, woop_hit_t
+from simt_sim.bvh.geometry import MIN_DIRECTION, SENTINEL_I32, inverse_direction, woop_test
 from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
 from simt_sim.bvh.simd_box import node_child_intervals_simd
 from simt_sim.errors import SimtSimError
-from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS
+from simt_sim.types.optrace import (
+    LEAF,
+    TRAV_BOTH,
+    TRAV_NONE,
+    TRAV_ONE,
+    TRI_HIT,
+    TRI_MISS,
+    TRI_MISS_T,
+    TRI_MISS_U,
+)
 from simt_sim.types.raybatch import RayBatch
 
 DEFAULT_STACK = 64
@@ -36,6 +45,8 @@ _OP_TRAV_ONE = np.uint8(TRAV_ONE)
 _OP_TRAV_BOTH = np.uint8(TRAV_BOTH)
 _OP_LEAF = np.uint8(LEAF)
 _OP_TRI_MISS = np.uint8(TRI_MISS)
+_OP_TRI_MISS_T = np.uint8(TRI_MISS_T)
+_OP_TRI_MISS_U = np.uint8(TRI_MISS_U)
 _OP_TRI_HIT = np.uint8(TRI_HIT)
 
 
@@ -107,6 +118,14 @@ def log_op(out_op, out_addr, pos, code, addr):
     return pos + 1
 
 
+@njit(cache=True, nogil=True, inline="always")
+def miss_code(stages):
+    """Op code of a triangle miss that ran ``stages`` stages of the Woop test (1..3)."""
+    if stages == 1:
+        return _OP_TRI_MISS_T
+    return _OP_TRI_MISS_U if stages == 2 else _OP_TRI_MISS
+
+
 @njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def intersect_leaf(
     woop, woop_i, j, ox, oy, oz, dx, dy, dz, tmin, tmax, any_hit, hit, out_op, out_addr, pos
@@ -119,7 +138,7 @@ def intersect_leaf(
     """
     pos = log_op(out_op, out_addr, pos, _OP_LEAF, j)
     while woop_i[j, 0] != SENTINEL_I32:
-        ok, t = woop_hit_t(woop, j, ox, oy, oz, dx, dy, dz, tmin, tmax)
+        ok, stages, t = woop_test(woop, j, ox, oy, oz, dx, dy, dz, tmin, tmax)
         if ok:
             pos = log_op(out_op, out_addr, pos, _OP_TRI_HIT, j)
             hit = j
@@ -127,7 +146,7 @@ def intersect_leaf(
             if any_hit:
                 return hit, tmax, pos, True
         else:
-            pos = log_op(out_op, out_addr, pos, _OP_TRI_MISS, j)
+            pos = log_op(out_op, out_addr, pos, miss_code(stages), j)
         j += 3
     return hit, tmax, pos, False
 

@@ -24,15 +24,14 @@ from numba import njit, prange
 from simt_sim.bvh.geometry import BOX_ROUNDING, SENTINEL_I32, inverse_direction
 from simt_sim.bvh.simd_wide import four_child_test
 from simt_sim.bvh.simd_woop import woop4
-from simt_sim.bvh.traverse import BLOCK, intersect_leaf, log_op, ray_arrays
+from simt_sim.bvh.traverse import BLOCK, intersect_leaf, log_op, miss_code, ray_arrays
 from simt_sim.bvh.wide import PLANES, WideBVH, node_floats
 from simt_sim.errors import SimtSimError
-from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_WIDE, TRI_HIT, TRI_MISS
+from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_WIDE, TRI_HIT
 from simt_sim.types.raybatch import RayBatch
 
 _INF = np.float32(np.inf)
 _OP_LEAF = np.uint8(LEAF)
-_OP_TRI_MISS = np.uint8(TRI_MISS)
 _OP_TRI_HIT = np.uint8(TRI_HIT)
 
 
@@ -140,7 +139,11 @@ def _intersect_leaf4(
                 if any_hit:
                     return hit, tmax, pos, True
             else:
-                pos = log_op(out_op, out_addr, pos, _OP_TRI_MISS, first + 3 * k)
+                # the scalar loop's t stage tests the shrunk tmax; u and v do not read it
+                stages = 1
+                if (mask >> (8 + k)) & 1 and t < tmax:
+                    stages = 3 if (mask >> (4 + k)) & 1 else 2
+                pos = log_op(out_op, out_addr, pos, miss_code(stages), first + 3 * k)
     return hit, tmax, pos, False
 
 

@@ -115,11 +115,11 @@ from simt_sim.bvh.geometry import (
     inverse_direction,
     near_columns,
     node_child_intervals,
-    woop_hit_t,
+    woop_test,
 )
 from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1, WOOP_FLOAT4_PER_TRI
 from simt_sim.bvh.layouts import Tree, layout_of
-from simt_sim.bvh.traverse import check_bvh, ray_arrays, stack_size
+from simt_sim.bvh.traverse import check_bvh, miss_code, ray_arrays, stack_size
 from simt_sim.bvh.wide import PLANES, WideBVH
 from simt_sim.bvh.wide_traverse import check_wide
 from simt_sim.bvh.wide_traverse import stack_size as wide_stack_size
@@ -136,15 +136,17 @@ from simt_sim.simt.engine import (
     TRAV_DIVERGED,
     TRAV_NONE_B,
     TRAV_STEP,
-    TRI_HIT_B,
     TRI_TEST,
     Counts,
     charge,
+    charge_tri,
+    charge_tri_stages,
     class_mix,
     cost_vector,
     heap_sift_down,
     lane_traffic,
     schedule_groups,
+    tri_pack,
 )
 from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, executed_on, get_gpu
 from simt_sim.simt.occupancy import kernel_occupancy
@@ -153,7 +155,7 @@ from simt_sim.simt.result import SimResult, check_ir
 from simt_sim.simt.scheme import SchemeInfo
 from simt_sim.trace.record import record_all
 from simt_sim.types.hits import Hits
-from simt_sim.types.optrace import TRAV_BOTH, TRAV_NONE, TRAV_ONE
+from simt_sim.types.optrace import TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT
 from simt_sim.types.raybatch import RayBatch
 
 #: the kernel bodies the executor runs (``SchemeInfo.lockstep``); a persistent scheme adds
@@ -180,6 +182,7 @@ _K_TRAV, _K_LEAF, _K_TRI, _K_NONE = 0, 1, 2, 3
 # Per-ray op counters (columns of ``ops``), as in ``OpTrace.counts``.
 _C_TRAV, _C_LEAF, _C_TRI = 0, 1, 2
 _NO_LEAF = 0  # ``_PLEAF`` when no leaf is parked (leaf addresses are negative)
+_OP_TRI_HIT = np.uint8(TRI_HIT)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -304,12 +307,13 @@ def _open_leaf(li, lane, leaf, woop_i):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _tri_test(li, lf, lane, woop, woop_i, any_hit):
-    """Test the lane's next triangle; returns whether the hit was accepted.
+    """Test the lane's next triangle; returns the op the recorder logs for it (TRI_HIT for
+    an accepted hit, else the miss code of the stages it ran).
 
     An accepted hit shrinks the lane's ``tmax``; an any-hit lane terminates on it.
     """
     j = li[lane, _J]
-    ok, t = woop_hit_t(
+    ok, stages, t = woop_test(
         woop, j,
         lf[lane, _OX], lf[lane, _OY], lf[lane, _OZ],
         lf[lane, _DX], lf[lane, _DY], lf[lane, _DZ],
@@ -320,10 +324,10 @@ def _tri_test(li, lf, lane, woop, woop_i, any_hit):
         lf[lane, _TMAX] = t
         if any_hit:
             _terminate(li, lane)
-            return True
+            return _OP_TRI_HIT
     j += 3
     li[lane, _J] = j if woop_i[j, 0] != SENTINEL_I32 else -1
-    return ok
+    return _OP_TRI_HIT if ok else miss_code(stages)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -348,14 +352,14 @@ def _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _tri_iteration(li, lf, sel, n, woop, woop_i, any_hit, ops, base, cnt, hist, costs):
-    """Lanes ``sel[:n]`` each test their next triangle in lockstep (tri_test, tri_hit)."""
-    hits = 0
+    """Lanes ``sel[:n]`` each test their next triangle in lockstep (tri_test, the stages
+    some lane reaches, tri_hit)."""
+    a = np.int64(0)
     for k in range(n):
         lane = sel[k]
         ops[base + lane, _C_TRI] += 1
-        if _tri_test(li, lf, lane, woop, woop_i, any_hit):
-            hits += 1
-    return charge(cnt, hist, costs, TRI_TEST, n) + charge(cnt, hist, costs, TRI_HIT_B, hits)
+        a += tri_pack(_tri_test(li, lf, lane, woop, woop_i, any_hit))
+    return charge_tri(cnt, hist, costs, a)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -645,18 +649,18 @@ def _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i, a
             j = ~node
             while woop_i[j, 0] != SENTINEL_I32:  # every triangle of the leaf, as the kernel
                 testing = 0
-                hits = 0
+                a = np.int64(0)
                 for lane in range(lanes):
                     if not mask[lane] or done[lane]:
                         continue
                     testing += 1
                     ops[base + lane, _C_TRI] += 1
                     li[lane, _J] = j
-                    if _tri_test(li, lf, lane, woop, woop_i, any_hit):
-                        hits += 1
-                        done[lane] = any_hit
+                    o = _tri_test(li, lf, lane, woop, woop_i, any_hit)
+                    a += tri_pack(o)
+                    done[lane] = any_hit and o == _OP_TRI_HIT
                 cost += _issue(cnt, hist, costs, TRI_TEST, testing)
-                cost += charge(cnt, hist, costs, TRI_HIT_B, hits)
+                cost += charge_tri_stages(cnt, hist, costs, a)
                 j += 3
             if any_hit and done.all():
                 break
@@ -1018,15 +1022,16 @@ def _cw_step(lc, lf, stack, lane, nodes, nodes_f, nodes_u):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _cw_tri_test(lc, lf, lane, woop, any_hit, ops, r):
-    """Test the lane's next triangle (its triangle group's lowest bit); returns whether the
-    hit was accepted. An accepted hit shrinks ``tmax``; an any-hit lane ends on it."""
+    """Test the lane's next triangle (its triangle group's lowest bit); returns the op the
+    recorder logs for it (:func:`_tri_test`). An accepted hit shrinks ``tmax``; an any-hit
+    lane ends on it."""
     b = _lowest_bit(lc[lane, _T_HITS])
     lc[lane, _T_HITS] &= ~(np.int64(1) << b)
     if (lc[lane, _T_STARTS] >> b) & 1:  # the first triangle of a hit leaf child
         ops[r, _C_LEAF] += 1
     ops[r, _C_TRI] += 1
     j = WOOP_FLOAT4_PER_TRI * (lc[lane, _T_BASE] + b)
-    ok, t = woop_hit_t(
+    ok, stages, t = woop_test(
         woop, j,
         lf[lane, _OX], lf[lane, _OY], lf[lane, _OZ],
         lf[lane, _DX], lf[lane, _DY], lf[lane, _DZ],
@@ -1040,7 +1045,7 @@ def _cw_tri_test(lc, lf, lane, woop, any_hit, ops, r):
             lc[lane, _T_HITS] = 0
             lc[lane, _G_HITS] = 0
             lc[lane, _CSP] = 0
-    return ok
+    return _OP_TRI_HIT if ok else miss_code(stages)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1068,19 +1073,15 @@ def _cw_group(lc, lf, stack, lanes, nodes, nodes_f, nodes_u, woop, any_hit, ops,
                 return np.int64(-1)
             ops[base + lane, _C_TRAV] += 1
         while True:
-            testing = 0
-            hits = 0
+            a = np.int64(0)
             for k in range(n):
                 lane = sel[k]
                 if lc[lane, _T_HITS] == 0:
                     continue
-                testing += 1
-                if _cw_tri_test(lc, lf, lane, woop, any_hit, ops, base + lane):
-                    hits += 1
-            if testing == 0:
+                a += tri_pack(_cw_tri_test(lc, lf, lane, woop, any_hit, ops, base + lane))
+            if a == 0:
                 break
-            cost += charge(cnt, hist, costs, TRI_TEST, testing)
-            cost += charge(cnt, hist, costs, TRI_HIT_B, hits)
+            cost += charge_tri(cnt, hist, costs, a)
         cost += charge(cnt, hist, costs, LOOP_CONTROL, n)
     return cost + charge(cnt, hist, costs, FINISH, lanes)
 

@@ -17,7 +17,7 @@ from typing import Any
 from kernels_ir.kernel_ir import BLOCKS
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.scheme import SchemeInfo
-from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_WIDE, TRI_HIT, TRI_MISS
+from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRI_HIT, is_tri, is_wide_trav, tri_stages
 
 _OUTCOME_BLOCK = ("trav_none", "trav_one", "trav_both")
 
@@ -72,7 +72,22 @@ def _is_trav(o: int | None) -> bool:
 
 
 def _is_tri(o: int | None) -> bool:
-    return o in (TRI_MISS, TRI_HIT)
+    return o is not None and bool(is_tri(o))
+
+
+def _tri_reach(o: int) -> tuple[int, bool]:
+    """How far triangle op ``o`` got: the stages it ran, then whether it hit."""
+    return int(tri_stages(o)), o == TRI_HIT
+
+
+def _tri_charge(ops: dict[int, int], rec: RefCounts) -> int:
+    """One triangle test of the lanes ``ops`` (lane -> its TRI op): ``tri_test`` with all,
+    ``tri_u`` and ``tri_v`` with those whose test reached the stage, ``tri_hit``."""
+    lanes = sorted(ops)
+    issued = rec.charge("tri_test", lanes)
+    issued += rec.charge("tri_u", [lane for lane in lanes if tri_stages(ops[lane]) >= 2])
+    issued += rec.charge("tri_v", [lane for lane in lanes if tri_stages(ops[lane]) >= 3])
+    return issued + rec.charge("tri_hit", [lane for lane in lanes if ops[lane] == TRI_HIT])
 
 
 def _tri_loop(w: _Lanes, group: list[int], rec: RefCounts) -> int:
@@ -81,8 +96,7 @@ def _tri_loop(w: _Lanes, group: list[int], rec: RefCounts) -> int:
         x = [lane for lane in group if _is_tri(w.next(lane))]
         if not x:
             return issued
-        issued += rec.charge("tri_test", x)
-        issued += rec.charge("tri_hit", [lane for lane in x if w.next(lane) == TRI_HIT])
+        issued += _tri_charge({lane: w.next(lane) for lane in x}, rec)
         w.advance(x)
 
 
@@ -150,8 +164,7 @@ def if_if_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts)
         issued += rec.charge("leaf_entry", leaf)
         w.advance(leaf)
         x = [lane for lane in alive if _is_tri(w.next(lane))]
-        issued += rec.charge("tri_test", x)
-        issued += rec.charge("tri_hit", [lane for lane in x if w.next(lane) == TRI_HIT])
+        issued += _tri_charge({lane: w.next(lane) for lane in x}, rec)
         w.advance(x)
     return issued + rec.charge("finish", everyone)
 
@@ -213,12 +226,12 @@ def cwbvh_group(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts
     then, while a lane has ops left, one iteration of the trace loop for those lanes: its
     ``trav_step`` (one TRAV op each), the triangle loop over each lane's triangle group
     (its TRI ops up to the next TRAV, LEAF ops skipped: ``tri_test`` while a lane has a
-    triangle left, ``tri_hit`` with the lanes whose triangle is a hit) and
+    triangle left, the stages and ``tri_hit`` as :func:`_tri_charge`) and
     ``loop_control``; finally ``finish``. A stream must start with a TRAV op (the root);
     wide TRAV codes (3 or more children hit) count as TRAV ops."""
 
     def node_step(o: int) -> bool:
-        return _is_trav(o) or o >= TRAV_WIDE
+        return _is_trav(o) or bool(is_wide_trav(o))
 
     for lane, s in enumerate(streams):
         if s and not node_step(s[0]):
@@ -247,8 +260,7 @@ def cwbvh_group(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts
             x = [lane for lane in alive if k < len(iterations[lane][j])]
             if not x:
                 break
-            issued += rec.charge("tri_test", x)
-            issued += rec.charge("tri_hit", [i for i in x if iterations[i][j][k] == TRI_HIT])
+            issued += _tri_charge({i: iterations[i][j][k] for i in x}, rec)
             k += 1
         issued += rec.charge("loop_control", alive)
         j += 1
@@ -262,8 +274,7 @@ def packet_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts
     nodes: dict[int, set[int]] = {}
     outcome: dict[int, int] = {}
     leaves: dict[int, set[int]] = {}
-    tris: dict[int, set[int]] = {}
-    tri_hits: dict[int, set[int]] = {}
+    tris: dict[int, dict[int, int]] = {}
     for lane, (ops, adr) in enumerate(zip(streams, addrs, strict=True)):
         for o, a in zip(ops, adr, strict=True):
             if o <= TRAV_BOTH:
@@ -272,9 +283,9 @@ def packet_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts
             elif o == LEAF:
                 leaves.setdefault(a, set()).add(lane)
             else:
-                tris.setdefault(a, set()).add(lane)
-                if o == TRI_HIT:
-                    tri_hits.setdefault(a, set()).add(lane)
+                # a lane testing one triangle twice counts once, at its furthest stage
+                seen = tris.setdefault(a, {})
+                seen[lane] = max(seen.get(lane, o), o, key=_tri_reach)
     everyone = list(range(len(streams)))
     issued += rec.charge("ray_setup", everyone)
     for a, lanes in nodes.items():
@@ -284,9 +295,8 @@ def packet_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts
     for lanes in leaves.values():
         issued += rec.charge("loop_control", everyone)
         issued += rec.charge("leaf_entry", sorted(lanes))
-    for a, lanes in tris.items():
-        issued += rec.charge("tri_test", sorted(lanes))
-        issued += rec.charge("tri_hit", sorted(tri_hits.get(a, set())))
+    for lane_ops in tris.values():
+        issued += _tri_charge(lane_ops, rec)
     return issued + rec.charge("finish", everyone)
 
 

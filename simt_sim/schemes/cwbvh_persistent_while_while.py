@@ -32,11 +32,10 @@ from simt_sim.simt.engine import (
     POOL_FETCH,
     RAY_SETUP,
     TRAV_STEP,
-    TRI_HIT_B,
-    TRI_TEST,
     Counts,
     ReplayParams,
     charge,
+    charge_tri,
     chunk_bounds,
     lanes_so_far,
     lowest_lane,
@@ -44,9 +43,10 @@ from simt_sim.simt.engine import (
     per_warp_table,
     persistent_counts,
     record_warp,
+    tri_pack,
 )
 from simt_sim.simt.scheme import TRACE, SchemeInfo
-from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_WIDE, TRI_HIT
+from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_LAST, TRAV_WIDE, is_trav
 
 #: the blocks the kernel has and the replay charges (no outcome blocks: the 8 box tests
 #: end in bit masks, not branches; no leaf_entry: the triangle loop walks a bit mask)
@@ -56,6 +56,8 @@ BLOCKS_CHARGED = (
     "loop_control",
     "trav_step",
     "tri_test",
+    "tri_u",
+    "tri_v",
     "tri_hit",
     "finish",
 )
@@ -67,7 +69,7 @@ WINDOW = 64
 @njit(cache=True, nogil=True, inline="always")
 def _is_step(o):
     """A node step: a TRAV op, as the kernels' outcomes (0-2) or a wide code (3+ hits)."""
-    return o <= TRAV_BOTH or o >= TRAV_WIDE
+    return o <= TRAV_BOTH or (o >= TRAV_WIDE and o <= TRAV_LAST)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -81,10 +83,11 @@ def _skip_leaves(op, c, e):
 @njit(cache=True, nogil=True)
 def _tri_loop(op, cur, end, tri, acc, costs, cnt, hist):
     """The triangle loop of one iteration over the lanes in mask ``tri`` (each at a TRI op):
-    ``tri_test`` while a lane has a triangle of its group left, ``tri_hit`` with the lanes
-    whose triangle is a hit; a lane's group ends at its next TRAV op or at its stream's end.
-    Lanes run ahead through up to ``len(acc)`` iterations (``acc[j]``: testing lanes plus
-    hits << 32). Returns the instructions issued; cursors end at a TRAV op or the end."""
+    ``tri_test`` while a lane has a triangle of its group left, ``tri_u`` / ``tri_v`` with
+    the lanes whose test reached that stage, ``tri_hit`` with the lanes whose triangle is a
+    hit; a lane's group ends at its next TRAV op or at its stream's end. Lanes run ahead
+    through up to ``len(acc)`` iterations (``acc[j]``: the lanes' ``tri_pack``). Returns
+    the instructions issued; cursors end at a TRAV op or the end."""
     issued = np.int64(0)
     window = acc.shape[0]
     while tri:
@@ -99,7 +102,7 @@ def _tri_loop(op, cur, end, tri, acc, costs, cnt, hist):
             j = 0
             while True:
                 o = op[np.uint64(c)]
-                acc[j] += 1 + (np.int64(o == TRI_HIT) << 32)
+                acc[j] += tri_pack(o)
                 j += 1
                 c = _skip_leaves(op, c + 1, e)
                 if c == e or _is_step(op[np.uint64(c)]):
@@ -112,8 +115,7 @@ def _tri_loop(op, cur, end, tri, acc, costs, cnt, hist):
         for j in range(span):
             a = acc[j]
             acc[j] = 0
-            issued += charge(cnt, hist, costs, TRI_TEST, a & 0xFFFFFFFF)
-            issued += charge(cnt, hist, costs, TRI_HIT_B, a >> 32)
+            issued += charge_tri(cnt, hist, costs, a)
         tri = nxt
     return issued
 
@@ -182,7 +184,7 @@ def _check_streams(offsets: np.ndarray, op: np.ndarray) -> None:
     """Refuse streams that do not start with a TRAV op (the root's step)."""
     starts = offsets[:-1][offsets[1:] > offsets[:-1]]
     first = op[starts]
-    bad = np.flatnonzero((first > TRAV_BOTH) & (first < TRAV_WIDE))
+    bad = np.flatnonzero(~is_trav(first))
     if bad.size:
         ray = int(np.flatnonzero(offsets[1:] > offsets[:-1])[bad[0]])
         raise SimtSimError(

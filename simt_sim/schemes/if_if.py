@@ -7,7 +7,8 @@ there). Per warp: ``ray_setup``; while any lane has ops left: ``loop_control`` (
 lanes); lanes at
 a TRAV op: ``trav_step`` + outcome branches, advance; then lanes at a LEAF (including
 those that just stepped onto one): ``leaf_entry``, advance; then lanes at a TRI op
-(including those that just entered a leaf): one ``tri_test`` (+ ``tri_hit``), advance.
+(including those that just entered a leaf): one ``tri_test`` (+ the stages it reaches,
+``tri_u`` and ``tri_v``, + ``tri_hit``), advance.
 Finally ``finish`` with every lane that had a ray.
 """
 
@@ -27,14 +28,12 @@ from simt_sim.simt.engine import (
     RAY_SETUP,
     TRAV_NONE_B,
     TRAV_STEP,
-    TRI_HIT_B,
-    TRI_TEST,
     Counts,
     ReplayParams,
     charge,
+    charge_tri,
     chunk_bounds,
     chunk_counts,
-    is_hit,
     is_leaf,
     is_trav,
     is_tri,
@@ -45,6 +44,7 @@ from simt_sim.simt.engine import (
     per_warp_table,
     popcount,
     record_warp,
+    tri_pack,
 )
 from simt_sim.simt.scheme import TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
 from simt_sim.types.optrace import TRAV_NONE, TRAV_ONE
@@ -71,8 +71,7 @@ def _warp(offsets, op, r0, n, cur, end, costs, cnt, hist):
         c0 = 0
         c1 = 0
         nl = 0
-        nt = 0
-        h = 0
+        tri = np.int64(0)
         nxt = np.int64(0)
         m = alive
         while m:
@@ -92,8 +91,7 @@ def _warp(offsets, op, r0, n, cur, end, costs, cnt, hist):
             c += t
             o = op_at(op, c, e)
             t = is_tri(o)
-            nt += t
-            h += is_hit(o)
+            tri += tri_pack(o) * t
             c += t
             cur[lane] = c
             nxt |= np.int64(c < e) << lane
@@ -102,8 +100,7 @@ def _warp(offsets, op, r0, n, cur, end, costs, cnt, hist):
         issued += charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
         issued += charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
         issued += charge(cnt, hist, costs, LEAF_ENTRY, nl)
-        issued += charge(cnt, hist, costs, TRI_TEST, nt)
-        issued += charge(cnt, hist, costs, TRI_HIT_B, h)
+        issued += charge_tri(cnt, hist, costs, tri)
         alive = nxt
     return issued + charge(cnt, hist, costs, FINISH, n)
 

@@ -8,8 +8,9 @@ step, but only the lanes whose own ray needs a node count as active for it. Per 
   ``trav_step`` with the lanes that visit it, plus the outcome branch the packet takes
   (the largest outcome among those lanes: both > one > none) with the same lanes;
 - per distinct leaf: ``leaf_entry`` with the lanes whose stream enters it, and per
-  distinct triangle tested in it: ``tri_test`` with the lanes that test it and
-  ``tri_hit`` with the lanes that accept a hit on it;
+  distinct triangle tested in it: ``tri_test`` with the lanes that test it, ``tri_u`` and
+  ``tri_v`` with those whose test reached the stage, ``tri_hit`` with the lanes that
+  accept a hit on it;
 - ``loop_control`` once per distinct node or leaf (the packet loop pops one node per
   iteration) with every lane that has a ray.
 
@@ -40,6 +41,8 @@ from simt_sim.simt.engine import (
     TRAV_STEP,
     TRI_HIT_B,
     TRI_TEST,
+    TRI_U,
+    TRI_V,
     Counts,
     ReplayParams,
     charge,
@@ -48,6 +51,8 @@ from simt_sim.simt.engine import (
     chunk_counts,
     lanes_so_far,
     no_per_warp,
+    passes_t,
+    passes_u,
     per_warp_table,
     popcount,
     record_warp,
@@ -57,7 +62,9 @@ from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRI_HIT
 
 _HASH = np.int64(2654435761)
 # columns of the node table, one row (32 bytes, one cache line) per distinct node
-_KEY, _LANES, _HITS, _OUT = 0, 1, 2, 3
+# table columns; a triangle's _OUT and _V hold the lanes whose test reached its u and its v
+# stage, a node's _OUT its largest outcome
+_KEY, _LANES, _HITS, _OUT, _V = range(5)
 
 
 @njit(cache=True, nogil=True)
@@ -85,11 +92,16 @@ def _warp(offsets, op, addr, r0, n, table, used, costs, cnt, hist):
                 table[s, _LANES] = 0
                 table[s, _HITS] = 0
                 table[s, _OUT] = 0
+                table[s, _V] = 0
                 used[nused] = s
                 nused += 1
             table[s, _LANES] |= bit
             table[s, _HITS] |= np.int64(o == TRI_HIT) << lane
-            table[s, _OUT] = max(table[s, _OUT], np.int64(o) * (kind == 0))
+            if kind == 0:
+                table[s, _OUT] = max(table[s, _OUT], np.int64(o))
+            else:
+                table[s, _OUT] |= passes_t(o) << lane
+                table[s, _V] |= passes_u(o) << lane
     issued = charge(cnt, hist, costs, RAY_SETUP, n)
     visits = 0
     for i in range(nused):
@@ -105,6 +117,8 @@ def _warp(offsets, op, addr, r0, n, table, used, costs, cnt, hist):
             visits += 1
         else:
             issued += charge(cnt, hist, costs, TRI_TEST, lanes)
+            issued += charge(cnt, hist, costs, TRI_U, popcount(table[s, _OUT]))
+            issued += charge(cnt, hist, costs, TRI_V, popcount(table[s, _V]))
             issued += charge(cnt, hist, costs, TRI_HIT_B, popcount(table[s, _HITS]))
         table[s, _KEY] = -1
     issued += charge_many(cnt, hist, costs, LOOP_CONTROL, n, visits)
@@ -129,7 +143,7 @@ def node_table(offsets, warp_size, w0, w1):
     cap = 4
     while cap < 2 * most + 1:
         cap *= 2
-    return np.full((cap, 4), -1, np.int64), np.empty(cap, np.int64)
+    return np.full((cap, _V + 1), -1, np.int64), np.empty(cap, np.int64)
 
 
 @njit(cache=True, nogil=True, parallel=True)

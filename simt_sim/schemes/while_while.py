@@ -9,7 +9,8 @@ is lost. Per warp:
   of them is at a TRAV op, ``trav_step`` with those lanes plus ``trav_none/one/both`` with
   the lanes of each outcome, advance them one op; intersection loop: while any of them is
   at a LEAF, ``leaf_entry`` with those, advance, then while any of those is at a TRI op,
-  ``tri_test`` with them and ``tri_hit`` with the TRI_HIT lanes, advance;
+  ``tri_test`` with them, ``tri_u`` / ``tri_v`` with those whose Woop test reached that
+  stage and ``tri_hit`` with the TRI_HIT lanes, advance;
 - ``finish`` with every lane that had a ray.
 
 The traversal and intersection loops are shared with the persistent and dynamic-fetch
@@ -38,11 +39,10 @@ from simt_sim.simt.engine import (
     RAY_SETUP,
     TRAV_NONE_B,
     TRAV_STEP,
-    TRI_HIT_B,
-    TRI_TEST,
     Counts,
     ReplayParams,
     charge,
+    charge_tri,
     chunk_bounds,
     chunk_counts,
     is_leaf,
@@ -56,9 +56,10 @@ from simt_sim.simt.engine import (
     popcount,
     record_warp,
     step,
+    tri_pack,
 )
 from simt_sim.simt.scheme import TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
-from simt_sim.types.optrace import TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS
+from simt_sim.types.optrace import TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_MISS
 
 #: loop iterations a lane runs ahead of the others (length of the ``acc`` scratch)
 WINDOW = 64
@@ -93,12 +94,6 @@ def charge_trav(cnt, hist, costs, a):
 def trav_lanes(a):
     """Stepping lanes of one traversal iteration's packed counters ``a``."""
     return a & _LOW
-
-
-@njit(cache=True, nogil=True, inline="always")
-def tri_pack(o):
-    """A lane's TRI op as packed counters: 1 testing lane, plus 1 in bits 21-41 for a hit."""
-    return 1 + (np.int64(o == TRI_HIT) << _FIELD)
 
 
 @njit(cache=True, nogil=True)
@@ -152,8 +147,9 @@ def trav_loop(op, cur, end, trav, acc, costs, cnt, hist):
 def tri_loop(op, cur, end, tri, acc, costs, cnt, hist):
     """Triangle loop of one leaf iteration over the lanes in mask ``tri`` (all at a TRI op).
 
-    While any lane is at a TRI op: ``tri_test`` with them, ``tri_hit`` with the TRI_HIT
-    ones, advance one op. Run ahead lane by lane as in :func:`trav_loop`. Returns the
+    While any lane is at a TRI op: ``tri_test`` with them, ``tri_u`` / ``tri_v`` with
+    those whose test reached that stage, ``tri_hit`` with the TRI_HIT ones, advance one
+    op. Run ahead lane by lane as in :func:`trav_loop`. Returns the
     instructions issued and the masks of lanes that stopped at a LEAF and at a TRAV.
     """
     issued = np.int64(0)
@@ -190,8 +186,7 @@ def tri_loop(op, cur, end, tri, acc, costs, cnt, hist):
         for j in range(span):
             a = acc[j]
             acc[j] = 0
-            issued += charge(cnt, hist, costs, TRI_TEST, a & _LOW)
-            issued += charge(cnt, hist, costs, TRI_HIT_B, a >> _FIELD)
+            issued += charge_tri(cnt, hist, costs, a)
         tri = nxt
     return issued, leaf, trav
 

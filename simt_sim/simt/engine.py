@@ -24,7 +24,16 @@ from numba.extending import intrinsic
 
 from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR
 from simt_sim.errors import SimtSimError
-from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_WIDE, TRI_HIT, TRI_MISS, OpTrace
+from simt_sim.types.optrace import (
+    LEAF,
+    TRAV_BOTH,
+    TRI_HIT,
+    TRI_MISS,
+    TRI_MISS_T,
+    TRI_MISS_U,
+    OpTrace,
+    is_wide_trav,
+)
 
 N_BLOCKS = len(BLOCKS)
 RAY_SETUP = BLOCKS.index("ray_setup")
@@ -36,6 +45,8 @@ TRAV_DIVERGED = BLOCKS.index("trav_diverged")
 POSTPONE = BLOCKS.index("postpone")
 LEAF_ENTRY = BLOCKS.index("leaf_entry")
 TRI_TEST = BLOCKS.index("tri_test")
+TRI_U = BLOCKS.index("tri_u")
+TRI_V = BLOCKS.index("tri_v")
 TRI_HIT_B = BLOCKS.index("tri_hit")
 FINISH = BLOCKS.index("finish")
 SHADE = BLOCKS.index("shade")
@@ -46,7 +57,8 @@ assert BLOCKS[TRAV_NONE_B : TRAV_NONE_B + 3] == ("trav_none", "trav_one", "trav_
 #: parallel chunks of warps/groups; a constant so the work split never depends on threads
 N_CHUNKS = 256
 
-#: op code a lane sees once its stream has ended (op codes are 0..5, validated)
+#: op code a lane sees once its stream has ended (the replays see codes 0..5, 12 and 13,
+#: validated; a wide tree's node steps are folded into 0..2 by :func:`kernel_outcomes`)
 NO_OP = 7
 #: lanes per mask: a warp's lanes are bits of an int64 (lane l is bit l)
 MAX_MASK_LANES = 64
@@ -61,7 +73,7 @@ def check_warp_size(warp_size: int) -> None:
         )
 
 
-# Lane filters by op code (0..5 or NO_OP), as int64 0/1 so they shift into lane masks and
+# Lane filters by op code (0..5, 12, 13 or NO_OP), as int64 0/1 so they shift into lane masks and
 # add into counters without branches (outcomes are random). Comparisons rather than lookup
 # tables: a table load would lengthen each lane's chain of dependent loads.
 @njit(cache=True, nogil=True, inline="always")
@@ -78,7 +90,21 @@ def is_leaf(o):
 
 @njit(cache=True, nogil=True, inline="always")
 def is_tri(o):
-    """1 if ``o`` is a triangle test (TRI_MISS or TRI_HIT), else 0."""
+    """1 if ``o`` is a triangle test (TRI_MISS, TRI_HIT, TRI_MISS_T or TRI_MISS_U), else 0."""
+    return np.int64(np.uint8(o - TRI_MISS) <= TRI_HIT - TRI_MISS) | np.int64(
+        np.uint8(o - TRI_MISS_T) <= TRI_MISS_U - TRI_MISS_T
+    )
+
+
+@njit(cache=True, nogil=True, inline="always")
+def passes_t(o):
+    """1 if triangle op ``o`` ran the Woop test's u stage (its t was in range), else 0."""
+    return np.int64(o == TRI_MISS_U) | np.int64(np.uint8(o - TRI_MISS) <= TRI_HIT - TRI_MISS)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def passes_u(o):
+    """1 if triangle op ``o`` ran the Woop test's v stage (its u was inside), else 0."""
     return np.int64(np.uint8(o - TRI_MISS) <= TRI_HIT - TRI_MISS)
 
 
@@ -273,6 +299,40 @@ def charge_many(cnt, hist, costs, block, n, times):
     return costs[block] * times
 
 
+#: packed counters of one triangle-loop iteration: four 16-bit fields of lanes (testing,
+#: in the u stage, in the v stage, hit), each at most MAX_MASK_LANES
+_TRI_FIELD = 16
+_TRI_LOW = (1 << _TRI_FIELD) - 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def tri_pack(o):
+    """A lane's TRI op as packed counters: 1 testing lane, plus 1 in the u-stage field
+    (bits 16-31), the v-stage field (32-47) and the hit field (48-63) for each it reached."""
+    return (
+        1
+        + (passes_t(o) << _TRI_FIELD)
+        + (passes_u(o) << (2 * _TRI_FIELD))
+        + (np.int64(o == TRI_HIT) << (3 * _TRI_FIELD))
+    )
+
+
+@njit(cache=True, nogil=True, inline="always")
+def charge_tri(cnt, hist, costs, a):
+    """Charge one triangle-loop iteration from its packed counters ``a`` (the sum of its
+    lanes' :func:`tri_pack`): ``tri_test``, the stages some lane reached (``tri_u``,
+    ``tri_v``) and ``tri_hit``. Returns the instructions."""
+    return charge(cnt, hist, costs, TRI_TEST, a & _TRI_LOW) + charge_tri_stages(cnt, hist, costs, a)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def charge_tri_stages(cnt, hist, costs, a):
+    """:func:`charge_tri` without ``tri_test``, for an executor that issues that itself."""
+    issued = charge(cnt, hist, costs, TRI_U, (a >> _TRI_FIELD) & _TRI_LOW)
+    issued += charge(cnt, hist, costs, TRI_V, (a >> (2 * _TRI_FIELD)) & _TRI_LOW)
+    return issued + charge(cnt, hist, costs, TRI_HIT_B, a >> (3 * _TRI_FIELD))
+
+
 @njit(cache=True, nogil=True)
 def chunk_bounds(n_units, n_chunks):
     """Start of each of ``n_chunks`` near-equal chunks of ``n_units`` (length n_chunks+1)."""
@@ -282,6 +342,12 @@ def chunk_bounds(n_units, n_chunks):
     return b
 
 
+@njit(cache=True, nogil=True, inline="always")
+def is_unknown(o):
+    """1 if ``o`` is no op code the replays know (a wide step is folded before), else 0."""
+    return np.int64(o > TRI_HIT) & (1 - is_tri(o))
+
+
 @njit(cache=True, nogil=True)
 def _first_bad(offsets, op, r0, r1):
     """First op index in rays r0..r1-1 that is an unknown code or an orphan TRI (-1: none)."""
@@ -289,7 +355,7 @@ def _first_bad(offsets, op, r0, r1):
         prev = 0
         for k in range(offsets[r], offsets[r + 1]):
             o = op[k]
-            if o > TRI_HIT or (is_tri(o) and not (is_leaf(prev) or is_tri(prev))):
+            if is_unknown(o) or (is_tri(o) and not (is_leaf(prev) or is_tri(prev))):
                 return np.int64(k)
             prev = o
     return np.int64(-1)
@@ -297,29 +363,29 @@ def _first_bad(offsets, op, r0, r1):
 
 @njit(cache=True, nogil=True)
 def _scan_chunk(op, lo, hi):
-    """Counts of TRAV, LEAF, TRI ops and of invalid ops (codes > 5 and TRI ops that follow
+    """Counts of TRAV, LEAF, TRI ops and of invalid ops (unknown codes and TRI ops that follow
     neither a LEAF nor a TRI) in ``op[lo:hi]``; the op before ``lo`` is taken as a LEAF.
 
     Register accumulators over two aligned slices (each op and its predecessor), a form
     the compiler vectorises: a histogram in memory would serialise on repeated op codes.
-    A predecessor with an invalid code (> 5) is counted as bad itself.
+    A predecessor with an unknown code is counted as bad itself.
     """
     if hi <= lo:
         return np.int64(0), np.int64(0), np.int64(0), np.int64(0)
     o = op[lo]
     trav = np.int64(o <= TRAV_BOTH)
     leaf = np.int64(o == LEAF)
-    tri = np.int64((o == TRI_MISS) | (o == TRI_HIT))
-    bad = np.int64(o > TRI_HIT)
+    tri = is_tri(o)
+    bad = is_unknown(o)
     ops = op[lo + 1 : hi]
     prev = op[lo : hi - 1]
     for k in range(ops.shape[0]):
         o = ops[k]
-        is_tri = (o == TRI_MISS) | (o == TRI_HIT)
+        tri_op = is_tri(o)
         trav += o <= TRAV_BOTH
         leaf += o == LEAF
-        tri += is_tri
-        bad += (o > TRI_HIT) | (is_tri & (prev[k] < LEAF))
+        tri += tri_op
+        bad += is_unknown(o) | (tri_op & np.int64(prev[k] < LEAF))
     return trav, leaf, tri, bad
 
 
@@ -341,7 +407,7 @@ def scan_trace(offsets, op):
         for r in range(bounds[c], bounds[c + 1]):
             # a TRI opening a stream is an orphan: count stream-opening TRIs separately
             k = offsets[r]
-            starts += offsets[r + 1] > k and (op[k] == TRI_MISS or op[k] == TRI_HIT)
+            starts += offsets[r + 1] > k and is_tri(op[k]) == 1
         trav, leaf, tri, bad = _scan_chunk(op, offsets[bounds[c]], offsets[bounds[c + 1]])
         tot[c, 0] = trav
         tot[c, 1] = leaf
@@ -434,7 +500,7 @@ def kernel_outcomes(op: np.ndarray) -> np.ndarray:
     (``TRAV_3`` .. ``TRAV_8``) is ``TRAV_BOTH``. The wide kernels order and push any number
     of hit children in one branch-free block, charged as ``trav_both``
     (``kernels_ir/cuda/bvh4.cuh``), so none, one and several are their only outcomes."""
-    return np.where(op >= TRAV_WIDE, np.uint8(TRAV_BOTH), op).astype(np.uint8)
+    return np.where(is_wide_trav(op), np.uint8(TRAV_BOTH), op).astype(np.uint8)
 
 
 def replay_arrays(trace: OpTrace) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

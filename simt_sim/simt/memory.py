@@ -11,9 +11,9 @@ while-while CUDA kernel's, ``kernels_ir/cuda``):
   (64 bytes for ``bvh2``: one 128-byte line; 112 for ``bvh4``, 224 for ``bvh8``: every
   line they touch; :data:`simt_sim.bvh.layouts.NODE_BYTES_OF`); the wide layouts' leaves
   and triangles are the binary tree's;
-- a TRI op reads its Woop triangle, 48 bytes from float4 ``j`` (one line, or two when it
-  straddles a line boundary). The kernel reads the 2nd and 3rd float4 only when the
-  earlier tests pass, which the trace does not record: 48 is an upper bound (>= 16);
+- a TRI op reads one float4 of its Woop triangle per stage its test ran (``t``, ``u``,
+  ``v``: :mod:`simt_sim.types.optrace`), 16, 32 or 48 bytes from float4 ``j`` (one line, or
+  two when they straddle a line boundary);
 - a leaf's triangle loop ends by reading the sentinel float4 after its last triangle
   (16 bytes at float4 ``first + 3 n``), except in a lane that ends on an any-hit hit;
 - LEAF ops and stack pops read nothing more (the stack is taken to stay on chip).
@@ -52,11 +52,14 @@ from simt_sim.simt.engine import (
     MAX_MASK_LANES,
     N_CHUNKS,
     chunk_bounds,
+    is_tri,
     kernel_outcomes,
+    passes_t,
+    passes_u,
     scan_trace,
 )
 from simt_sim.simt.gpus import GpuConfig
-from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRI_HIT, TRI_MISS, OpTrace
+from simt_sim.types.optrace import LEAF, STREAM_RULE, TRAV_BOTH, TRI_HIT, OpTrace
 
 LINE_BYTES = 128
 TRI_BYTES = WOOP_FLOAT4_PER_TRI * FLOAT4_BYTES
@@ -67,8 +70,9 @@ RAY_IO_BYTES = 2 * FLOAT4_BYTES + 4 + 4
 CACHE_WAYS = 16
 
 # per-warp counter columns written by the walker
-_NODE_FETCH, _TRI_FETCH, _SENT_FETCH, _NODE_STEPS, _TRI_STEPS, _NODE_LINES, _TRI_LINES = range(7)
-_N_COLS = 7
+(_NODE_FETCH, _TRI_FETCH, _TRI_ROWS, _SENT_FETCH, _NODE_STEPS, _TRI_STEPS, _NODE_LINES,
+ _TRI_LINES) = range(8)  # fmt: skip
+_N_COLS = 8
 
 
 @dataclass(frozen=True)
@@ -80,6 +84,9 @@ class MemoryCounts:
     rays : int
     node_fetches, tri_fetches, sentinel_fetches : int
         Lane reads of a node, a Woop triangle, a leaf's sentinel float4.
+    tri_rows : int
+        Float4 rows of Woop triangles read: one per stage a triangle's test ran (1 to 3
+        per triangle fetch).
     node_steps, tri_steps : int
         Warp steps that read nodes, and triangles or sentinels (see module docstring).
     node_lines, tri_lines : int
@@ -99,6 +106,7 @@ class MemoryCounts:
     rays: int = 0
     node_fetches: int = 0
     tri_fetches: int = 0
+    tri_rows: int = 0
     sentinel_fetches: int = 0
     node_steps: int = 0
     tri_steps: int = 0
@@ -116,7 +124,7 @@ class MemoryCounts:
         """Bytes the lanes read from the scene (nodes, triangles, sentinels)."""
         return (
             self.node_bytes * self.node_fetches
-            + TRI_BYTES * self.tri_fetches
+            + FLOAT4_BYTES * self.tri_rows
             + SENTINEL_BYTES * self.sentinel_fetches
         )
 
@@ -243,14 +251,16 @@ def _walk_warp(offsets, op, addr, r0, n, any_hit, node_bytes, cur, end, first, n
                 for i in range(m):
                     lane = lanes[i]
                     c = cur[lane]
-                    if c < end[lane] and op[c] >= TRI_MISS:
+                    if c < end[lane] and is_tri(op[c]):
                         b = np.int64(addr[c]) * FLOAT4_BYTES
+                        rows = 1 + passes_t(op[c]) + passes_u(op[c])
                         buf[k] = _woop_key(b)
                         k += 1
-                        if (b + TRI_BYTES - 1) // LINE_BYTES != b // LINE_BYTES:
-                            buf[k] = _woop_key(b + TRI_BYTES - 1)
+                        if (b + rows * FLOAT4_BYTES - 1) // LINE_BYTES != b // LINE_BYTES:
+                            buf[k] = _woop_key(b + rows * FLOAT4_BYTES - 1)
                             k += 1
                         row[_TRI_FETCH] += 1
+                        row[_TRI_ROWS] += rows
                         ntri[lane] += 1
                         cur[lane] = c + 1
                         if not (any_hit and op[c] == TRI_HIT):
@@ -478,8 +488,7 @@ def memory_counts(trace: OpTrace, warp_size: int, gpu: GpuConfig | None = None) 
         raise SimtSimError("OpTrace has negative addresses; re-record the trace")
     if op.shape[0] and scan_trace(offsets, op)[3] >= 0:
         raise SimtSimError(
-            "OpTrace has a malformed op stream (op codes are 0-5 and triangle tests follow "
-            "a LEAF); re-record the trace"
+            f"OpTrace has a malformed op stream ({STREAM_RULE}); re-record the trace"
         )
     any_hit = trace.query == "any"
     if any_hit and not _hits_end_rays(offsets, op):
@@ -497,6 +506,7 @@ def memory_counts(trace: OpTrace, warp_size: int, gpu: GpuConfig | None = None) 
         rays=trace.n_rays,
         node_fetches=int(tot[_NODE_FETCH]),
         tri_fetches=int(tot[_TRI_FETCH]),
+        tri_rows=int(tot[_TRI_ROWS]),
         sentinel_fetches=int(tot[_SENT_FETCH]),
         node_steps=int(tot[_NODE_STEPS]),
         tri_steps=int(tot[_TRI_STEPS]),

@@ -39,7 +39,7 @@ from simt_sim.simt.gpus import GpuConfig, executed_on
 from simt_sim.simt.occupancy import kernel_occupancy
 from simt_sim.simt.result import SimResult, check_ir, merge
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
-from simt_sim.types.optrace import OP_NAMES, OpTrace
+from simt_sim.types.optrace import OP_NAMES, STREAM_RULE, OpTrace
 from simt_sim.types.paths import PathTrace
 
 Arrays = tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -174,8 +174,7 @@ def simulate_traces(
                 what = OP_NAMES[code] if code < len(OP_NAMES) else f"unknown op code {code}"
                 raise SimtSimError(
                     f"ray {local + state['rays']}: malformed op stream ({what} at op "
-                    f"{bad - int(a[0][local])}; op codes are 0-5 and triangle tests follow "
-                    "a LEAF); re-record the trace"
+                    f"{bad - int(a[0][local])}; {STREAM_RULE}); re-record the trace"
                 )
             totals[:] += (n_trav, n_leaf, n_tri)
             state["rays"] += n

@@ -23,7 +23,7 @@ from simt_sim.simt.engine import Counts, class_mix, cost_vector, lane_traffic
 from simt_sim.simt.gpus import GpuConfig, executed_on
 
 TRAVERSAL_BLOCKS = ("trav_step", "trav_none", "trav_one", "trav_both", "trav_diverged")
-INTERSECTION_BLOCKS = ("leaf_entry", "tri_test", "tri_hit")
+INTERSECTION_BLOCKS = ("leaf_entry", "tri_test", "tri_u", "tri_v", "tri_hit")
 
 
 def check_ir(ir: KernelIR, kernel: str, blocks: Sequence[str]) -> None:
@@ -152,7 +152,7 @@ class SimResult:
 
     @property
     def simd_efficiency_intersection(self) -> float:
-        """SIMD efficiency over leaf_entry, tri_test and tri_hit."""
+        """SIMD efficiency over leaf_entry, the triangle test's stages and tri_hit."""
         return self._efficiency(INTERSECTION_BLOCKS)
 
     @property

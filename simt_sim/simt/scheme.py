@@ -35,6 +35,8 @@ TRACE_BLOCKS = (
     "trav_both",
     "leaf_entry",
     "tri_test",
+    "tri_u",
+    "tri_v",
     "tri_hit",
     "finish",
 )

@@ -1,13 +1,15 @@
 """Save and load recorded op traces, so a long recording is made once and replayed often.
 
-Format (``format = "simt-sim-trace"``, ``version = 2``): an uncompressed zip archive that
+Format (``format = "simt-sim-trace"``, ``version = 3``): an uncompressed zip archive that
 ``numpy.load`` also opens as an ``.npz``. It holds
 
 - ``header.json``: ``{"format", "version", "query", "ray_type", "layout", "batches",
   "rays", "ops", "meta"}``, ``layout`` being the BVH layout the ops walk (``bvh2``,
   ``bvh4``, ``bvh8`` or ``cwbvh``; version 2 added it with the wide layouts' op codes, and
   a version 1 file, which has none, is read as ``bvh2``) and ``meta`` the caller's
-  JSON-serialisable dict (scene, BVH, camera, ...);
+  JSON-serialisable dict (scene, BVH, camera, ...); version 3 added the stage a triangle
+  miss was rejected at (``TRI_MISS_T``, ``TRI_MISS_U``): an older file's misses all read as
+  ``TRI_MISS``, charged the whole test, so re-record it for the kernels' exact counts;
 - per batch ``b``, the ``.npy`` arrays ``b{b:06d}.offsets`` (int64), ``.op`` (uint8),
   ``.addr`` (int32), ``.tri`` (int32) and ``.t`` (float32): one :class:`OpTrace` each.
 
@@ -34,9 +36,10 @@ from simt_sim.types.hits import Hits
 from simt_sim.types.optrace import OpTrace
 
 FORMAT = "simt-sim-trace"
-VERSION = 2
-READS = (1, 2)
-"""Versions this simt-sim reads (1: binary trees only, no ``layout`` field)."""
+VERSION = 3
+READS = (1, 2, 3)
+"""Versions this simt-sim reads (1: binary trees only, no ``layout`` field; 1 and 2: no
+triangle-test stages)."""
 HEADER = "header.json"
 _FIELDS = (("offsets", np.int64), ("op", np.uint8), ("addr", np.int32), ("tri", np.int32),
            ("t", np.float32))  # fmt: skip

@@ -10,10 +10,20 @@ code  name         meaning (``addr`` holds)
 1     TRAV_ONE     interior node visited, one child box hit (node index)
 2     TRAV_BOTH    interior node visited, both child boxes hit, far one pushed (node index)
 3     LEAF         leaf entered (float4 index of its first Woop triangle)
-4     TRI_MISS     triangle tested, no (closer) hit (float4 index of the Woop triangle)
+4     TRI_MISS     triangle tested, every stage ran, no (closer) hit (float4 index of
+                   the Woop triangle)
 5     TRI_HIT      triangle tested, hit accepted: tmax shrinks / any-hit ends (same)
 6-11  TRAV_3..8    wide node visited, 3 to 8 child boxes hit (node index): code ``k + 3``
+12    TRI_MISS_T   triangle tested, rejected by its t range: only the t stage ran (same)
+13    TRI_MISS_U   triangle tested, rejected by u: the t and u stages ran (same)
 ====  ===========  ===============================================================
+
+The Woop test runs in three stages, each loading one float4 of the triangle (``t`` from
+``w0``, then ``u`` from ``w1``, then ``v`` from ``w2``), and a kernel skips the later
+stages when a lane's test failed: a warp issues a stage only while one of its lanes is
+still in it. A miss therefore says which stage rejected it; ``TRI_MISS`` is the miss that
+ran every stage, which is also what a stream without stages (a trace file before version
+3, a synthetic trace) charges.
 
 A binary tree's traces use codes 0 to 5 only; a wide tree's node with ``k`` children hit
 is ``TRAV_NONE``, ``TRAV_ONE``, ``TRAV_BOTH`` for ``k <= 2`` and ``k + 3`` above (see
@@ -41,9 +51,24 @@ TRI_HIT = 5
 TRAV_WIDE = 6
 """Code of a wide node step with 3 children hit; ``k`` hits (3..8) is ``k + 3``."""
 MAX_WIDTH = 8
-OP_NAMES = ("TRAV_NONE", "TRAV_ONE", "TRAV_BOTH", "LEAF", "TRI_MISS", "TRI_HIT") + tuple(
-    f"TRAV_{k}" for k in range(3, MAX_WIDTH + 1)
+TRAV_LAST = MAX_WIDTH + TRAV_WIDE - 3
+"""Code of a wide node step with every one of :data:`MAX_WIDTH` children hit."""
+TRI_MISS_T = TRAV_LAST + 1
+TRI_MISS_U = TRAV_LAST + 2
+OP_NAMES = (
+    ("TRAV_NONE", "TRAV_ONE", "TRAV_BOTH", "LEAF", "TRI_MISS", "TRI_HIT")
+    + tuple(f"TRAV_{k}" for k in range(3, MAX_WIDTH + 1))
+    + ("TRI_MISS_T", "TRI_MISS_U")
 )
+STREAM_RULE = (
+    f"op codes are node steps 0-2 ({TRAV_WIDE}-{TRAV_LAST} in wide trees), LEAF {LEAF}, "
+    f"triangle tests {TRI_MISS}, {TRI_HIT}, {TRI_MISS_T}, {TRI_MISS_U}, and triangle tests "
+    "follow a LEAF"
+)
+"""What a well-formed op stream is, for the errors that refuse one."""
+TRI_STAGES = 3
+"""Stages of the Woop test (t, u, v): a triangle op ran 1 (``TRI_MISS_T``), 2
+(``TRI_MISS_U``) or all of them (``TRI_MISS``, ``TRI_HIT``)."""
 LAYOUTS = ("bvh2", "bvh4", "bvh8", "cwbvh")
 """The BVH layouts a trace can be recorded on (``bvh2``: the binary Aila-Laine tree)."""
 
@@ -53,20 +78,35 @@ def trav_code(hits: int) -> int:
     return hits if hits <= TRAV_BOTH else hits + TRAV_WIDE - 3
 
 
+def is_wide_trav(op: np.ndarray) -> np.ndarray:
+    """True where an op is a wide node step with 3 or more children hit."""
+    op = np.asarray(op)
+    return (op >= TRAV_WIDE) & (op <= TRAV_LAST)
+
+
 def children_hit(op: np.ndarray) -> np.ndarray:
     """Children hit by each traversal op (the inverse of :func:`trav_code`)."""
     op = np.asarray(op)
-    return np.where(op >= TRAV_WIDE, op.astype(np.int64) - TRAV_WIDE + 3, op)
+    return np.where(is_wide_trav(op), op.astype(np.int64) - TRAV_WIDE + 3, op)
 
 
 def is_trav(op: np.ndarray) -> np.ndarray:
     """True where an op is a traversal step (any outcome)."""
-    return (op <= TRAV_BOTH) | (op >= TRAV_WIDE)
+    return (np.asarray(op) <= TRAV_BOTH) | is_wide_trav(op)
 
 
 def is_tri(op: np.ndarray) -> np.ndarray:
     """True where an op is a triangle test (any outcome)."""
-    return (op == TRI_MISS) | (op == TRI_HIT)
+    op = np.asarray(op)
+    return (op == TRI_MISS) | (op == TRI_HIT) | (op == TRI_MISS_T) | (op == TRI_MISS_U)
+
+
+def tri_stages(op: np.ndarray) -> np.ndarray:
+    """Woop-test stages each triangle op ran (1..3; 0 for an op that is no triangle test)."""
+    op = np.asarray(op)
+    return np.select(
+        [op == TRI_MISS_T, op == TRI_MISS_U, (op == TRI_MISS) | (op == TRI_HIT)], [1, 2, 3], 0
+    )
 
 
 @dataclass(frozen=True)
@@ -150,6 +190,7 @@ def _kind_counts(offsets: np.ndarray, op: np.ndarray) -> np.ndarray:
     for i in prange(n):
         for k in range(offsets[i], offsets[i + 1]):
             c = op[k]
-            kind = 1 if c == LEAF else (2 if c == TRI_MISS or c == TRI_HIT else 0)
+            tri = c == TRI_MISS or c == TRI_HIT or c == TRI_MISS_T or c == TRI_MISS_U
+            kind = 1 if c == LEAF else (2 if tri else 0)
             out[i, kind] += 1
     return out

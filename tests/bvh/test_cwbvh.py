@@ -28,7 +28,7 @@ from simt_sim.rays.generate import paper_rays
 from simt_sim.scene.load import load_scene
 from simt_sim.trace.record import record_all
 from simt_sim.tracers.numba_tracer import trace
-from simt_sim.types.optrace import LEAF, TRI_HIT, TRI_MISS, children_hit, is_trav
+from simt_sim.types.optrace import LEAF, TRI_HIT, children_hit, is_trav, is_tri
 from simt_sim.types.raybatch import RayBatch
 
 F32 = np.float32
@@ -368,10 +368,10 @@ def test_fewer_node_steps_than_the_binary_tree(room, small_room, soups):
         trav = is_trav(op)
         assert addr[trav].min() >= 0 and addr[trav].max() < cw.nodes.shape[0]
         assert children_hit(op[trav]).max() <= 8
-        tri_ops = (op == TRI_HIT) | (op == TRI_MISS) | (op == LEAF)
+        tri_ops = is_tri(op) | (op == LEAF)
         assert (addr[tri_ops] % 3 == 0).all() and addr[tri_ops].max() < cw.woop.shape[0]
         leaf_at = np.nonzero(op == LEAF)[0]
-        assert np.isin(op[leaf_at + 1], (TRI_HIT, TRI_MISS)).all()
+        assert is_tri(op[leaf_at + 1]).all()
         assert trav.sum() + tri_ops.sum() == len(op)
         # every ray starts at the root
         assert (op[off[:-1][counts > 0]] != LEAF).all() and (addr[off[:-1]] == 0).all()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from simt_sim.bvh.build import build_bvh
-from simt_sim.bvh.geometry import inverse_direction, near_columns, node_child_intervals, woop_hit_t
+from simt_sim.bvh.geometry import inverse_direction, near_columns, node_child_intervals, woop_test
 from simt_sim.bvh.layout import BVH, SENTINEL_BITS, BuildStats
 from simt_sim.bvh.traverse import stack_size
 from simt_sim.bvh.woop import woop_transform
@@ -15,7 +15,17 @@ from simt_sim.trace.record import record, record_all, summary
 from simt_sim.tracers.bruteforce import trace_bruteforce
 from simt_sim.tracers.numba_tracer import NumbaTracer, trace
 from simt_sim.types.hits import MISS
-from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS
+from simt_sim.types.optrace import (
+    LEAF,
+    TRAV_BOTH,
+    TRAV_NONE,
+    TRAV_ONE,
+    TRI_HIT,
+    TRI_MISS,
+    TRI_MISS_T,
+    TRI_MISS_U,
+    is_tri,
+)
 from simt_sim.types.raybatch import RayBatch
 
 F32 = np.float32
@@ -260,9 +270,9 @@ def check_stream(bvh: BVH, rays: RayBatch, r: int, ops: np.ndarray, addrs: np.nd
         j = start
         done = False
         while woop_x[j] != sentinel:
-            assert i < n and ops[i] in (TRI_MISS, TRI_HIT) and addrs[i] == j
-            ok, t = woop_hit_t(bvh.woop, j, *o, *d, tmin, tmax)
-            assert ops[i] == (TRI_HIT if ok else TRI_MISS)
+            assert i < n and is_tri(ops[i]) and addrs[i] == j
+            ok, stages, t = woop_test(bvh.woop, j, *o, *d, tmin, tmax)
+            assert ops[i] == (TRI_HIT if ok else (TRI_MISS_T, TRI_MISS_U, TRI_MISS)[stages - 1])
             if ok:
                 hit = j
                 tmax = t
@@ -320,7 +330,7 @@ def test_counts_and_summary_agree_with_the_ops(sphere_mesh):
     tr = record_all(bvh, rays_at(4, 500, "closest"))
     counts = tr.counts()
     ray = np.repeat(np.arange(tr.n_rays), np.diff(tr.offsets))
-    for k, mask in enumerate((tr.op <= TRAV_BOTH, tr.op == LEAF, tr.op >= TRI_MISS)):
+    for k, mask in enumerate((tr.op <= TRAV_BOTH, tr.op == LEAF, is_tri(tr.op))):
         np.testing.assert_array_equal(counts[:, k], np.bincount(ray[mask], minlength=tr.n_rays))
     np.testing.assert_array_equal(tr.op_totals(), counts.sum(axis=0))
     s = summary(tr)

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from numba import njit
 
 from simt_sim.bvh.build import build_bvh
-from simt_sim.bvh.geometry import BOX_ROUNDING, inverse_direction, woop_hit_t
+from simt_sim.bvh.geometry import BOX_ROUNDING, inverse_direction, woop_test
 from simt_sim.bvh.layouts import make_tree, trace_arrays
 from simt_sim.bvh.simd_wide import four_child_test
 from simt_sim.bvh.simd_woop import woop4
@@ -223,16 +223,18 @@ def test_unknown_or_unbuilt_layout_is_refused(room):
 
 @njit(cache=True, error_model="numpy")  # IEEE division, as the traversal compiles it
 def _both_triangle_tests(woop, rays, n):
-    """Per ray: the scalar woop_hit_t of the n triangles at float4 0, 3, ... and woop4's."""
+    """Per ray: the scalar woop_test of the n triangles at float4 0, 3, ... (hit, t,
+    stages) and woop4's."""
     m = rays.shape[0]
-    scalar = np.empty((m, 4, 2), np.float32)
+    scalar = np.empty((m, 4, 3), np.float32)
     vector = np.empty((m, 5), np.float32)
     for i in range(m):
         r = rays[i]
         for k in range(n):
-            ok, t = woop_hit_t(woop, 3 * k, r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7])
+            ok, stages, t = woop_test(woop, 3 * k, r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7])
             scalar[i, k, 0] = 1.0 if ok else 0.0
             scalar[i, k, 1] = t
+            scalar[i, k, 2] = stages
         mask, t0, t1, t2, t3 = woop4(woop, 0, n, r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7])
         vector[i, 0] = mask
         vector[i, 1] = t0
@@ -266,8 +268,13 @@ def test_four_triangle_test_is_the_scalar_test_bit_for_bit(seed, n, extreme):
         pick = rng.integers(0, len(SPECIAL), (m, 6))
         rays[:, :6] = np.where(rng.random((m, 6)) < 0.2, SPECIAL[pick], rays[:, :6])
     scalar, vector = _both_triangle_tests(woop, rays, n)
-    want_mask = (scalar[:, :n, 0] > 0) @ (1 << np.arange(n))
-    assert extreme or want_mask.any()  # the rays do hit: the test decides something
+    lanes = 1 << np.arange(n)
+    stages = scalar[:, :n, 2]
+    want_mask = (
+        (scalar[:, :n, 0] > 0) @ lanes + (stages >= 3) @ (lanes << 4) + (stages >= 2) @ (lanes << 8)
+    )
+    assert extreme or (want_mask & 0xF).any()  # the rays do hit: the test decides something
+    assert extreme or ((stages == 1).any() and (stages == 2).any())  # every stage rejects
     np.testing.assert_array_equal(vector[:, 0].astype(np.int64), want_mask)
     got_t, want_t = vector[:, 1 : 1 + n], scalar[:, :n, 1]
     nan = np.isnan(want_t)

@@ -31,11 +31,15 @@ from simt_sim.types.optrace import (
     TRAV_ONE,
     TRI_HIT,
     TRI_MISS,
+    TRI_MISS_T,
+    TRI_MISS_U,
     OpTrace,
+    is_trav,
     trav_code,
 )
 
 NAME = "cwbvh_persistent_while_while"
+MISSES = (TRI_MISS_T, TRI_MISS_U, TRI_MISS)  # rejected by t, by u, by v
 COSTS = {b: i + 1 for i, b in enumerate(BLOCKS)}
 
 
@@ -69,27 +73,31 @@ def ref_counters(ref) -> dict[str, tuple[int, int, list[int]]]:
 # ---- by hand ---------------------------------------------------------------------------------
 #: lane 0: root with 3 children hit (a leaf of 2 triangles, one of 1, an interior child),
 #: then that child (one hit, interior), then its child (nothing hit); lane 1: the root (one
-#: interior hit), then a node with 2 hits (a leaf of 1 triangle, missed).
+#: interior hit), then a node with 2 hits (a leaf of 1 triangle, missed). Misses end at
+#: the t stage (TRI_MISS_T), the u stage (TRI_MISS_U) or after v (TRI_MISS).
 CASE_A = [
-    [trav_code(3), LEAF, TRI_MISS, TRI_HIT, LEAF, TRI_MISS, TRAV_ONE, TRAV_NONE],
+    [trav_code(3), LEAF, TRI_MISS_T, TRI_HIT, LEAF, TRI_MISS_U, TRAV_ONE, TRAV_NONE],
     [TRAV_ONE, TRAV_BOTH, LEAF, TRI_MISS],
 ]
 #: both lanes test triangles in the same iteration (lane 0 two, lane 1 one)
 CASE_B = [
-    [TRAV_BOTH, LEAF, TRI_MISS, TRI_HIT, TRAV_ONE, LEAF, TRI_MISS],
+    [TRAV_BOTH, LEAF, TRI_MISS_T, TRI_HIT, TRAV_ONE, LEAF, TRI_MISS_U],
     [TRAV_ONE, LEAF, TRI_HIT, TRAV_NONE],
 ]
 # CASE_A: iteration 0: trav_step {0,1}; lane 0 tests 3 triangles alone (1 hit); iteration
-# 1: trav_step {0,1}, lane 1 tests 1; iteration 2: trav_step {0}.
-# CASE_B: iteration 0: trav_step {0,1}; triangle 0 {0,1} (hit: 1), triangle 1 {0} (hit:
-# 0); iteration 1: trav_step {0,1}; triangle 0 {0}.
+# 1: trav_step {0,1}, lane 1 tests 1; iteration 2: trav_step {0}. tri_u: lane 0's hit and
+# u-stage miss, lane 1's miss; tri_v: lane 0's hit, lane 1's miss.
+# CASE_B: iteration 0: trav_step {0,1}; triangle 0 {0,1} (hit: 1; lane 0 stops at t),
+# triangle 1 {0} (hit: 0); iteration 1: trav_step {0,1}; triangle 0 {0} (stops at u).
 BY_HAND = [
     (CASE_A, {
         "pool_fetch": (1, 2), "ray_setup": (1, 2), "trav_step": (3, 5), "tri_test": (4, 4),
-        "tri_hit": (1, 1), "loop_control": (3, 5), "finish": (1, 2)}),
+        "tri_u": (3, 3), "tri_v": (2, 2), "tri_hit": (1, 1),
+        "loop_control": (3, 5), "finish": (1, 2)}),
     (CASE_B, {
         "pool_fetch": (1, 2), "ray_setup": (1, 2), "trav_step": (2, 4), "tri_test": (3, 4),
-        "tri_hit": (2, 2), "loop_control": (2, 4), "finish": (1, 2)}),
+        "tri_u": (3, 3), "tri_v": (2, 2), "tri_hit": (2, 2),
+        "loop_control": (2, 4), "finish": (1, 2)}),
 ]  # fmt: skip
 
 
@@ -129,7 +137,7 @@ def random_cw_streams(rng: np.random.Generator, n: int, any_hit: bool) -> list[l
                 o.append(LEAF)
                 for _ in range(int(rng.integers(1, 4))):
                     hit = rng.random() < 0.2
-                    o.append(TRI_HIT if hit else TRI_MISS)
+                    o.append(TRI_HIT if hit else int(rng.choice(MISSES)))
                     if hit and any_hit:
                         done = True
                         break
@@ -193,9 +201,11 @@ def test_each_lane_work_is_conserved() -> None:
     r = run(cw_trace(ops), 32)
     flat = np.concatenate([np.asarray(o, np.int64) for o in ops if o])
     a = r.active_sum
-    n_trav = int(((flat <= TRAV_BOTH) | (flat > TRI_HIT)).sum())
+    n_trav = int(is_trav(flat).sum())
     assert a["trav_step"] == a["loop_control"] == n_trav == r.n_trav
-    assert a["tri_test"] == int(np.isin(flat, (TRI_MISS, TRI_HIT)).sum()) == r.n_tri
+    assert a["tri_test"] == int(np.isin(flat, (*MISSES, TRI_HIT)).sum()) == r.n_tri
+    assert a["tri_u"] == int(np.isin(flat, (TRI_MISS_U, TRI_MISS, TRI_HIT)).sum())
+    assert a["tri_v"] == int(np.isin(flat, (TRI_MISS, TRI_HIT)).sum())
     assert a["tri_hit"] == int((flat == TRI_HIT).sum())
     assert a["ray_setup"] == a["finish"] == a["pool_fetch"] == r.rays == len(ops)
     assert {b for b in BLOCKS if r.executions[b]} == set(BLOCKS_CHARGED)

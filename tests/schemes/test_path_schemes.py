@@ -19,7 +19,7 @@ from simt_sim.simt.replay import simulate_paths, simulate_queues
 from simt_sim.simt.result import SimResult
 from simt_sim.trace.paths import trace_paths
 from simt_sim.types.hits import Hits
-from simt_sim.types.optrace import LEAF, TRI_HIT, OpTrace
+from simt_sim.types.optrace import LEAF, TRI_HIT, OpTrace, is_tri, tri_stages
 from simt_sim.types.paths import PathTrace
 from simt_sim.types.raybatch import RayBatch
 
@@ -114,6 +114,8 @@ def ref_trace(streams: list[list[int]], c: Counter) -> None:
                 if not tri:
                     break
                 c.charge("tri_test", len(tri))
+                c.charge("tri_u", sum(1 for i in tri if tri_stages(nxt(i)) >= 2))
+                c.charge("tri_v", sum(1 for i in tri if tri_stages(nxt(i)) >= 3))
                 c.charge("tri_hit", sum(1 for i in tri if nxt(i) == TRI_HIT))
                 for i in tri:
                     cur[i] += 1
@@ -226,13 +228,16 @@ def test_wavefront_matches_reference(paths, w: int) -> None:
 def _op_totals(pt: PathTrace) -> dict[str, int]:
     ops = np.concatenate([t.op for t in pt.extend + pt.connect])
     per_code = np.bincount(ops, minlength=6)
+    stages = tri_stages(ops)
     return {
         "trav_step": int(per_code[:3].sum()),
         "trav_none": int(per_code[0]),
         "trav_one": int(per_code[1]),
         "trav_both": int(per_code[2]),
         "leaf_entry": int(per_code[3]),
-        "tri_test": int(per_code[4] + per_code[5]),
+        "tri_test": int(is_tri(ops).sum()),
+        "tri_u": int((stages >= 2).sum()),
+        "tri_v": int((stages >= 3).sum()),
         "tri_hit": int(per_code[5]),
     }
 

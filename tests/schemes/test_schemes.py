@@ -21,10 +21,21 @@ from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
 from simt_sim.simt.synth import synthetic_trace, trace_from_lists
 from simt_sim.study.run import run_study
 from simt_sim.study.spec import StudySpec
-from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS, OpTrace
+from simt_sim.types.optrace import (
+    LEAF,
+    TRAV_BOTH,
+    TRAV_NONE,
+    TRAV_ONE,
+    TRI_HIT,
+    TRI_MISS,
+    TRI_MISS_T,
+    TRI_MISS_U,
+    OpTrace,
+)
 
 COSTS = {b: i + 1 for i, b in enumerate(BLOCKS)}  # small distinct costs per block
 TRACE_SCHEMES = schemes.names(TRACE, layout="bvh2")  # replayed on synthetic binary traces
+MISSES = (TRI_MISS_T, TRI_MISS_U, TRI_MISS)  # rejected by t, by u, by v
 CONSERVING = [s for s in TRACE_SCHEMES if s != "packet"]
 
 
@@ -46,7 +57,8 @@ def run(trace: OpTrace, scheme: str, warp_size: int, **kw: object) -> SimResult:
 def random_streams(
     rng: np.random.Generator, n: int, any_hit: bool = False
 ) -> tuple[list[list[int]], list[list[int]]]:
-    """Well-formed random streams: TRAV runs, LEAF + 1-8 TRI; also empty and leaf-first."""
+    """Well-formed random streams: TRAV runs, LEAF + 1-8 TRI (misses at any stage); also
+    empty and leaf-first."""
     ops: list[list[int]] = []
     for _ in range(n):
         o: list[int] = []
@@ -58,7 +70,8 @@ def random_streams(
                 o += [int(x) for x in rng.integers(0, 3, int(rng.integers(1, 8)))]
             for _ in range(int(rng.integers(0, 3))):
                 tris = [
-                    TRI_HIT if rng.random() < 0.2 else TRI_MISS for _ in range(rng.integers(1, 9))
+                    TRI_HIT if rng.random() < 0.2 else int(rng.choice(MISSES))
+                    for _ in range(rng.integers(1, 9))
                 ]
                 if any_hit and TRI_HIT in tris:
                     o += [LEAF] + tris[: tris.index(TRI_HIT) + 1]
@@ -85,25 +98,27 @@ def expect(r: SimResult, table: dict[str, tuple[int, int]]) -> None:
 
 
 # ---- hand-computed warps: one table, every scheme's rules worked out by hand ---------------
+# (TRI_MISS_T ran only the test's t stage, TRI_MISS_U also its u stage: tri_u and tri_v
+# are issued with the lanes that reached them, and not at all when none did)
 CASE_A = [
-    [TRAV_ONE, TRAV_BOTH, LEAF, TRI_MISS, TRI_HIT, TRAV_NONE],
+    [TRAV_ONE, TRAV_BOTH, LEAF, TRI_MISS_T, TRI_HIT, TRAV_NONE],
     [TRAV_NONE],
 ]
 CASE_B = [
-    [TRAV_ONE, LEAF, TRI_MISS, TRI_MISS, TRI_MISS],
+    [TRAV_ONE, LEAF, TRI_MISS_U, TRI_MISS_T, TRI_MISS],
     [TRAV_BOTH, TRAV_ONE, LEAF, TRI_HIT],
 ]
 CASE_SPECULATIVE = [
-    [TRAV_BOTH, LEAF, TRI_MISS, TRAV_ONE, LEAF, TRI_HIT],
-    [TRAV_ONE, TRAV_ONE, TRAV_ONE, LEAF, TRI_MISS],
+    [TRAV_BOTH, LEAF, TRI_MISS_U, TRAV_ONE, LEAF, TRI_HIT],
+    [TRAV_ONE, TRAV_ONE, TRAV_ONE, LEAF, TRI_MISS_T],
 ]
 CASE_DYNAMIC = [[TRAV_NONE], [TRAV_ONE, TRAV_NONE], [TRAV_NONE]]
 CASE_SPECULATIVE_DYNAMIC = [
-    [TRAV_ONE, LEAF, TRI_MISS, TRAV_NONE],
+    [TRAV_ONE, LEAF, TRI_MISS_T, TRAV_NONE],
     [TRAV_ONE, TRAV_ONE, LEAF, TRI_HIT],
     [TRAV_NONE],
 ]
-CASE_PACKET = [[TRAV_BOTH, TRAV_ONE, LEAF, TRI_MISS, TRI_HIT], [TRAV_ONE, TRAV_NONE]]
+CASE_PACKET = [[TRAV_BOTH, TRAV_ONE, LEAF, TRI_MISS_U, TRI_HIT], [TRAV_ONE, TRAV_NONE]]
 PACKET_ADDRS = [[1, 2, 10, 10, 13], [1, 3]]  # LEAF 10 and TRI 10 are different things
 
 #: (scheme, op lists, addresses, warp size, resident warps, params, block -> (executions,
@@ -112,25 +127,25 @@ BY_HAND = [
     ("while_while", CASE_A, None, 2, 4, {}, {
         "ray_setup": (1, 2), "loop_control": (2, 3), "trav_step": (3, 4), "trav_none": (2, 2),
         "trav_one": (1, 1), "trav_both": (1, 1), "leaf_entry": (1, 1), "tri_test": (2, 2),
-        "tri_hit": (1, 1), "finish": (1, 2)}),
+        "tri_u": (1, 1), "tri_v": (1, 1), "tri_hit": (1, 1), "finish": (1, 2)}),
     ("while_while", CASE_B, None, 2, 4, {}, {
         "ray_setup": (1, 2), "loop_control": (1, 2), "trav_step": (2, 3), "trav_one": (2, 2),
-        "trav_both": (1, 1), "leaf_entry": (1, 2), "tri_test": (3, 4), "tri_hit": (1, 1),
-        "finish": (1, 2)}),
+        "trav_both": (1, 1), "leaf_entry": (1, 2), "tri_test": (3, 4), "tri_u": (2, 3),
+        "tri_v": (2, 2), "tri_hit": (1, 1), "finish": (1, 2)}),
     ("if_if", CASE_A, None, 2, 4, {}, {
         "ray_setup": (1, 2), "loop_control": (4, 5), "trav_step": (3, 4), "trav_none": (2, 2),
         "trav_one": (1, 1), "trav_both": (1, 1), "leaf_entry": (1, 1), "tri_test": (2, 2),
-        "tri_hit": (1, 1), "finish": (1, 2)}),
+        "tri_u": (1, 1), "tri_v": (1, 1), "tri_hit": (1, 1), "finish": (1, 2)}),
     ("if_if", CASE_B, None, 2, 4, {}, {
         "ray_setup": (1, 2), "loop_control": (3, 5), "trav_step": (2, 3), "trav_one": (2, 2),
-        "trav_both": (1, 1), "leaf_entry": (2, 2), "tri_test": (3, 4), "tri_hit": (1, 1),
-        "finish": (1, 2)}),
+        "trav_both": (1, 1), "leaf_entry": (2, 2), "tri_test": (3, 4), "tri_u": (3, 3),
+        "tri_v": (2, 2), "tri_hit": (1, 1), "finish": (1, 2)}),
     # the third step has one of the two lanes: the vote takes its divergent fallback
     ("persistent_speculative_while_while", CASE_SPECULATIVE, None, 2, 4, {}, {
         "pool_fetch": (1, 2), "ray_setup": (1, 2), "loop_control": (1, 2),
         "trav_step": (3, 5), "trav_one": (3, 4), "trav_both": (1, 1), "trav_diverged": (1, 1),
-        "postpone": (2, 2), "leaf_entry": (2, 3), "tri_test": (2, 3), "tri_hit": (1, 1),
-        "finish": (1, 2)}),
+        "postpone": (2, 2), "leaf_entry": (2, 3), "tri_test": (2, 3), "tri_u": (2, 2),
+        "tri_v": (1, 1), "tri_hit": (1, 1), "finish": (1, 2)}),
     ("dynamic_fetch", CASE_DYNAMIC, None, 2, 1, {"threshold": 2}, {
         "pool_fetch": (2, 3), "ray_setup": (2, 3), "loop_control": (2, 3), "trav_step": (3, 4),
         "trav_none": (3, 3), "trav_one": (1, 1), "finish": (2, 3)}),
@@ -138,11 +153,12 @@ BY_HAND = [
     ("speculative_dynamic_fetch", CASE_SPECULATIVE_DYNAMIC, None, 2, 1, {"threshold": 2}, {
         "pool_fetch": (2, 3), "ray_setup": (2, 3), "loop_control": (2, 3), "trav_step": (3, 5),
         "trav_none": (2, 2), "trav_one": (2, 3), "trav_diverged": (1, 1), "postpone": (2, 2),
-        "leaf_entry": (1, 2), "tri_test": (1, 2), "tri_hit": (1, 1), "finish": (2, 3)}),
+        "leaf_entry": (1, 2), "tri_test": (1, 2), "tri_u": (1, 1), "tri_v": (1, 1),
+        "tri_hit": (1, 1), "finish": (2, 3)}),
     ("packet", CASE_PACKET, PACKET_ADDRS, 2, 4, {}, {
         "ray_setup": (1, 2), "loop_control": (4, 8), "trav_step": (3, 4), "trav_none": (1, 1),
         "trav_one": (1, 1), "trav_both": (1, 2), "leaf_entry": (1, 1), "tri_test": (2, 2),
-        "tri_hit": (1, 1), "finish": (1, 2)}),
+        "tri_u": (2, 2), "tri_v": (1, 1), "tri_hit": (1, 1), "finish": (1, 2)}),
 ]  # fmt: skip
 
 
@@ -330,12 +346,14 @@ def test_each_lane_work_is_conserved(scheme: str) -> None:
     trace = trace_from_lists(ops, addrs)
     r = run(trace, scheme, 32)
     flat = np.concatenate([np.asarray(o, np.int64) for o in ops])
-    by_code = np.bincount(flat, minlength=6)
+    by_code = np.bincount(flat, minlength=TRI_MISS_U + 1)
     a = r.active_sum
     assert a["trav_step"] == by_code[:3].sum() == r.n_trav
     assert (a["trav_none"], a["trav_one"], a["trav_both"]) == tuple(by_code[:3])
     assert a["leaf_entry"] == by_code[LEAF] == r.n_leaf
-    assert a["tri_test"] == by_code[TRI_MISS] + by_code[TRI_HIT] == r.n_tri
+    assert a["tri_test"] == by_code[list(MISSES)].sum() + by_code[TRI_HIT] == r.n_tri
+    assert a["tri_u"] == by_code[[TRI_MISS_U, TRI_MISS, TRI_HIT]].sum()
+    assert a["tri_v"] == by_code[[TRI_MISS, TRI_HIT]].sum()
     assert a["tri_hit"] == by_code[TRI_HIT]
     assert a["ray_setup"] == a["finish"] == r.rays == len(ops)
     if scheme != "while_while" and scheme != "if_if":

@@ -26,7 +26,20 @@ from simt_sim.simt.memory import (
 from simt_sim.study.workload import make_workload
 from simt_sim.trace.record import record_all
 from simt_sim.types.hits import Hits
-from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS, OpTrace
+from simt_sim.types.optrace import (
+    LEAF,
+    TRAV_BOTH,
+    TRAV_NONE,
+    TRAV_ONE,
+    TRI_HIT,
+    TRI_MISS,
+    TRI_MISS_T,
+    TRI_MISS_U,
+    OpTrace,
+    is_trav,
+    is_tri,
+    tri_stages,
+)
 
 T, L, M, H = TRAV_ONE, LEAF, TRI_MISS, TRI_HIT
 
@@ -74,11 +87,7 @@ def ref_warp_steps(
     steps: list[dict] = []
     while any(nxt(i) is not None for i in range(len(streams))):
         while True:
-            active = [
-                i
-                for i in range(len(streams))
-                if nxt(i) is not None and (nxt(i) <= 2 or nxt(i) >= 6)
-            ]
+            active = [i for i in range(len(streams)) if nxt(i) is not None and is_trav(nxt(i))]
             if not active:
                 break
             lines = []
@@ -96,12 +105,13 @@ def ref_warp_steps(
                 pos[i] += 1
             in_loop = group
             while in_loop:
-                lines, fetches, sent, stay = [], 0, 0, []
+                lines, fetches, rows, sent, stay = [], 0, 0, 0, []
                 for i in in_loop:
-                    if nxt(i) in (TRI_MISS, TRI_HIT):
+                    if nxt(i) is not None and is_tri(nxt(i)):
                         o, a = streams[i][pos[i]]
-                        lines += ref_lines("woop", a, 48)
+                        lines += ref_lines("woop", a, 16 * int(tri_stages(o)))
                         fetches += 1
+                        rows += int(tri_stages(o))
                         tested[i] += 1
                         pos[i] += 1
                         if not (any_hit and o == TRI_HIT):
@@ -109,7 +119,9 @@ def ref_warp_steps(
                     else:
                         lines += ref_lines("woop", first[i] + 3 * tested[i], 16)
                         sent += 1
-                steps.append({"kind": "tri", "fetches": fetches, "sent": sent, "lines": lines})
+                steps.append(
+                    {"kind": "tri", "fetches": fetches, "rows": rows, "sent": sent, "lines": lines}
+                )
                 in_loop = stay
     return steps
 
@@ -148,7 +160,7 @@ def ref_counts(trace: OpTrace, warp_size: int, gpu=None) -> dict:
         for r in range(0, len(streams), warp_size)
     ]
     out = dict.fromkeys(
-        ("node_fetches", "tri_fetches", "sentinel_fetches", "node_steps", "tri_steps",
+        ("node_fetches", "tri_fetches", "tri_rows", "sentinel_fetches", "node_steps", "tri_steps",
          "node_lines", "tri_lines", "resident_sets", "working_set_lines", "l1_misses",
          "l2_misses"),
         0,
@@ -160,6 +172,7 @@ def ref_counts(trace: OpTrace, warp_size: int, gpu=None) -> dict:
             out[f"{s['kind']}_lines"] += len(set(s["lines"]))
             out["node_fetches" if s["kind"] == "node" else "tri_fetches"] += s["fetches"]
             out["sentinel_fetches"] += s["sent"]
+            out["tri_rows"] += s.get("rows", 0)
     if gpu is None:
         return out
     l1 = [RefLRU(gpu.l1_kib) for _ in range(gpu.sms)]
@@ -204,11 +217,12 @@ def random_trace(rng: np.random.Generator, n_rays: int, query: str) -> OpTrace:
             first = int(rng.integers(0, 60))
             ops.append((LEAF, first))
             for t in range(rng.integers(0, 4)):
-                ops.append((TRI_MISS, first + 3 * t))
-        if query == "any" and ops and ops[-1][0] == TRI_MISS and rng.random() < 0.5:
+                miss = int(rng.choice([TRI_MISS_T, TRI_MISS_U, TRI_MISS]))
+                ops.append((miss, first + 3 * t))
+        if query == "any" and ops and is_tri(ops[-1][0]) and rng.random() < 0.5:
             ops[-1] = (TRI_HIT, ops[-1][1])
         if query == "closest":
-            ops = [(TRI_HIT if o == TRI_MISS and rng.random() < 0.3 else o, a) for o, a in ops]
+            ops = [(TRI_HIT if is_tri(o) and rng.random() < 0.3 else o, a) for o, a in ops]
         rays.append(ops)
     return make_trace(rays, query)
 
@@ -241,6 +255,15 @@ def test_straddling_triangle_and_any_hit_end() -> None:
     hit = make_trace([[(T, 0), (L, 0), (M, 0), (H, 3)]], query="any")
     c = memory_counts(hit, 32)
     assert (c.tri_fetches, c.sentinel_fetches, c.tri_steps, c.tri_lines) == (2, 0, 2, 2)
+
+
+@pytest.mark.parametrize(("miss", "rows", "lines"), [(TRI_MISS_T, 1, 1), (TRI_MISS_U, 2, 1)])
+def test_a_test_that_leaves_early_reads_only_its_stages_rows(miss, rows, lines) -> None:
+    """The triangle at float4 6 spans bytes 96..143; rejected by t it reads 96..111, by u
+    96..127: one line either way, where a full test reads two."""
+    c = memory_counts(make_trace([[(T, 0), (L, 6), (miss, 6)]]), 32)
+    assert (c.tri_fetches, c.tri_rows, c.tri_lines) == (1, rows, lines + 1)  # + sentinel
+    assert c.bytes == 64 + 16 * rows + 16
 
 
 def test_lru_evicts_beyond_capacity() -> None:

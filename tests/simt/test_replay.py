@@ -17,7 +17,16 @@ from simt_sim.simt.gpus import GpuConfig, get_gpu, issue_limited
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult, merge
 from simt_sim.simt.synth import synthetic_trace, trace_from_lists
-from simt_sim.types.optrace import LEAF, TRAV_NONE, TRAV_ONE, TRI_HIT, TRI_MISS, OpTrace
+from simt_sim.types.optrace import (
+    LEAF,
+    TRAV_NONE,
+    TRAV_ONE,
+    TRI_HIT,
+    TRI_MISS,
+    TRI_MISS_T,
+    TRI_MISS_U,
+    OpTrace,
+)
 
 TRACE_SCHEMES = names("trace", layout="bvh2")
 #: schemes whose idle lanes refill from the pool: their counts follow the launch and costs
@@ -279,16 +288,37 @@ def test_if_if_warp_where_no_lane_traverses_still_pays_the_guards() -> None:
     branch, yet each iteration runs all three ``if`` tests: they are in loop_control."""
     scheme = get_scheme("if_if")
     ir = kernels_ir.load("if_if", "sm_75")
-    r = simulate_traces([trace_from_lists([[LEAF, TRI_MISS, TRI_MISS]])], scheme, ir, gpu_for())
+    r = simulate_traces([trace_from_lists([[LEAF, TRI_MISS_T, TRI_MISS]])], scheme, ir, gpu_for())
     assert r.executions["trav_step"] == 0 and r.executions["loop_control"] == 2
     expected = sum(
         n * ir.cost(b)
         for b, n in {"ray_setup": 1, "loop_control": 2, "leaf_entry": 1, "tri_test": 2,
-                     "finish": 1}.items()
+                     "tri_u": 1, "tri_v": 1, "finish": 1}.items()
     )  # fmt: skip
     assert r.warp_instructions == expected
     guards = ir.cost("loop_control") - kernels_ir.load("while_while", "sm_75").cost("loop_control")
     assert guards >= 5
+
+
+@pytest.mark.parametrize("scheme", TRACE_SCHEMES)
+def test_triangle_stages_no_lane_reached_are_not_issued(scheme: str) -> None:
+    """The Woop test's u and v stages sit behind a warp-uniform branch: a warp pays tri_u
+    only when some lane's t was in range, tri_v only when some lane's u was inside, and
+    then with just those lanes active; tri_test is paid by every lane that tests."""
+    ir = kernels_ir.load(get_scheme(scheme).kernel, "sm_75")
+    assert all(ir.cost(b) > 0 for b in ("tri_test", "tri_u", "tri_v"))
+
+    def tri_blocks(lane_ops: list[int]) -> dict[str, tuple[int, int]]:
+        ops = [[TRAV_ONE, LEAF, o] for o in lane_ops]
+        r = simulate_traces([trace_from_lists(ops)], get_scheme(scheme), ir, gpu_for(4))
+        return {b: (r.executions[b], r.active_sum[b]) for b in ("tri_test", "tri_u", "tri_v")}
+
+    t_only = [TRI_MISS_T] * 4
+    assert tri_blocks(t_only) == {"tri_test": (1, 4), "tri_u": (0, 0), "tri_v": (0, 0)}
+    one_u = [TRI_MISS_T, TRI_MISS_U, TRI_MISS_T, TRI_MISS_T]
+    assert tri_blocks(one_u) == {"tri_test": (1, 4), "tri_u": (1, 1), "tri_v": (0, 0)}
+    mixed = [TRI_MISS_T, TRI_MISS_U, TRI_MISS, TRI_HIT]
+    assert tri_blocks(mixed) == {"tri_test": (1, 4), "tri_u": (1, 3), "tri_v": (1, 2)}
 
 
 @pytest.mark.parametrize("scheme", REFILLING)
@@ -305,8 +335,8 @@ def test_malformed_streams_are_refused() -> None:
     bad = trace_from_lists([[TRAV_ONE, LEAF, TRI_MISS], [TRAV_ONE, TRI_HIT]])
     with pytest.raises(SimtSimError, match="ray 1: malformed op stream \\(TRI_HIT at op 1"):
         simulate_traces([bad], get_scheme("while_while"), ir_for("while_while"), gpu_for())
-    unknown = trace_from_lists([[TRAV_ONE, 12]])
-    with pytest.raises(SimtSimError, match="unknown op code 12"):
+    unknown = trace_from_lists([[TRAV_ONE, 14]])
+    with pytest.raises(SimtSimError, match="unknown op code 14.*triangle tests 4, 5, 12, 13"):
         simulate_traces([unknown], get_scheme("if_if"), ir_for("if_if"), gpu_for())
     wide_op = trace_from_lists([[TRAV_ONE, 9]])  # a wide node's step in a binary trace
     with pytest.raises(SimtSimError, match="TRAV_6 at op 1"):

@@ -11,7 +11,14 @@ import pytest
 from simt_sim.bvh.build import build_bvh
 from simt_sim.errors import SimtSimError
 from simt_sim.trace.record import record, record_all
-from simt_sim.trace.tracefile import HEADER, iter_trace, load_trace, read_meta, save_trace
+from simt_sim.trace.tracefile import (
+    HEADER,
+    VERSION,
+    iter_trace,
+    load_trace,
+    read_meta,
+    save_trace,
+)
 from simt_sim.types.raybatch import RayBatch
 
 
@@ -52,7 +59,7 @@ def test_round_trip_is_bit_identical(recorded, tmp_path):
     assert meta_back == meta
     assert_same(whole, record_all(bvh, rays))
     header = read_meta(path)
-    assert header["format"] == "simt-sim-trace" and header["version"] == 2
+    assert header["format"] == "simt-sim-trace" and header["version"] == VERSION
     assert header["layout"] == "bvh2"
     assert header["rays"] == 200 and header["ops"] == int(whole.offsets[-1])
     assert np.load(path)["b000000.op"].dtype == np.uint8  # numpy reads it as an .npz too
@@ -72,8 +79,8 @@ def _rewrite_header(path, **changes):
 def test_unknown_version_or_format_is_refused(recorded, tmp_path):
     bvh, rays = recorded
     path = save_trace(tmp_path / "t.npz", record(bvh, rays), {})
-    _rewrite_header(path, version=3)
-    with pytest.raises(SimtSimError, match="version 3") as err:
+    _rewrite_header(path, version=VERSION + 1)
+    with pytest.raises(SimtSimError, match=f"version {VERSION + 1}") as err:
         load_trace(path)
     assert "\n" not in str(err.value)
     _rewrite_header(path, version=2, format="something-else")
