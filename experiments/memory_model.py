@@ -26,9 +26,10 @@ import numpy as np
 import pandas as pd
 
 import kernels_ir
+from simt_sim.bvh.layouts import tree_stats
 from simt_sim.report.tables import FORMATS, emit
 from simt_sim.schemes import get_scheme
-from simt_sim.simt.footprint import decide, footprint_bytes
+from simt_sim.simt.footprint import decide
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.memory import (
     MemoryCounts,
@@ -84,7 +85,7 @@ def run(
         )
         bvh = w.bvh
         trace = record_all(bvh, w.rays)
-        footprint = footprint_bytes(bvh.nodes.shape[0], bvh.woop.shape[0])
+        footprint = tree_stats(bvh).bytes
         proxy = kth_fetch_proxy(trace, memory_counts(trace, 32))
         for gpu in gpus:
             sim = simulate_traces(

@@ -57,6 +57,9 @@ BLOCKS = (
     "shade",
     "queue_push",
 )
+TRI_TEST_BLOCKS = ("tri_test", "tri_u", "tri_v")
+"""The Woop triangle test's stages (t, u, v): a whole test, as a warp that runs it through
+costs it."""
 CLASSES = (
     "fp32",
     "int",

@@ -25,7 +25,7 @@ still in it. A miss therefore says which stage rejected it; ``TRI_MISS`` is the 
 ran every stage, which is also what a stream without stages (a trace file before version
 3, a synthetic trace) charges.
 
-A binary tree's traces use codes 0 to 5 only; a wide tree's node with ``k`` children hit
+A binary tree's traces use codes 0 to 5, 12 and 13; a wide tree's node with ``k`` children hit
 is ``TRAV_NONE``, ``TRAV_ONE``, ``TRAV_BOTH`` for ``k <= 2`` and ``k + 3`` above (see
 :func:`trav_code`), the nearest hit child visited next and the others pushed farthest
 first. Op order is the order of the while-while kernel: nearer child first, farther pushed.
