@@ -26,7 +26,7 @@ from simt_sim.simt.replay import simulate_traces
 from simt_sim.study.workload import make_workload, parse_resolution
 from simt_sim.trace.record import record_all
 
-TRACE_SCHEMES = names("trace")
+TRACE_SCHEMES = names("trace", layout="bvh2")  # the schemes a binary trace replays
 
 
 def profile(scene: str, ray_type: str, camera: str, resolution: tuple[int, int], spp: int,

@@ -59,9 +59,9 @@ KEYS = ["ray_type", "scheme"]
 FIGURES = ("mrays_upper", "simd_efficiency")
 TOLERANCE = 0.01
 """The bar: a shortcut is 'within 1%' when every MRays/s figure is within this."""
+TRACE_SCHEMES = names("trace", layout="bvh2")  # the schemes the binary protocol replays
 #: the schemes fed from a ray pool, whose results may depend on how a launch is cut
-POOL_SCHEMES = tuple(n for n, s in SCHEMES.items() if s.persistent)
-TRACE_SCHEMES = names("trace")
+POOL_SCHEMES = tuple(n for n in TRACE_SCHEMES if SCHEMES[n].persistent)
 
 
 def timed_table(spec: StudySpec, quiet: bool) -> tuple[pd.DataFrame, float]:

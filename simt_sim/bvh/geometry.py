@@ -240,21 +240,3 @@ def woop_test(
             return False, 3, t
         return False, 2, t
     return False, 1, t
-
-
-@njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def woop_hit_t(
-    woop: np.ndarray,
-    j: int,
-    ox: np.float32,
-    oy: np.float32,
-    oz: np.float32,
-    dx: np.float32,
-    dy: np.float32,
-    dz: np.float32,
-    tmin: np.float32,
-    tmax: np.float32,
-) -> tuple[bool, np.float32]:
-    """:func:`woop_test` without its stages: ``(hit, t)``, for the tracers."""
-    hit, _, t = woop_test(woop, j, ox, oy, oz, dx, dy, dz, tmin, tmax)
-    return hit, t

@@ -1,7 +1,7 @@
 """Four Woop triangle tests at once, bit-identical to the scalar test.
 
 A leaf's triangles are tested one at a time by
-:func:`simt_sim.bvh.geometry.woop_hit_t`; Embree tests four per vector. :func:`woop4`
+:func:`simt_sim.bvh.geometry.woop_test`; Embree tests four per vector. :func:`woop4`
 loads four consecutive triangles of a leaf (three float4 rows each), transposes their rows
 into 4-lane vectors and evaluates, lane by lane, exactly the scalar test's expressions:
 the same float32 operations in the same order (``a * b + c * d + e * f`` as

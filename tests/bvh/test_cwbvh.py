@@ -21,7 +21,7 @@ from simt_sim.bvh.cwbvh import (
     quantise_axis,
 )
 from simt_sim.bvh.cwbvh_traverse import cwbvh_trace_arrays
-from simt_sim.bvh.geometry import BOX_ROUNDING, inverse_direction, woop_hit_t
+from simt_sim.bvh.geometry import BOX_ROUNDING, inverse_direction, woop_test
 from simt_sim.bvh.layout import FLOAT4_BYTES
 from simt_sim.errors import SimtSimError
 from simt_sim.rays.generate import paper_rays
@@ -147,7 +147,7 @@ def _check_closest(bvh, cw, rays, got_tri, got_t):
         near_t = min(got_t[i], want.t[i])
         assert near_tri >= 0
         j = first[int(near_tri)]
-        ok, t = woop_hit_t(bvh.woop, j, *o, *d, tmin, tmax)
+        ok, _, t = woop_test(bvh.woop, j, *o, *d, tmin, tmax)
         assert ok and F32(t) == near_t
         tn, tf = _slab_interval(leaf_box[j], o, np.array(inverse_direction(*d), F32))
         assert not (tn <= near_t <= tf), f"ray {i}: hit at {near_t} inside its box [{tn}, {tf}]"
@@ -157,7 +157,7 @@ def _check_closest(bvh, cw, rays, got_tri, got_t):
     for i in other:
         o, d = origin[i], direction[i]
         for tri in (got_tri[i], want.tri[i]):
-            ok, t = woop_hit_t(bvh.woop, first[int(tri)], *o, *d, F32(rays.tmin[i]), F32(np.inf))
+            ok, _, t = woop_test(bvh.woop, first[int(tri)], *o, *d, F32(rays.tmin[i]), F32(np.inf))
             assert ok and F32(t) == got_t[i]
     assert np.array_equal(got_tri < 0, want.tri < 0) or len(diff) > 0
 
@@ -186,7 +186,7 @@ def test_any_hit_hits_the_same_rays(room, small_room, soups):
         first = {int(s): j for j, s in enumerate(bvh.tri_index) if s >= 0}
         for i in np.nonzero(tri >= 0)[0][:300]:
             o, d = rays.origin[i].astype(F32), rays.direction[i].astype(F32)
-            ok, th = woop_hit_t(
+            ok, _, th = woop_test(
                 bvh.woop, first[int(tri[i])], *o, *d, F32(rays.tmin[i]), F32(rays.tmax[i])
             )
             assert ok and F32(th) == t[i]

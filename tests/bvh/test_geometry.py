@@ -13,7 +13,7 @@ from simt_sim.bvh.geometry import (
     near_columns,
     node_child_intervals,
     safe_inverse,
-    woop_hit_t,
+    woop_test,
 )
 from simt_sim.bvh.woop import woop_transform
 
@@ -146,7 +146,8 @@ def _woop(v0, v1, v2):
 def _tri_test(woop, o, d, tmin=ZERO, tmax=INF):
     o = np.asarray(o, F32)
     d = np.asarray(d, F32)
-    return woop_hit_t(woop, 0, o[0], o[1], o[2], d[0], d[1], d[2], F32(tmin), F32(tmax))
+    hit, _, t = woop_test(woop, 0, o[0], o[1], o[2], d[0], d[1], d[2], F32(tmin), F32(tmax))
+    return hit, t
 
 
 def test_woop_simple_hit_and_interval():
@@ -157,6 +158,20 @@ def test_woop_simple_hit_and_interval():
     assert not _tri_test(w, (0.25, 0.25, 2.0), (0, 0, -1), tmin=F32(2.0))[0]  # tmin < t strict
     assert not _tri_test(w, (0.75, 0.75, 2.0), (0, 0, -1))[0]  # u + v > 1
     assert not _tri_test(w, (0.25, 0.25, 2.0), (0, 0, 1))[0]  # behind the origin
+
+
+def test_woop_test_says_which_stage_rejected_the_triangle():
+    """The stages a kernel runs: t first, u only if t is in range, v only if u is inside."""
+    w = _woop(np.array([0.0, 0, 0]), np.array([1.0, 0, 0]), np.array([0.0, 1, 0]))
+
+    def stages(o, tmax=INF):
+        o, d = np.asarray(o, F32), np.asarray((0, 0, -1), F32)
+        return woop_test(w, 0, o[0], o[1], o[2], d[0], d[1], d[2], ZERO, F32(tmax))[:2]
+
+    assert stages((0.25, 0.25, 2.0)) == (True, 3)
+    assert stages((0.25, 0.25, 2.0), tmax=1.0) == (False, 1)  # t out of range: u not run
+    assert stages((2.0, 2.0, 2.0)) == (False, 2)  # beyond the v1-v2 edge: u < 0
+    assert stages((-1.0, 0.25, 2.0)) == (False, 3)  # u >= 0, rejected by the v stage
 
 
 tri_strategy = st.tuples(vec, vec, vec)
