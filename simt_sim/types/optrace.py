@@ -66,9 +66,6 @@ STREAM_RULE = (
     "follow a LEAF"
 )
 """What a well-formed op stream is, for the errors that refuse one."""
-TRI_STAGES = 3
-"""Stages of the Woop test (t, u, v): a triangle op ran 1 (``TRI_MISS_T``), 2
-(``TRI_MISS_U``) or all of them (``TRI_MISS``, ``TRI_HIT``)."""
 LAYOUTS = ("bvh2", "bvh4", "bvh8", "cwbvh")
 """The BVH layouts a trace can be recorded on (``bvh2``: the binary Aila-Laine tree)."""
 
