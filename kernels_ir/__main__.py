@@ -13,7 +13,7 @@ from pathlib import Path
 import pandas as pd
 
 from kernels_ir import format_ir_table, load, summary_table
-from kernels_ir.build import ARCHS, IR_DIR, KERNELS, build_all, check
+from kernels_ir.build import ARCHS, IR_DIR, KERNELS, build_all, check, write_cubins
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 
@@ -49,6 +49,13 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--tests", choices=TESTS, default=DEFAULT_TESTS)
     t = sub.add_parser("summary", help="print kernels x blocks for one arch (markdown)")
     t.add_argument("--arch", default="sm_90")
+    c = sub.add_parser(
+        "cubins", help="compile kernels for one arch with the IR's flags and keep the cubins"
+    )
+    c.add_argument("--arch", required=True, choices=ARCHS)
+    c.add_argument("--kernel", action="append", choices=KERNELS, help="only this kernel")
+    c.add_argument("--tests", choices=TESTS, default=DEFAULT_TESTS)
+    c.add_argument("--out", type=Path, required=True, help="output directory")
     d = sub.add_parser(
         "dyncount",
         help="walk a kernel's SASS on real warps and compare its instruction count with "
@@ -83,6 +90,11 @@ def main(argv: list[str] | None = None) -> int:
             tests = tuple(args.tests or TESTS)
             paths = build_all(args.out, kernels, archs, jobs=args.jobs, tests=tests)
             print(f"wrote {len(paths)} files to {args.out}")
+            return 0
+        if args.cmd == "cubins":
+            kernels = tuple(args.kernel or KERNELS)
+            paths = write_cubins(args.out, args.arch, kernels, args.tests)
+            print(f"wrote {len(paths)} cubins to {args.out}")
             return 0
         if args.cmd == "show":
             ir = load(args.kernel, args.arch, args.tests)

@@ -19,7 +19,9 @@ Within a block both sides of its inner branches count. Two exceptions follow the
 actually runs: a compiler subroutine counts in the blocks that call it, and the
 divergent-warp fallback of a ``_sync`` intrinsic (sm_75..sm_89), which replaces the fast
 path rather than adding to it, is counted apart (the build makes ``trav_step``'s into the
-block ``trav_diverged``, charged only where the model sees a diverged warp).
+block ``trav_diverged``, charged only where the model sees a diverged warp); and the
+full-warp path of a warp-aggregated atomic (:func:`full_warp_only`), which the kernels'
+one-lane atomics never take, is not charged.
 """
 
 from __future__ import annotations
@@ -111,11 +113,14 @@ class BlockMap(NamedTuple):
     ``fallback``: block -> class -> instructions of its divergent-warp fallback.
     ``bytes``: block -> ``ld_global``/``st_global`` -> bytes one lane loads or stores per
     execution (:func:`access_bytes` of each charged instruction).
+    ``full_warp``: block -> instructions of full-warp-only paths (:func:`full_warp_only`),
+    left uncharged.
     """
 
     counts: dict[str, dict[str, int]]
     fallback: dict[str, dict[str, int]]
     bytes: dict[str, dict[str, int]]
+    full_warp: dict[str, int]
 
 
 #: bytes per lane of a load or store by its width modifier; without one it moves 4
@@ -178,6 +183,39 @@ def divergent_only(instructions: Sequence[SassInstruction]) -> set[int]:
         for i, ins in enumerate(instructions)
         if ins.function in only and i <= last_ret.get(ins.function, -1)
     )
+    return out
+
+
+#: instructions from the full-warp test's ``VOTE.ANY`` to its branch, at most
+_FULL_WARP_WINDOW = 8
+
+
+def full_warp_only(instructions: Sequence[SassInstruction]) -> set[int]:
+    """Indices of the code that runs only when all 32 lanes of the warp are active.
+
+    ptxas compiles an ``atomicAdd`` on one address as a warp-aggregated atomic:
+    ``VOTE.ANY R, PT, PT`` reads the active mask, ``ISETP.EQ.U32 P, PT, R, -0x1`` tests for
+    a full warp, ``@!P BRA`` skips a ``SHFL.UP`` scan and one atomic for the whole warp.
+    Every atomic of these kernels is issued by one lane (a test checks the sources), so the
+    scan never runs: the SASS walker counts it 0 times on sm_75, and an H200's counters 0
+    times on sm_90 (docs/gpu_results.md). Found here: each such branch's skipped code.
+    """
+    at = {label: i for i, ins in enumerate(instructions) for label in ins.labels}
+    out: set[int] = set()
+    masks: dict[str, int] = {}  # register holding the active mask -> index of its VOTE
+    full: dict[str, int] = {}  # predicate true for a full warp -> index of its test
+    for i, ins in enumerate(instructions):
+        op = base_opcode(ins.opcode)
+        ops = [o.strip() for o in ins.text.split(None, 1)[-1].split(",")]
+        if op == "VOTE" and ".ANY" in ins.opcode and ops[-2:] == ["PT", "PT"]:
+            masks[ops[0]] = i
+        elif op == "ISETP" and ".EQ.U32" in ins.opcode and len(ops) >= 4 and ops[3] == "-0x1":
+            if i - masks.get(ops[2], -_FULL_WARP_WINDOW) < _FULL_WARP_WINDOW:
+                full[ops[0]] = i
+        elif op == "BRA" and ins.guard.startswith("!") and ins.guard[1:] in full:
+            target = at.get(branch_target(ins) or "")
+            if target is not None and i - full[ins.guard[1:]] < _FULL_WARP_WINDOW:
+                out.update(range(i + 1, target))
     return out
 
 
@@ -337,12 +375,14 @@ class Placement(NamedTuple):
     ``block[i]``: instruction ``i``'s block (:data:`UNATTRIBUTED` for none); a compiler
     subroutine's instruction has its most frequent caller's block (``callers`` has them
     all, with call counts). ``fallback``: the indices of divergent-warp fallbacks
-    (:func:`divergent_only`), whose ``block`` is their marker block.
+    (:func:`divergent_only`), whose ``block`` is their marker block. ``full_warp``: the
+    indices of full-warp-only paths (:func:`full_warp_only`).
     """
 
     block: list[str]
     fallback: frozenset[int]
     callers: dict[str, Counter[str]]
+    full_warp: frozenset[int] = frozenset()
 
 
 def place_instructions(
@@ -386,7 +426,8 @@ def place_instructions(
         sites = callers.get(ins.function)
         if ins.function.startswith("$") and sites and i <= last_ret.get(ins.function, -1):
             block[i] = sites.most_common(1)[0][0]
-    return Placement(block, frozenset(fallback_idx), callers)
+    full_warp = frozenset(full_warp_only(instructions))
+    return Placement(block, frozenset(fallback_idx), callers, full_warp)
 
 
 def map_blocks(
@@ -402,7 +443,8 @@ def map_blocks(
     subroutine (function name starting with ``$``) is charged, up to its last ``RET``, to
     every block that calls it, once per call site; what follows its last ``RET`` (the
     ``BRA`` padding loop) goes to the catch-all. Divergent-warp fallbacks
-    (:func:`divergent_only`) are counted apart, in ``fallback``. Every other instruction
+    (:func:`divergent_only`) are counted apart, in ``fallback``, and full-warp-only paths
+    (:func:`full_warp_only`) in ``full_warp``. Every other instruction
     of the kernel is charged where :func:`by_frequency` puts it; ``loops`` is the source's
     :func:`parse_loops` (without it a loop's own block is the one with most of its code).
 
@@ -416,8 +458,12 @@ def map_blocks(
     counts: dict[str, dict[str, int]] = {}
     fallback: dict[str, dict[str, int]] = {}
     moved: dict[str, dict[str, int]] = {}
+    full_warp: dict[str, int] = {}
 
     def charge(i: int, block: str, cls: str, times: int = 1) -> None:
+        if i in placement.full_warp:
+            full_warp[block] = full_warp.get(block, 0) + times
+            return
         spare = i in placement.fallback
         row = (fallback if spare else counts).setdefault(block, dict.fromkeys(CLASSES, 0))
         row[cls] += times
@@ -438,4 +484,4 @@ def map_blocks(
         else:
             for block, times in sites.items():
                 charge(i, block, cls, times)
-    return BlockMap(counts, fallback, moved)
+    return BlockMap(counts, fallback, moved, full_warp)

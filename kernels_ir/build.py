@@ -144,7 +144,7 @@ def _compile(
     """Compile and disassemble one kernel: its flags, the compiler's log, and the
     instructions of the kernel and of the compiler subroutines (``$__internal_*``) it
     calls, in listing order."""
-    cubin = workdir / f"{kernel}.{arch}.{tests}.cubin"
+    cubin = workdir / cubin_filename(kernel, arch, tests)
     flags = [f"-arch={arch}", *FLAGS, *TEST_DEFINES[tests]]
     cmd = [str(tools.nvcc), *flags, "-o", str(cubin), f"{kernel}.cu"]
     proc = _run(cmd, CUDA_DIR)
@@ -170,6 +170,35 @@ def compile_listing(kernel: str, arch: str, tests: str = DEFAULT_TESTS) -> list[
         return _compile(kernel, arch, tools, Path(tmp), tests)[2]
 
 
+def cubin_filename(kernel: str, arch: str, tests: str = DEFAULT_TESTS) -> str:
+    """File name of one kernel's cubin as :func:`write_cubins` writes it."""
+    return f"{kernel}.{arch}.{tests}.cubin"
+
+
+def write_cubins(
+    out_dir: Path, arch: str, kernels: tuple[str, ...] = KERNELS, tests: str = DEFAULT_TESTS
+) -> list[Path]:
+    """Compile ``kernels`` for ``arch`` with the IR build's own flags and keep the cubins.
+
+    A GPU that runs these runs byte for byte the code whose blocks the IR counts, where
+    NVRTC on that machine may be another compiler release; the CUDA tracer loads them
+    (``CudaTracer(cubin_dir=...)``) so hardware counters can be set against the IR.
+    """
+    if arch not in ARCHS:
+        raise KernelIRError(f"unknown arch {arch!r}; archs: {', '.join(ARCHS)}")
+    tools = find_toolchain()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for kernel in kernels:
+        if kernel not in KERNELS:
+            raise KernelIRError(f"unknown kernel {kernel!r}; kernels: {', '.join(KERNELS)}")
+        flags = [f"-arch={arch}", *FLAGS, *TEST_DEFINES[tests]]
+        path = (out_dir / cubin_filename(kernel, arch, tests)).resolve()
+        _run([str(tools.nvcc), *flags, "-o", str(path), f"{kernel}.cu"], CUDA_DIR)
+        paths.append(path)
+    return paths
+
+
 def build_one(
     kernel: str, arch: str, tools: Toolchain, workdir: Path, tests: str = DEFAULT_TESTS
 ) -> dict:
@@ -185,7 +214,9 @@ def build_one(
     registers, notes = _ptxas_info(log, kernel)
     source = (CUDA_DIR / f"{kernel}.cu").read_text()
     owner = parse_markers(source, f"{kernel}.cu")
-    counts, fallback, moved = map_blocks(instructions, owner, f"{kernel}.cu", parse_loops(source))
+    counts, fallback, moved, full_warp = map_blocks(
+        instructions, owner, f"{kernel}.cu", parse_loops(source)
+    )
     unattributed = counts.pop(UNATTRIBUTED, {})
     moved.pop(UNATTRIBUTED, None)
     # a diverged warp's traversal step runs its vote's fallback (charged as trav_diverged
@@ -199,6 +230,7 @@ def build_one(
     notes["unattributed_instructions"] = str(sum(unattributed.values()))
     fallback_sizes = {b: sum(row.values()) for b, row in fallback.items()}
     notes["divergent_fallback_instructions"] = str(sum(fallback_sizes.values()))
+    notes["full_warp_only_instructions"] = str(sum(full_warp.values()))
     notes["total_instructions"] = str(
         sum(sum(r.values()) for r in counts.values()) + sum(unattributed.values())
     )

@@ -40,6 +40,8 @@ code, divergent-warp fallbacks included, which the replay charges on such GPUs o
 FALLBACK = "fallback"
 """Row of a divergent-warp fallback outside the traversal step (the IR charges none)."""
 DIVERGED = "trav_diverged"
+FULL_WARP = "full_warp"
+"""Row of a full-warp-only path (:func:`kernels_ir.blocks.full_warp_only`; uncharged)."""
 
 
 @dataclass(frozen=True)
@@ -103,7 +105,8 @@ def pick_warps(n_rays: int, warps: int) -> np.ndarray:
 
 def walk_blocks(kernel: str, issued: np.ndarray, instructions: list[SassInstruction]) -> pd.Series:
     """Issued warp instructions per IR block (a divergent-warp fallback of the traversal
-    step is ``trav_diverged``, as the IR build names it; any other is :data:`FALLBACK`)."""
+    step is ``trav_diverged``, as the IR build names it; any other is :data:`FALLBACK`; a
+    full-warp-only path is :data:`FULL_WARP`)."""
     source = (CUDA_DIR / f"{kernel}.cu").read_text()
     placement = place_instructions(
         instructions, parse_markers(source, f"{kernel}.cu"), f"{kernel}.cu", parse_loops(source)
@@ -115,6 +118,8 @@ def walk_blocks(kernel: str, issued: np.ndarray, instructions: list[SassInstruct
         block = placement.block[i]
         if i in placement.fallback:
             block = DIVERGED if block == "trav_step" else FALLBACK
+        elif i in placement.full_warp:
+            block = FULL_WARP
         out[block] = out.get(block, 0) + int(times)
     return pd.Series(out, dtype=np.int64)
 
@@ -234,7 +239,7 @@ def compare_counts(
     replay = pd.Series(result.block_instructions, dtype=np.int64)
     table = pd.DataFrame({"walk": walk, "replay": replay}).fillna(0).astype(np.int64)
     table = table[(table != 0).any(axis=1)]
-    order = [b for b in (*BLOCKS, FALLBACK, UNATTRIBUTED) if b in table.index]
+    order = [b for b in (*BLOCKS, FALLBACK, FULL_WARP, UNATTRIBUTED) if b in table.index]
     table = table.loc[order + [b for b in table.index if b not in order]]
     table["replay - walk"] = table["replay"] - table["walk"]
     return DynCount(

@@ -23,11 +23,12 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 from functools import cache
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
-from kernels_ir.build import CUDA_DIR, HEADER, KERNELS, TEST_DEFINES
+from kernels_ir.build import CUDA_DIR, HEADER, KERNELS, TEST_DEFINES, cubin_filename
 from kernels_ir.kernel_ir import DEFAULT_TESTS, KernelLaunch
 from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
 from simt_sim.bvh.traverse import check_bvh, ray_arrays
@@ -305,6 +306,10 @@ class CudaTracer:
         Threads per block (a multiple of 32).
     tests : str
         Box and triangle tests the kernels are compiled with (``kernels_ir.kernel_ir.TESTS``).
+    cubin_dir : Path, optional
+        Load each kernel from the cubin ``python -m kernels_ir cubins`` wrote for this
+        device's architecture (the very code the IR counts) instead of compiling it with
+        this machine's NVRTC, which may be another compiler release.
     """
 
     name = "cuda"
@@ -316,6 +321,7 @@ class CudaTracer:
         device: int = 0,
         block_threads: int = BLOCK_THREADS,
         tests: str = DEFAULT_TESTS,
+        cubin_dir: Path | None = None,
     ) -> None:
         if tests not in TEST_DEFINES:
             raise SimtSimError(f"unknown tests {tests!r}; use one of {', '.join(TEST_DEFINES)}")
@@ -329,9 +335,13 @@ class CudaTracer:
         self._device = cp.cuda.Device(device)
         self.block_threads = block_threads
         self._options = (*NVRTC_OPTIONS, *TEST_DEFINES[tests])
+        self._tests = tests
+        self._cubin_dir = cubin_dir
         with self._device:
-            name = cp.cuda.runtime.getDeviceProperties(device)["name"]
+            props = cp.cuda.runtime.getDeviceProperties(device)
+            name = props["name"]
             self.device_name = name.decode() if isinstance(name, bytes) else str(name)
+            self.arch = f"sm_{props['major']}{props['minor']}"
             self._sms = int(self._device.attributes["MultiProcessorCount"])
             self._bvh = {k: cp.asarray(packed[k]) for k in ("nodes", "woop", "tri_index")}
             self._root = np.int32(packed["root"])
@@ -340,6 +350,8 @@ class CudaTracer:
 
     def _kernel(self, kernel: str) -> Any:
         """The compiled kernel (NVRTC, for this device's architecture; cupy caches it)."""
+        if kernel not in self._kernels and self._cubin_dir is not None:
+            self._kernels[kernel] = self._load_cubin(kernel)
         if kernel not in self._kernels:
             cp = self._cp
             try:
@@ -352,6 +364,22 @@ class CudaTracer:
                     f"NVRTC could not compile {kernel}.cu: {lines[0] if lines else 'no log'}"
                 ) from None
         return self._kernels[kernel]
+
+    def _load_cubin(self, kernel: str) -> Any:
+        """``kernel`` from the cubin built for this device's architecture."""
+        check_kernel(kernel)
+        path = Path(self._cubin_dir) / cubin_filename(kernel, self.arch, self._tests)
+        if not path.is_file():
+            raise SimtSimError(
+                f"no cubin {path}; write it with `python -m kernels_ir cubins --arch "
+                f"{self.arch} --tests {self._tests} --out {self._cubin_dir}`"
+            )
+        cp = self._cp
+        try:
+            with self._device:
+                return cp.RawModule(path=str(path)).get_function(kernel)
+        except cp.cuda.driver.CUDADriverError as exc:
+            raise SimtSimError(f"the driver cannot load {path.name}: {exc}") from None
 
     def device_limits(self, launch: KernelLaunch) -> DeviceLimits:
         """Resident warps of the kernel per SM from the occupancy API (registers, shared

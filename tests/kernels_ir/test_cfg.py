@@ -133,7 +133,7 @@ def test_parse_loops_spans_while_for_and_do() -> None:
 def test_by_frequency_moves_a_guard_and_a_preheader_and_keeps_the_body() -> None:
     ins = parse_listing(_listing(LOOP))
     owner = parse_markers(SOURCE, "k.cu")
-    counts, _, _ = map_blocks(ins, owner, "k.cu", parse_loops(SOURCE))
+    counts, _, _, _ = map_blocks(ins, owner, "k.cu", parse_loops(SOURCE))
     total = {b: sum(row.values()) for b, row in counts.items()}
     # trav_step keeps its conditional body (3 FADDs); the if's test (2 instructions, run
     # on every iteration) goes to the loop's own block, loop_control, with the latch (3);
@@ -169,14 +169,14 @@ def test_a_loops_own_block_stays_home_in_the_loop_when_most_of_it_is_outside() -
     the entry test and the exit (found by the SASS walk on if-if): those run once per
     thread and go to the code around the loop; the latch and the if's test stay in it."""
     ins = parse_listing(_listing(ENTRY_HEAVY))
-    counts, _, _ = map_blocks(ins, parse_markers(SOURCE, "k.cu"), "k.cu", parse_loops(SOURCE))
+    counts, _, _, _ = map_blocks(ins, parse_markers(SOURCE, "k.cu"), "k.cu", parse_loops(SOURCE))
     total = {b: sum(row.values()) for b, row in counts.items()}
     assert total == {"ray_setup": 9, "loop_control": 4, "trav_step": 3, "finish": 2}
 
 
 def test_map_blocks_without_source_loops_still_attributes_by_frequency() -> None:
     ins = parse_listing(_listing(LOOP))
-    counts, _, _ = map_blocks(ins, parse_markers(SOURCE, "k.cu"), "k.cu")
+    counts, _, _, _ = map_blocks(ins, parse_markers(SOURCE, "k.cu"), "k.cu")
     # without the source loops, the loop's own block is the one with most of its
     # every-iteration code (loop_control: the latch)
     assert sum(counts["trav_step"].values()) == 3

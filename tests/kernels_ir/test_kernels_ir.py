@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import itertools
 import json
+import re
+import subprocess
 import tempfile
 from pathlib import Path
 
@@ -21,6 +23,7 @@ from kernels_ir.blocks import (
     UNATTRIBUTED,
     access_bytes,
     divergent_only,
+    full_warp_only,
     map_blocks,
     parse_markers,
 )
@@ -29,11 +32,14 @@ from kernels_ir.build import (
     IR_DIR,
     build_one,
     check,
+    compile_listing,
+    cubin_filename,
     dumps,
     find_toolchain,
     ir_filename,
     source_sha256,
     toolchain_available,
+    write_cubins,
 )
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import BLOCKS, CLASSES, TESTS
@@ -151,7 +157,7 @@ def test_mapper_on_blackwell_listing_knows_every_opcode() -> None:
 
 def test_mapper_sends_other_files_to_the_catch_all() -> None:
     ins = parse_listing((DATA / "tiny.sm_90.sass").read_text())
-    counts, fallback, _ = map_blocks(ins, parse_markers(TINY), "another.cu")
+    counts, fallback, _, _ = map_blocks(ins, parse_markers(TINY), "another.cu")
     assert fallback == {}
     assert set(counts) == {UNATTRIBUTED}
     assert sum(counts[UNATTRIBUTED].values()) == 30
@@ -180,7 +186,7 @@ def test_divergent_fallback_is_the_bra_div_stub_and_its_subroutine() -> None:
 
 
 def test_mapper_charges_the_converged_path_and_keeps_the_fallback_apart() -> None:
-    counts, fallback, _ = map_blocks(
+    counts, fallback, _, _ = map_blocks(
         _tiny_vote(), parse_markers((DATA / "tiny_vote.cu").read_text()), "tiny_vote.cu"
     )
     assert {b: sum(row.values()) for b, row in fallback.items()} == {"trav_step": 12}
@@ -219,9 +225,54 @@ $__internal_1_$helper:
 """
 
 
+AGGREGATED_ATOMIC = """
+.text.k:
+        //## File "k.cu", line 3
+        /*0000*/                   VOTE.ANY R7, PT, PT ;
+        /*0010*/                   POPC R20, R10 ;
+        /*0020*/                   ISETP.EQ.U32.AND P0, PT, R7, -0x1, PT ;
+        /*0030*/              @!P0 ATOMG.E.ADD.STRONG.GPU PT, R7, [UR4], R20 ;
+        /*0040*/              @!P0 BRA `(.L_x_4) ;
+.L_x_33:
+        /*0050*/                   SHFL.UP P0, R7, R20, 0x1, RZ ;
+        /*0060*/                   S2R R9, SR_LANEID ;
+        /*0070*/               @P1 ATOMG.E.ADD.STRONG.GPU PT, R9, [UR4], R8 ;
+        /*0080*/                   SHFL.IDX PT, R7, R9, 0x1f, 0x1f ;
+.L_x_4:
+        /*0090*/                   VOTE.ANY R3, PT, P2 ;
+        /*00a0*/                   ISETP.EQ.U32.AND P3, PT, R3, -0x1, PT ;
+        /*00b0*/              @!P3 BRA `(.L_x_5) ;
+        /*00c0*/                   IADD3 R5, R5, 0x1, RZ ;
+.L_x_5:
+        /*00d0*/                   EXIT ;
+"""
+
+
+def test_the_full_warp_path_of_an_aggregated_atomic_is_not_charged() -> None:
+    """The scan after ``@!P0 BRA`` runs only for a full warp (the mask of ``VOTE.ANY R,
+    PT, PT`` is all ones); a vote of a predicate (``PT, P2``) is no full-warp test."""
+    ins = parse_listing(AGGREGATED_ATOMIC)
+    assert sorted(ins[i].offset for i in full_warp_only(ins)) == [0x50, 0x60, 0x70, 0x80]
+    owner = parse_markers("x\n// @block pool_fetch\na;\n", "k.cu")
+    counts, _, _, full_warp = map_blocks(ins, owner, "k.cu")
+    assert full_warp == {"pool_fetch": 4}
+    assert sum(counts["pool_fetch"].values()) == 10
+
+
+def test_every_atomic_of_the_kernels_is_issued_by_one_lane() -> None:
+    """What makes the full-warp path dead code: each atomicAdd sits under a one-lane test."""
+    atomics = [
+        line for p in sorted(CUDA_DIR.glob("*.cu*")) for line in p.read_text().splitlines()
+        if "atomicAdd(" in line and not line.lstrip().startswith("//")
+    ]  # fmt: skip
+    assert atomics
+    for line in atomics:
+        assert re.search(r"if \(\(?(\(int\))?simt_lane_id\(\) == (0|leader)\)", line), line
+
+
 def test_subroutines_count_in_their_callers_and_bra_conv_skips_are_fallback() -> None:
     owner = parse_markers("x\n// @block trav_step\na;\n// @block finish\nb;\n", "k.cu")
-    counts, fallback, _ = map_blocks(parse_listing(SYNTHETIC), owner, "k.cu")
+    counts, fallback, _, _ = map_blocks(parse_listing(SYNTHETIC), owner, "k.cu")
     # line 3: IMAD, BRA.CONV, MOV, CALL + helper (IADD3, RET); line 5: CALL + helper again
     assert sum(counts["trav_step"].values()) == 6
     assert sum(counts["finish"].values()) == 4  # CALL, EXIT, helper's IADD3 and RET
@@ -380,6 +431,25 @@ def test_rebuild_of_one_kernel_is_byte_identical() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         doc = build_one("while_while", "sm_90", find_toolchain(), Path(tmp))
     assert dumps(doc) == (IR_DIR / "while_while.sm_90.json").read_text()
+
+
+@pytest.mark.toolchain
+@pytest.mark.skipif(not toolchain_available(), reason=NO_TOOLCHAIN)
+def test_cubins_hold_the_code_the_ir_counts(tmp_path: Path) -> None:
+    """The cubin a GPU loads for hardware counts disassembles to the IR's own listing."""
+    (path,) = write_cubins(tmp_path, "sm_90", ("if_if",), "published")
+    assert path.name == cubin_filename("if_if", "sm_90", "published")
+    tools = find_toolchain()
+    listing = subprocess.run(
+        [str(tools.nvdisasm), "-c", "-g", "-gi", str(path)], capture_output=True, text=True,
+        check=True,
+    ).stdout  # fmt: skip
+    ours = [i for i in parse_listing(listing) if i.function == "if_if" or i.function[0] == "$"]
+    assert ours == compile_listing("if_if", "sm_90", "published")
+    with pytest.raises(KernelIRError, match="unknown arch"):
+        write_cubins(tmp_path, "sm_61", ("if_if",))
+    assert main(["cubins", "--arch", "sm_90", "--kernel", "packet", "--out", str(tmp_path)]) == 0
+    assert (tmp_path / cubin_filename("packet", "sm_90")).stat().st_size > 0
 
 
 @pytest.mark.slow

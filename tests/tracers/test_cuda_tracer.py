@@ -1,4 +1,5 @@
-"""The CUDA tracer: host-side packing and launch rules always; GPU runs vs numba with -m gpu."""
+"""The CUDA tracer: host-side packing and launch rules always; with -m gpu, its hits judged
+against the float64 reference next to numba's."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from simt_sim.errors import SimtSimError
 from simt_sim.schemes import SCHEMES
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.tracers import cuda_tracer as ct
+from simt_sim.tracers.agreement import agreement, occlusion
 from simt_sim.tracers.cuda_tracer import (
     CUPY_HINT,
     NVRTC_OPTIONS,
@@ -30,6 +32,8 @@ from simt_sim.tracers.cuda_tracer import (
     pack_rays,
 )
 from simt_sim.tracers.numba_tracer import trace as numba_trace
+from simt_sim.tracers.reference import trace_reference
+from simt_sim.types.hits import Hits
 from simt_sim.types.raybatch import RayBatch
 
 #: each ray-tracing kernel's launch rule, as the schemes' records give them
@@ -38,8 +42,6 @@ TRACE_KERNELS = tuple(LAUNCHES)
 PERSISTENT_KERNELS = frozenset(k for k, launch in LAUNCHES.items() if launch.persistent)
 
 F32 = np.float32
-#: kernels that visit leaves in the numba tracer's order, so even any-hit results match
-SAME_ORDER = ("while_while", "if_if", "persistent_while_while", "dynamic_fetch")
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -74,10 +76,14 @@ def soup(seed: int, m: int = 300) -> tuple[np.ndarray, np.ndarray]:
     return v, np.arange(3 * m, dtype=np.int32).reshape(m, 3)
 
 
+def one_triangle() -> tuple[np.ndarray, np.ndarray]:
+    v = np.array([[-1, -1, 0], [1, -1, 0], [0, 1, 0]], F32)
+    return v, np.array([[0, 1, 2]], np.int32)
+
+
 def one_triangle_bvh() -> BVH:
     """The scene is one leaf: root = ~0, no nodes."""
-    v = np.array([[-1, -1, 0], [1, -1, 0], [0, 1, 0]], F32)
-    return build_bvh(v, np.array([[0, 1, 2]], np.int32))
+    return build_bvh(*one_triangle())
 
 
 def chain_bvh(depth: int) -> BVH:
@@ -377,45 +383,66 @@ def gpu(sphere_mesh):
     return lambda bvh: CudaTracer(bvh)
 
 
-def assert_same_hits(got, want, exact_tri: bool = True) -> None:
-    assert np.array_equal(got.hit_mask, want.hit_mask)
-    hit = want.hit_mask
-    assert np.all(np.isinf(got.t[~hit]))
-    if exact_tri:
-        assert np.array_equal(got.tri, want.tri)
-        assert np.all(np.abs(got.t[hit] - want.t[hit]) <= 1e-6 * np.abs(want.t[hit]))
-    else:
-        assert np.all(got.tri[hit] >= 0) and np.all(np.isfinite(got.t[hit]))
+FLIPS = 1e-3
+"""Share of rays on which the GPU may be judged worse than numba: nvcc fuses multiply-adds
+(FFMA) where numba rounds each product, so on a ray that grazes an edge or meets two
+triangles at one point the two float32 tests can round to different answers, and either
+may be the one the float64 reference agrees with."""
 
 
-def scenes() -> dict[str, BVH]:
-    return {"soup": build_bvh(*soup(3)), "one_leaf": one_triangle_bvh(), "chain63": chain_bvh(63)}
+def assert_judged(got: Hits, numba: Hits, reference: Hits, query: str) -> None:
+    """The GPU's hits against the float64 reference (the judge), as good as numba's but
+    for :data:`FLIPS`; any-hit results are judged on occlusion alone (the walk's order
+    decides which hit)."""
+    view = occlusion if query == "any" else (lambda h: h)
+    assert np.all(np.isinf(got.t[~got.hit_mask])) and np.all(np.isfinite(got.t[got.hit_mask]))
+    gpu_score = agreement(view(got), view(reference))
+    numba_score = agreement(view(numba), view(reference))
+    assert gpu_score >= numba_score - FLIPS, (gpu_score, numba_score)
+    assert agreement(view(got), view(numba)) >= 1 - FLIPS
+
+
+def scenes() -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    return {"soup": soup(3), "one_leaf": one_triangle()}
 
 
 @pytest.mark.gpu
 @pytest.mark.parametrize("kernel", TRACE_KERNELS)
 @pytest.mark.parametrize("query", ["closest", "any"])
-def test_gpu_hits_equal_numba(gpu, sphere_bvh, kernel, query):
-    cases = [(sphere_bvh, outside_rays(5, 4099, query)), (sphere_bvh, inside_rays(6, 2053, query))]
-    cases += [(bvh, outside_rays(7, 3001, query)) for bvh in scenes().values()]
-    for i, (bvh, rays) in enumerate(cases):
+def test_gpu_hits_agree_with_the_float64_reference(gpu, sphere_mesh, kernel, query):
+    sphere = build_bvh(*sphere_mesh)
+    cases = [(sphere, sphere_mesh, outside_rays(5, 4099, query))]
+    cases.append((sphere, sphere_mesh, inside_rays(6, 2053, query)))
+    cases += [(build_bvh(*mesh), mesh, outside_rays(7, 3001, query)) for mesh in scenes().values()]
+    for bvh, (v, t), rays in cases:
         want = numba_trace(bvh, rays)
         assert want.hit_mask.any() and not want.hit_mask.all()
-        # any hit from inside a closed sphere is its only hit; elsewhere it is order-bound
-        exact = query == "closest" or kernel in SAME_ORDER or i == 1
-        assert_same_hits(gpu(bvh).trace(rays, LAUNCHES[kernel]), want, exact)
+        reference = trace_reference(bvh, v, t, rays)
+        assert_judged(gpu(bvh).trace(rays, LAUNCHES[kernel]), want, reference, query)
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("kernel", TRACE_KERNELS)
+def test_gpu_walks_a_tree_63_deep(gpu, kernel):
+    """Every level pushes a node: the 64-entry stack is full and nothing is lost."""
+    rays = outside_rays(7, 3001, "closest")
+    bvh = chain_bvh(63)
+    want = numba_trace(bvh, rays)
+    got = gpu(bvh).trace(rays, LAUNCHES[kernel])
+    assert want.hit_mask.any() and agreement(got, want) >= 1 - FLIPS
 
 
 @pytest.mark.gpu
 @pytest.mark.parametrize("kernel", sorted(PERSISTENT_KERNELS))
-def test_gpu_persistent_warps_refetch_from_the_pool(gpu, sphere_bvh, kernel):
+def test_gpu_persistent_warps_refetch_from_the_pool(gpu, sphere_bvh, sphere_mesh, kernel):
     tracer = gpu(sphere_bvh)
     lim = tracer.device_limits(LAUNCHES[kernel])
     n = 2 * lim.sms * lim.resident_warps_per_sm * 32 + 5  # every warp fetches more than once
     rays = outside_rays(8, n, "closest")
     hits, seconds = tracer.trace_timed(rays, LAUNCHES[kernel], warmup=1, repeats=2)
     assert len(seconds) == 2 and all(s > 0 for s in seconds)
-    assert_same_hits(hits, numba_trace(sphere_bvh, rays))
+    reference = trace_reference(sphere_bvh, *sphere_mesh, rays)
+    assert_judged(hits, numba_trace(sphere_bvh, rays), reference, "closest")
 
 
 @pytest.mark.gpu
@@ -425,8 +452,63 @@ def test_gpu_trace_timed_repeats_and_checks(gpu, sphere_bvh):
     rays = outside_rays(9, 1000, "any")
     hits, seconds = tracer.trace_timed(rays, LAUNCHES["packet"])
     assert len(seconds) == 10 and all(s > 0 for s in seconds)
-    assert_same_hits(hits, tracer.trace(rays, LAUNCHES["packet"]))
+    again = tracer.trace(rays, LAUNCHES["packet"])
+    assert np.array_equal(hits.tri, again.tri) and np.array_equal(hits.t, again.t)
     with pytest.raises(SimtSimError, match="unknown CUDA kernel"):
         tracer.trace(rays, KernelLaunch("no_such_kernel"))
     with pytest.raises(SimtSimError, match="empty"):
         tracer.trace_timed(outside_rays(0, 0, "any"), LAUNCHES["packet"])
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("ray_type", ["primary", "ao"])
+def test_gpu_hits_agree_with_the_float64_reference_on_conference(gpu, require_shared, ray_type):
+    from simt_sim.study.workload import make_workload
+
+    require_shared("conference/conference.obj")
+    wl = make_workload("conference", ray_type, cameras="0", resolution=(128, 96), spp=2)
+    want = numba_trace(wl.bvh, wl.rays)
+    reference = trace_reference(wl.bvh, wl.scene.vertices, wl.scene.triangles, wl.rays)
+    tracer = gpu(wl.bvh)
+    for kernel in TRACE_KERNELS:
+        assert_judged(tracer.trace(wl.rays, LAUNCHES[kernel]), want, reference, wl.rays.query)
+
+
+def fake_cupy(major: int = 9, minor: int = 0) -> types.SimpleNamespace:
+    """Just enough of cupy for a CudaTracer to be made on a machine without a GPU."""
+
+    class Device:
+        def __init__(self, ordinal: int) -> None:
+            self.attributes = {"MultiProcessorCount": 132}
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc) -> None:
+            return None
+
+    props = {"name": b"NVIDIA H200", "major": major, "minor": minor}
+    runtime = types.SimpleNamespace(
+        getDeviceCount=lambda: 1, CUDARuntimeError=_NoDevice, getDeviceProperties=lambda d: props
+    )
+    return types.SimpleNamespace(
+        cuda=types.SimpleNamespace(runtime=runtime, Device=Device),
+        asarray=np.asarray,
+        zeros=np.zeros,
+        empty=np.empty,
+        int32=np.int32,
+        float32=np.float32,
+    )
+
+
+def test_cubins_are_looked_up_for_the_device_arch(monkeypatch, sphere_bvh, tmp_path):
+    monkeypatch.setitem(sys.modules, "cupy", fake_cupy(9, 0))
+    tracer = CudaTracer(sphere_bvh, cubin_dir=tmp_path, tests="published")
+    assert tracer.arch == "sm_90" and tracer.device_name == "NVIDIA H200"
+    with pytest.raises(SimtSimError) as err:
+        tracer.trace(outside_rays(0, 64, "closest"), LAUNCHES["while_while"])
+    want = tmp_path / "while_while.sm_90.published.cubin"
+    assert str(err.value) == (
+        f"no cubin {want}; write it with `python -m kernels_ir cubins --arch sm_90 --tests "
+        f"published --out {tmp_path}`"
+    )
