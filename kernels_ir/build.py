@@ -138,6 +138,11 @@ def ir_filename(kernel: str, arch: str, tests: str = DEFAULT_TESTS) -> str:
     return f"{kernel}.{arch}.json" if tests == DEFAULT_TESTS else f"{kernel}.{arch}.{tests}.json"
 
 
+def nvcc_flags(arch: str, tests: str) -> list[str]:
+    """Every flag one kernel is compiled with, but its output and source."""
+    return [f"-arch={arch}", *FLAGS, *TEST_DEFINES[tests]]
+
+
 def _compile(
     kernel: str, arch: str, tools: Toolchain, workdir: Path, tests: str
 ) -> tuple[list[str], str, list[SassInstruction]]:
@@ -145,7 +150,7 @@ def _compile(
     instructions of the kernel and of the compiler subroutines (``$__internal_*``) it
     calls, in listing order."""
     cubin = workdir / cubin_filename(kernel, arch, tests)
-    flags = [f"-arch={arch}", *FLAGS, *TEST_DEFINES[tests]]
+    flags = nvcc_flags(arch, tests)
     cmd = [str(tools.nvcc), *flags, "-o", str(cubin), f"{kernel}.cu"]
     proc = _run(cmd, CUDA_DIR)
     log = proc.stdout + proc.stderr
@@ -192,9 +197,8 @@ def write_cubins(
     for kernel in kernels:
         if kernel not in KERNELS:
             raise KernelIRError(f"unknown kernel {kernel!r}; kernels: {', '.join(KERNELS)}")
-        flags = [f"-arch={arch}", *FLAGS, *TEST_DEFINES[tests]]
         path = (out_dir / cubin_filename(kernel, arch, tests)).resolve()
-        _run([str(tools.nvcc), *flags, "-o", str(path), f"{kernel}.cu"], CUDA_DIR)
+        _run([str(tools.nvcc), *nvcc_flags(arch, tests), "-o", str(path), f"{kernel}.cu"], CUDA_DIR)
         paths.append(path)
     return paths
 
