@@ -28,6 +28,7 @@ import re
 import statistics
 import sys
 import time
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -232,16 +233,14 @@ def import_run(run_dir: Path) -> None:
     print(f"wrote {OUT_DIR}")
 
 
-def replay_result(work: dict, kernel: str, scheme_name: str, ray_type: str, warps: int):
-    """The replay of the measured rays on the GPU's configuration, with the launch's
-    warps as the resident warps of a persistent kernel."""
+def replay_result(trace, kernel: str, scheme_name: str, warps: int):
+    """The replay of the measured rays' ``trace`` on the GPU's configuration, with the
+    launch's warps as the resident warps of a persistent kernel."""
     from kernels_ir import load as load_ir
     from simt_sim.simt.gpus import get_gpu
     from simt_sim.simt.replay import simulate_traces
-    from simt_sim.trace.record import record_all
 
     scheme = schemes.get_scheme(scheme_name)
-    trace = record_all(work["bvh"], work["rays"][ray_type])
     resident = warps if scheme.launch.persistent else None
     return simulate_traces(
         [trace], scheme, load_ir(kernel, ARCH), get_gpu(GPU), scene=SCENE,
@@ -249,12 +248,18 @@ def replay_result(work: dict, kernel: str, scheme_name: str, ray_type: str, warp
     )  # fmt: skip
 
 
+@cache
+def ir_listing(kernel: str) -> list:
+    """The IR build's SASS of ``kernel`` (compiled once per kernel, not per launch)."""
+    from kernels_ir.build import compile_listing
+
+    return compile_listing(kernel, ARCH)
+
+
 def checked_listing(kernel: str, sass: pd.Series) -> list:
     """The IR build's listing of ``kernel``, checked instruction by instruction against
     the SASS the GPU ran (the cubins are the IR's code, so they must agree)."""
-    from kernels_ir.build import compile_listing
-
-    listing = compile_listing(kernel, ARCH)
+    listing = ir_listing(kernel)
     ops = sass.str.replace(r"^@!?U?P[T0-9]+\s+", "", regex=True).str.split().str[0]
     if len(listing) != len(ops) or any(
         ins.opcode.split(".")[0] != op.split(".")[0] for ins, op in zip(listing, ops, strict=True)
@@ -282,8 +287,10 @@ def compare() -> tuple[pd.DataFrame, pd.DataFrame]:
     """Hardware against replay per launch (warp and lane instructions, SIMD efficiency,
     the reconvergence barriers' excess), and per block (summed over the ray types)."""
     from simt_sim.study.dyncount import walk_blocks
+    from simt_sim.trace.record import record_all
 
     work = workloads()
+    traces = {rt: record_all(work["bvh"], rays) for rt, rays in work["rays"].items()}
     launches = pd.read_csv(OUT_DIR / "h200_launches.csv")
     per_ins = pd.read_csv(OUT_DIR / "h200_instructions.csv.gz")
     rows, blocks = [], []
@@ -291,7 +298,7 @@ def compare() -> tuple[pd.DataFrame, pd.DataFrame]:
         ins = per_ins[(per_ins.kernel == launch.kernel) & (per_ins.ray_type == launch.ray_type)]
         listing = checked_listing(launch.kernel, ins["sass"])
         warps = ins["warps"].to_numpy()
-        r = replay_result(work, launch.kernel, launch.scheme, launch.ray_type, launch.warps)
+        r = replay_result(traces[launch.ray_type], launch.kernel, launch.scheme, launch.warps)
         lanes = int((r.counts.active * r.costs).sum())
         hw, hw_lanes = launch.inst_executed, launch.thread_inst_executed
         bsync = reconvergence_excess(listing, warps)
@@ -309,7 +316,7 @@ def compare() -> tuple[pd.DataFrame, pd.DataFrame]:
         diff = pd.Series(r.block_instructions).sub(walk_blocks(launch.kernel, warps, listing),
                                                    fill_value=0)  # fmt: skip
         for block, d in diff.items():
-            blocks.append({"kernel": launch.kernel, "block": block, "diff": d, "hw": hw})
+            blocks.append({"kernel": launch.kernel, "block": block, "diff": d})
     per_block = pd.DataFrame(blocks)
     totals = launches.groupby("kernel", sort=False)["inst_executed"].sum()
     share = per_block.groupby(["kernel", "block"], sort=False)["diff"].sum().unstack(fill_value=0)
