@@ -34,7 +34,7 @@ from typing import NamedTuple
 
 from kernels_ir.cfg import ControlFlow, build_cfg
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kernel_ir import BLOCKS, CLASSES
+from kernels_ir.kernel_ir import BLOCKS, CLASSES, SPIN_BLOCKS
 from kernels_ir.sass import SassInstruction, base_opcode, branch_target, classify
 
 UNATTRIBUTED = "unattributed"
@@ -218,6 +218,34 @@ def full_warp_only(instructions: Sequence[SassInstruction]) -> set[int]:
                 out.update(range(i + 1, target))
     return out
 
+
+def convergence_spins(instructions: Sequence[SassInstruction]) -> set[int]:
+    """Indices of the compiler's convergence spins: on sm_75 nvcc puts, on a path
+    into a full-warp vote (``__ballot_sync(0xffffffff, ...)``), a loop that waits for the
+    warp's other lanes: ``VOTE.ANY R, PT, PT`` (at its label), ``YIELD``, ``VOTEU.ANY``,
+    ``LOP3.LUT P``, ``@!P BRA.U`` out, and ``BRA`` back to the label. sm_80 and later
+    wait with ``WARPSYNC`` and have none."""
+    out: set[int] = set()
+    for i, ins in enumerate(instructions):
+        ops = [o.strip() for o in ins.text.split(None, 1)[-1].split(",")]
+        if not (base_opcode(ins.opcode) == "VOTE" and ".ANY" in ins.opcode and ins.labels):
+            continue
+        if ops[-2:] != ["PT", "PT"] or i + 1 >= len(instructions):
+            continue
+        if base_opcode(instructions[i + 1].opcode) != "YIELD":
+            continue
+        for j in range(i + 2, min(i + _SPIN_LENGTH, len(instructions))):
+            if (
+                base_opcode(instructions[j].opcode) == "BRA"
+                and branch_target(instructions[j]) in instructions[i].labels
+            ):
+                out.update(range(i, j + 1))
+                break
+    return out
+
+
+#: instructions of a convergence spin, at most
+_SPIN_LENGTH = 8
 
 #: share of a SASS loop's code that must lie in a source loop for the two to be one
 _SAME_LOOP = 0.8
@@ -426,8 +454,22 @@ def place_instructions(
         sites = callers.get(ins.function)
         if ins.function.startswith("$") and sites and i <= last_ret.get(ins.function, -1):
             block[i] = sites.most_common(1)[0][0]
+    # a spin block's marker claims the convergence spin on its path, nothing else: other
+    # code of its lines (the test that leads there) stays with the block before it
+    spins = convergence_spins(instructions)
+    for i in kernel:
+        if block[i] in SPIN_BLOCKS and i not in spins:
+            block[i] = _block_before(owner, instructions[i].line) or UNATTRIBUTED
     full_warp = frozenset(full_warp_only(instructions))
     return Placement(block, frozenset(fallback_idx), callers, full_warp)
+
+
+def _block_before(owner: dict[int, str], line: int) -> str | None:
+    """The block of the nearest line above ``line`` that no spin block owns."""
+    for above in range(line - 1, 0, -1):
+        if owner.get(above) not in (None, *SPIN_BLOCKS):
+            return owner[above]
+    return None
 
 
 def map_blocks(

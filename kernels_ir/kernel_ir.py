@@ -9,6 +9,12 @@ block              charged when
 ray_setup          a lane starts a new ray (load ray, inverse direction, init stack)
 pool_fetch         a warp (persistent) or lane group (dynamic fetch) takes rays from the pool
 loop_control       one iteration of the outer trace loop (termination checks)
+refill_test        dynamic fetch: the lanes still tracing, while the warp's pool has rays,
+                   count themselves against the refill threshold
+refill_break       ... fewer than the threshold trace: they leave for the refill (the
+                   compiler's convergence spin before the warp's ballot)
+idle_wait          dynamic fetch: lanes the emptied pool left without a ray go back to
+                   wait for the tracing ones (their own convergence spin)
 trav_step          a traversal step: node fetch and both child box tests (TRAV_* ops)
 trav_none          ... neither child hit: pop the stack          (TRAV_NONE)
 trav_one           ... one child hit: go there                    (TRAV_ONE)
@@ -42,6 +48,9 @@ BLOCKS = (
     "ray_setup",
     "pool_fetch",
     "loop_control",
+    "refill_test",
+    "refill_break",
+    "idle_wait",
     "trav_step",
     "trav_none",
     "trav_one",
@@ -57,6 +66,9 @@ BLOCKS = (
     "shade",
     "queue_push",
 )
+SPIN_BLOCKS = ("refill_break", "idle_wait")
+"""Blocks whose code is what the compiler puts on a path (a convergence spin before a warp
+vote, sm_75): a target that needs none (sm_80 on) leaves them empty."""
 TRI_TEST_BLOCKS = ("tri_test", "tri_u", "tri_v")
 """The Woop triangle test's stages (t, u, v): a whole test, as a warp that runs it through
 costs it."""

@@ -35,6 +35,7 @@ extern "C" __global__ void cwbvh_persistent_while_while(const float4* __restrict
         base = __shfl_sync(SIMT_FULL_MASK, base, 0);
         if (base >= num_rays) break;
         const int ray = base + (int)simt_lane_id();
+        // @block idle_wait
         if (ray < num_rays) {
             // @block ray_setup
             const Ray r = simt_load_ray(ray_o, ray_d, ray);

@@ -43,6 +43,8 @@ extern "C" __global__ void dynamic_fetch(const float4* __restrict__ nodes,
             }
         }
         if (__all_sync(SIMT_FULL_MASK, node == SIMT_SENTINEL)) break;
+        // @block idle_wait
+        if (node == SIMT_SENTINEL) continue;
         // @block loop_control
 #pragma unroll 1
         while (node != SIMT_SENTINEL) {
@@ -107,8 +109,11 @@ extern "C" __global__ void dynamic_fetch(const float4* __restrict__ nodes,
                 simt_store_hit(tri_index, hit_tri, hit_t, ray, hit_addr, t_best);
                 break;  // so that the lanes counted below are those still holding a ray
             }
-            // @block loop_control
-            if (!pool_empty && __popc(__activemask()) < SIMT_DYNAMIC_FETCH_THRESHOLD) break;
+            // @block refill_test
+            const bool refill =
+                !pool_empty && __popc(__activemask()) < SIMT_DYNAMIC_FETCH_THRESHOLD;
+            // @block refill_break
+            if (refill) break;
         }
         // @block pool_fetch
     }

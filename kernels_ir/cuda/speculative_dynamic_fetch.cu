@@ -47,6 +47,8 @@ extern "C" __global__ void speculative_dynamic_fetch(
             }
         }
         if (__all_sync(SIMT_FULL_MASK, ray < 0)) break;
+        // @block idle_wait
+        if (ray < 0) continue;
         // @block loop_control
 #pragma unroll 1
         while (ray >= 0) {
@@ -120,8 +122,11 @@ extern "C" __global__ void speculative_dynamic_fetch(
                 ray = -1;
                 break;
             }
-            // @block loop_control
-            if (!pool_empty && __popc(__activemask()) < SIMT_DYNAMIC_FETCH_THRESHOLD) break;
+            // @block refill_test
+            const bool refill =
+                !pool_empty && __popc(__activemask()) < SIMT_DYNAMIC_FETCH_THRESHOLD;
+            // @block refill_break
+            if (refill) break;
         }
         // @block pool_fetch
     }

@@ -127,12 +127,15 @@ from simt_sim.errors import SimtSimError
 from simt_sim.simt.card import model_card
 from simt_sim.simt.engine import (
     FINISH,
+    IDLE_WAIT,
     LEAF_ENTRY,
     LOOP_CONTROL,
     N_BLOCKS,
     POOL_FETCH,
     POSTPONE,
     RAY_SETUP,
+    REFILL_BREAK,
+    REFILL_TEST,
     TRAV_DIVERGED,
     TRAV_NONE_B,
     TRAV_STEP,
@@ -870,6 +873,7 @@ def _execute_wide(persistent, nodes, width, woop, tri_index, root, origin, direc
         cost = np.int64(0)
         if persistent:
             cost += charge(c, h, costs, POOL_FETCH, lanes)
+            cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
         cost += charge(c, h, costs, RAY_SETUP, lanes)
         rest = _wide_while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i,
                                  any_hit, ops, base, c, h, costs)  # fmt: skip
@@ -1109,6 +1113,7 @@ def _execute_cwbvh(nodes, woop, tri_index, origin, direction, tmin, tmax, any_hi
         c = cnt[u]
         h = hist[u]
         cost = charge(c, h, costs, POOL_FETCH, lanes)
+        cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
         cost += charge(c, h, costs, RAY_SETUP, lanes)
         rest = _cw_group(lc, lf, stack, lanes, nodes, nodes_f, nodes_u, woop, any_hit, ops,
                          base, c, h, costs)  # fmt: skip
@@ -1144,6 +1149,7 @@ def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, 
         cost = np.int64(0)
         if persistent:
             cost += charge(c, h, costs, POOL_FETCH, lanes)
+            cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
         cost += charge(c, h, costs, RAY_SETUP, lanes)
         if body == WHILE_WHILE_BODY:
             rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,
@@ -1198,13 +1204,16 @@ def _execute_fetch(nodes, woop, tri_index, root, origin, direction, tmin, tmax, 
     totals = np.zeros(resident, np.int64)
     span = np.int64(0)
     pool = 0
+    dry = np.zeros(resident, np.bool_)  # the warp's last fetch emptied the pool
+    at_top = np.ones(resident, np.bool_)  # the warp is at its loop's top (a refill point)
     while size > 0:
         w = wid[0]
         issued = np.int64(0)
         held = 0
         for lane in range(warp_size):
             held += ray[w, lane] >= 0
-        if held < threshold and pool < n:
+        if at_top[w] and not dry[w]:
+            idle = warp_size - held
             fetched = 0
             for lane in range(warp_size):
                 if ray[w, lane] < 0 and pool < n:
@@ -1212,12 +1221,15 @@ def _execute_fetch(nodes, woop, tri_index, root, origin, direction, tmin, tmax, 
                     _init_lane(li[w], lf[w], lane, pool, origin, direction, tmin, tmax, root)
                     pool += 1
                     fetched += 1
-            issued += charge(cnt, hist, costs, POOL_FETCH, fetched)
+            issued += charge(cnt, hist, costs, POOL_FETCH, idle if fetched else 0)
             issued += charge(cnt, hist, costs, RAY_SETUP, fetched)
+            dry[w] = pool == n
             held += fetched
-        if held == 0:  # the pool is empty and so is the warp: it retires
-            totals[w] = key[0]
-            span = max(span, key[0])
+            if held:
+                issued += charge(cnt, hist, costs, IDLE_WAIT, warp_size - held)
+        if held == 0:  # the warp holds no ray and gets none: it retires
+            totals[w] = key[0] + issued
+            span = max(span, totals[w])
             size -= 1
             key[0] = key[size]
             wid[0] = wid[size]
@@ -1243,6 +1255,13 @@ def _execute_fetch(nodes, woop, tri_index, root, origin, direction, tmin, tmax, 
             lane_ops[w, lane] = 0
             ray[w, lane] = -1
         issued += charge(cnt, hist, costs, FINISH, done)
+        tracing = held - done
+        at_top[w] = tracing == 0
+        if tracing and not dry[w]:
+            issued += charge(cnt, hist, costs, REFILL_TEST, tracing)
+            if tracing < threshold:
+                issued += charge(cnt, hist, costs, REFILL_BREAK, tracing)
+                at_top[w] = True
         key[0] += issued
         heap_sift_down(key, wid, size, 0)
     return cnt, hist, totals, span, out_tri, out_t, ops, False

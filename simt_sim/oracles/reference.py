@@ -202,11 +202,17 @@ def _spec_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
     return issued + _leaf_loop(w, alive, rec)
 
 
+def _idle_wait(n: int, rec: RefCounts) -> int:
+    """A fetched group of ``n`` rays: the lanes past the pool's end wait (``idle_wait``)."""
+    return rec.charge("idle_wait", list(range(n, rec.warp_size)))
+
+
 def speculative_group(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
     """One fetched group of persistent speculative while-while, in issue order."""
     w = _Lanes(streams)
     everyone = list(range(len(streams)))
-    issued = rec.charge("pool_fetch", everyone) + rec.charge("ray_setup", everyone)
+    issued = rec.charge("pool_fetch", everyone) + _idle_wait(len(everyone), rec)
+    issued += rec.charge("ray_setup", everyone)
     while True:
         alive = [lane for lane in everyone if w.next(lane) is not None]
         if not alive:
@@ -218,6 +224,7 @@ def speculative_group(streams: list[list[int]], addrs: list[list[int]], rec: Ref
 def persistent_group(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
     """One fetched group of persistent while-while: pool_fetch, then a while-while warp."""
     issued = rec.charge("pool_fetch", list(range(len(streams))))
+    issued += _idle_wait(len(streams), rec)
     return issued + while_while_warp(streams, addrs, rec)
 
 
@@ -247,7 +254,7 @@ def cwbvh_group(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts
             elif _is_tri(o):
                 its[-1].append(o)
         iterations.append(its)
-    issued = rec.charge("pool_fetch", everyone)
+    issued = rec.charge("pool_fetch", everyone) + _idle_wait(len(everyone), rec)
     issued += rec.charge("ray_setup", everyone)
     j = 0
     while True:
@@ -308,10 +315,20 @@ def _fetch_launch(
     iteration: Callable[[_Lanes, list[int], RefCounts], int],
 ) -> tuple[list[int], int]:
     """One dynamic-fetch launch whose warps run ``iteration`` between refills: each
-    resident warp's instructions and the makespan."""
+    resident warp's instructions and the makespan.
+
+    One event per inner iteration, the warp with the fewest instructions first. A warp
+    at the top of its loop (no lane traces, or fewer than ``threshold``) that is not dry
+    fetches for its idle lanes (``pool_fetch``, uncharged if it gets no ray, and
+    ``ray_setup``); it is dry once a fetch empties the pool. Holding no ray it retires;
+    idle lanes beside tracing ones wait (``idle_wait``). After an iteration the lanes
+    still tracing of a warp that is not dry test the threshold (``refill_test``) and,
+    below it, break (``refill_break``)."""
     w = rec.warp_size
     slots: list[list[int | None]] = [[None] * w for _ in range(resident)]  # ray per lane
     cursors = [[0] * w for _ in range(resident)]
+    dry = [False] * resident
+    at_top = [True] * resident
     pool = 0
     heap = [(0, wid) for wid in range(resident)]
     totals = [0] * resident
@@ -320,18 +337,23 @@ def _fetch_launch(
         issued_so_far, wid = heapq.heappop(heap)
         ray, cur = slots[wid], cursors[wid]
         issued = 0
-        held = [lane for lane in range(w) if ray[lane] is not None]
-        if len(held) < threshold and pool < len(rays):
+        if at_top[wid] and not dry[wid]:
+            idle = [lane for lane in range(w) if ray[lane] is None]
             fetch = []
-            for lane in range(w):
-                if ray[lane] is None and pool < len(rays):
+            for lane in idle:
+                if pool < len(rays):
                     ray[lane], cur[lane] = pool, 0
                     pool += 1
                     fetch.append(lane)
-            issued += rec.charge("pool_fetch", fetch) + rec.charge("ray_setup", fetch)
+            issued += rec.charge("pool_fetch", idle if fetch else [])
+            issued += rec.charge("ray_setup", fetch)
+            dry[wid] = pool == len(rays)
+            waiting = [lane for lane in range(w) if ray[lane] is None]
+            if len(waiting) < w:
+                issued += rec.charge("idle_wait", waiting)
         if all(r is None for r in ray):
-            totals[wid] = issued_so_far
-            span = max(span, issued_so_far)
+            totals[wid] = issued_so_far + issued
+            span = max(span, totals[wid])
             continue
         lanes = _Lanes([rays[r] if r is not None else [] for r in ray])
         lanes.cur = cur
@@ -344,6 +366,13 @@ def _fetch_launch(
         issued += rec.charge("finish", done)
         for lane in done:
             ray[lane] = None
+        tracing = [lane for lane in range(w) if ray[lane] is not None]
+        at_top[wid] = not tracing
+        if tracing and not dry[wid]:
+            issued += rec.charge("refill_test", tracing)
+            if len(tracing) < threshold:
+                issued += rec.charge("refill_break", tracing)
+                at_top[wid] = True
         heapq.heappush(heap, (issued_so_far + issued, wid))
     return totals, span
 

@@ -26,6 +26,7 @@ from simt_sim.oracles.lockstep import CWBVH_BODY
 from simt_sim.oracles.reference import cwbvh_group
 from simt_sim.simt.engine import (
     FINISH,
+    IDLE_WAIT,
     LOOP_CONTROL,
     N_BLOCKS,
     N_CHUNKS,
@@ -53,6 +54,7 @@ from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_LAST, TRAV_WIDE, is_tra
 BLOCKS_CHARGED = (
     "ray_setup",
     "pool_fetch",
+    "idle_wait",
     "loop_control",
     "trav_step",
     "tri_test",
@@ -124,6 +126,7 @@ def _tri_loop(op, cur, end, tri, acc, costs, cnt, hist):
 def _group(offsets, op, r0, n, cur, end, acc, costs, cnt, hist):
     """One fetched group of ``n`` lanes (rays ``r0 ..``); returns its instructions."""
     issued = charge(cnt, hist, costs, POOL_FETCH, n)
+    issued += charge(cnt, hist, costs, IDLE_WAIT, cur.shape[0] - n)
     issued += charge(cnt, hist, costs, RAY_SETUP, n)
     alive = np.int64(0)
     for lane in range(n):

@@ -1,13 +1,19 @@
 """dynamic fetch (Kepler addendum, Aila et al. 2012): dead lanes refill while others work.
 
-``resident_warps`` persistent warps share the launch's ray pool. At the top of each outer
-iteration of a warp, if fewer than ``threshold`` lanes hold a ray and the pool is not
-empty, the lanes without a ray take the next rays of the pool (in lane order):
-``pool_fetch`` once with the refilling lanes (one atomic per warp), then ``ray_setup``
-with them. Then one while-while outer iteration (``loop_control``, traversal loop,
-intersection loop) with the lanes that have ops left, and ``finish`` with the lanes whose
-ray ended in this iteration (finish is per ray here). A warp whose lanes are all done
-once the pool is empty retires.
+``resident_warps`` persistent warps share the launch's ray pool. Each warp follows its
+kernel's loops (``kernels_ir/cuda/dynamic_fetch.cu``):
+
+- at the top of the warp loop, unless the warp's last fetch emptied the pool (it is
+  *dry*), its lanes without a ray take the next rays of the pool in lane order:
+  ``pool_fetch`` with those lanes (one atomic per warp; a fetch that gets no ray, the
+  last of a warp, is not charged, as in the persistent kernels), then ``ray_setup`` with
+  the lanes that got one. A warp holding no ray then retires;
+  lanes left without one while others trace go back to wait (``idle_wait``);
+- then inner iterations, each one while-while outer iteration (``loop_control``,
+  traversal loop, intersection loop) with the lanes holding a ray, and ``finish`` with the
+  lanes whose ray ended (finish is per ray here). Unless the warp is dry, the lanes still
+  tracing count themselves (``refill_test``) and, fewer than ``threshold``, leave for the
+  top (``refill_break``); a dry warp traces until its last lane is done.
 
 Scheduling is a discrete-event simulation: the warp with the fewest instructions issued
 so far runs its next outer iteration (ties to the lowest id), so which rays a warp gets
@@ -15,17 +21,17 @@ depends on the block costs: results depend on the launch size and cannot be re-c
 with another KernelIR without replaying.
 
 How it is replayed, exactly and in parallel. The warps only interact through the pool,
-and only at *refill points*: the starts of iterations with fewer than ``threshold`` lanes
-holding a ray. Between two refill points a warp's iterations depend on its own lanes
-alone. Event order is (start time, warp id) with time = instructions issued so far, so the
-refill points are served in that order; a warp that has just refilled at time ``t`` will
-reach its next refill point no earlier than ``t`` + the cost of the refill and of the
-traversal loop its longest first traversal run forces (a lower bound known at refill
-time). The sequential loop therefore serves refill points in order while each is
-earlier than every pending warp's bound, and when one is not, replays the pending warps'
-iterations up to their next refill points in parallel. Counters are integer sums and
-every warp's iterations are the same as in a one-event-at-a-time simulation, so the
-result is that simulation's, bit for bit, at any thread count.
+and only at *refill points*: the tops of the warp loop. Between two refill points a warp's
+iterations depend on its own lanes alone. Event order is (start time, warp id) with time =
+instructions issued so far, so the refill points are served in that order; a warp that
+has just refilled at time ``t`` will reach its next refill point no earlier than ``t`` +
+the cost of the refill and of the traversal loop its longest first traversal run forces
+(a lower bound known at refill time). The sequential loop therefore serves refill points
+in order while each is earlier than every pending warp's bound, and when one is not,
+replays the pending warps' iterations up to their next refill points in parallel.
+Counters are integer sums and every warp's iterations are the same as in a
+one-event-at-a-time simulation, so the result is that simulation's, bit for bit, at any
+thread count.
 
 Each warp keeps the mask of lanes holding a ray; after an outer iteration every lane
 still holding one is at a TRAV op, so only refilled lanes need classifying.
@@ -47,10 +53,13 @@ from simt_sim.schemes.persistent_speculative_while_while import SCRATCH_ROWS, sp
 from simt_sim.schemes.while_while import WINDOW, classify, outer_step
 from simt_sim.simt.engine import (
     FINISH,
+    IDLE_WAIT,
     LOOP_CONTROL,
     N_BLOCKS,
     POOL_FETCH,
     RAY_SETUP,
+    REFILL_BREAK,
+    REFILL_TEST,
     TRAV_NONE_B,
     TRAV_STEP,
     Counts,
@@ -60,7 +69,7 @@ from simt_sim.simt.engine import (
     lowest_lane,
     popcount,
 )
-from simt_sim.simt.scheme import TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
+from simt_sim.simt.scheme import FETCH_BLOCKS, TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
 from simt_sim.types.optrace import TRAV_BOTH
 
 #: refill dead lanes when fewer than this many lanes hold a ray (the kernel's default)
@@ -72,14 +81,14 @@ _NEVER = np.iinfo(np.int64).max
 
 
 @njit(cache=True, nogil=True)
-def _iterate(op, cur, end, held, fresh, issued, t, threshold, tail, speculative, acc, post,
+def _iterate(op, cur, end, held, fresh, issued, t, threshold, dry, speculative, acc, post,
              scratch, costs, cnt, hist):  # fmt: skip
-    """A warp's iterations from the one starting at time ``t``, whose refill (lanes
-    ``fresh``, costing ``issued``) is done, up to the start of the next iteration with
-    fewer than ``threshold`` lanes holding a ray (``tail``: with none, the pool being
-    empty). ``held`` holds a ray; all but the fresh lanes are at a TRAV op. Returns that
-    start time and the lanes then holding a ray. ``speculative`` chooses the outer
-    iteration (``post`` and ``scratch`` are its scratch).
+    """A warp's inner iterations from the refill point at time ``t``, whose refill (lanes
+    ``fresh``, costing ``issued``) is done, up to its next refill point: no lane holds a
+    ray, or (the warp not ``dry``) fewer than ``threshold`` lanes still trace and break
+    for a refill. ``held`` holds a ray; all but the fresh lanes are at a TRAV op. Returns
+    that refill point's time and the lanes then holding a ray. ``speculative`` chooses
+    the outer iteration (``post`` and ``scratch`` are its scratch).
     """
     trav = held & ~fresh
     leaf = np.int64(0)
@@ -99,9 +108,16 @@ def _iterate(op, cur, end, held, fresh, issued, t, threshold, tail, speculative,
                 o_issued, alive = outer_step(op, cur, end, trav, leaf, acc, costs, cnt, hist)
             issued += o_issued
         issued += charge(cnt, hist, costs, FINISH, popcount(held & ~alive))
+        tracing = popcount(alive)
+        refill = False
+        if tracing and not dry:
+            issued += charge(cnt, hist, costs, REFILL_TEST, tracing)
+            if tracing < threshold:
+                issued += charge(cnt, hist, costs, REFILL_BREAK, tracing)
+                refill = True
         t += issued
         held = alive
-        if held == 0 or (not tail and popcount(held) < threshold):
+        if held == 0 or refill:
             return t, held
         issued = np.int64(0)
         trav = held
@@ -137,8 +153,10 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, speculativ
     pending = np.empty(resident_warps, np.int64)
     n_pending = 0
     bound = _NEVER  # no pending warp reaches its next refill point before this
-    done = np.empty(resident_warps, np.int64)  # warps that met an empty pool, in order
+    done = np.empty(resident_warps, np.int64)  # warps whose fetch found the pool empty
     n_done = 0
+    dry = np.zeros(resident_warps, np.bool_)  # the warp's last fetch emptied the pool
+    lanes = np.int64(-1) if warp_size == 64 else (np.int64(1) << warp_size) - 1
     step_floor = costs[TRAV_STEP] + min(
         costs[TRAV_NONE_B], costs[TRAV_NONE_B + 1], costs[TRAV_NONE_B + 2]
     )
@@ -150,26 +168,37 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, speculativ
             key[0] = key[size]
             wid[0] = wid[size]
             heap_sift_down(key, wid, size, 0)
-            if pool == n_rays:
-                done[n_done] = w
-                n_done += 1
+            if dry[w]:  # back at the top with every lane done: it retires
                 continue
             h = held[w]
+            idle = lanes & ~h
             new = np.int64(0)
             iters = np.int64(h != 0)
             for lane in range(warp_size):
-                if not (h >> lane) & 1 and pool < n_rays:
+                if (idle >> lane) & 1 and pool < n_rays:
                     new |= np.int64(1) << lane
                     cur[w, lane] = offsets[pool]
                     end[w, lane] = offsets[pool + 1]
                     iters = max(iters, runs[pool])
                     pool += 1
             k = popcount(new)
-            issued = charge(cnt[0], hist[0], costs, POOL_FETCH, k)
+            # a fetch that gets no ray (a warp's last) is not charged, as in the persistent
+            # kernels: it is once per resident warp and launch
+            issued = charge(cnt[0], hist[0], costs, POOL_FETCH, popcount(idle) * (k > 0))
             issued += charge(cnt[0], hist[0], costs, RAY_SETUP, k)
-            held[w] = h | new
+            dry[w] = pool == n_rays
+            h |= new
+            if h == 0:  # nothing to trace: it retires
+                t[w] += issued
+                continue
+            issued += charge(cnt[0], hist[0], costs, IDLE_WAIT, popcount(lanes & ~h))
+            held[w] = h
             fresh[w] = new
             pend[w] = issued
+            if k == 0 and dry[w]:  # the pool was empty already: it traces to the end
+                done[n_done] = w
+                n_done += 1
+                continue
             pending[n_pending] = w
             n_pending += 1
             lower = t[w] + issued + iters * step_floor
@@ -183,7 +212,7 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, speculativ
             for i in range(n_pending * s // N_SLOTS, n_pending * (s + 1) // N_SLOTS):
                 w = pending[i]
                 t[w], held[w] = _iterate(
-                    op, cur[w], end[w], held[w], fresh[w], pend[w], t[w], threshold, False,
+                    op, cur[w], end[w], held[w], fresh[w], pend[w], t[w], threshold, dry[w],
                     speculative, acc[s], post[s], scratch[s], costs, cnt[s], hist[s],
                 )  # fmt: skip
         for i in range(n_pending):
@@ -194,12 +223,12 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, speculativ
             heap_sift_down(key, wid, size, i)
         n_pending = 0
         bound = _NEVER
-    # the pool is empty: each warp finishes its lanes and retires
+    # the pool is empty: each warp that found it so finishes its lanes and retires
     for s in prange(N_SLOTS):
         for i in range(n_done * s // N_SLOTS, n_done * (s + 1) // N_SLOTS):
             w = done[i]
             t[w], held[w] = _iterate(
-                op, cur[w], end[w], held[w], 0, 0, t[w], threshold, True, speculative,
+                op, cur[w], end[w], held[w], 0, pend[w], t[w], threshold, True, speculative,
                 acc[s], post[s], scratch[s], costs, cnt[s], hist[s],
             )  # fmt: skip
     span = np.int64(0)
@@ -238,7 +267,7 @@ SCHEME = SchemeInfo(
     description="persistent warps whose dead lanes refill from the pool when fewer "
     "than a threshold of lanes hold a ray",
     kind=TRACE,
-    kernels={"dynamic_fetch": (*TRACE_BLOCKS, "pool_fetch")},
+    kernels={"dynamic_fetch": (*TRACE_BLOCKS, *FETCH_BLOCKS)},
     persistent=True,
     recostable=False,
     approximations=(

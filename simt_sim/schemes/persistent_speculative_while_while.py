@@ -42,6 +42,7 @@ from simt_sim.schemes.while_while import (
 )
 from simt_sim.simt.engine import (
     FINISH,
+    IDLE_WAIT,
     LEAF_ENTRY,
     LOOP_CONTROL,
     N_BLOCKS,
@@ -65,7 +66,7 @@ from simt_sim.simt.engine import (
     popcount,
     record_warp,
 )
-from simt_sim.simt.scheme import TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
+from simt_sim.simt.scheme import POOL_BLOCKS, TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
 from simt_sim.types.optrace import LEAF, TRAV_BOTH
 
 #: rows of the lane scratch of :func:`spec_outer_step`: park, park_end, pcur, first
@@ -206,6 +207,7 @@ def _group(offsets, op, r0, n, cur, end, scratch, acc, post, costs, cnt, hist):
         end[lane] = offsets[r0 + lane + 1]
         trav, leaf = classify(op, cur, end, lane, trav, leaf)
     issued = charge(cnt, hist, costs, POOL_FETCH, n)
+    issued += charge(cnt, hist, costs, IDLE_WAIT, cur.shape[0] - n)
     issued += charge(cnt, hist, costs, RAY_SETUP, n)
     while trav | leaf:
         o_issued, trav = spec_outer_step(op, cur, end, trav, leaf, scratch, acc, post, costs,
@@ -267,7 +269,7 @@ SCHEME = SchemeInfo(
     description="persistent while-while where a lane that finds a leaf postpones it and "
     "keeps traversing",
     kind=TRACE,
-    kernels={"persistent_speculative_while_while": (*TRACE_BLOCKS, "pool_fetch", "postpone")},
+    kernels={"persistent_speculative_while_while": (*TRACE_BLOCKS, *POOL_BLOCKS, "postpone")},
     persistent=True,
     approximations=(
         "ideal work distribution: each fetch goes to the warp with the fewest instructions "

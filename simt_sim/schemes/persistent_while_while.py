@@ -19,6 +19,7 @@ from simt_sim.oracles.lockstep import WHILE_WHILE_BODY
 from simt_sim.oracles.reference import persistent_group
 from simt_sim.schemes.while_while import WINDOW, warp_body
 from simt_sim.simt.engine import (
+    IDLE_WAIT,
     N_BLOCKS,
     N_CHUNKS,
     POOL_FETCH,
@@ -32,13 +33,15 @@ from simt_sim.simt.engine import (
     persistent_counts,
     record_warp,
 )
-from simt_sim.simt.scheme import TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
+from simt_sim.simt.scheme import POOL_BLOCKS, TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
 
 
 @njit(cache=True, nogil=True)
 def _group(offsets, op, r0, n, cur, end, acc, costs, cnt, hist):
-    """One fetched group: ``pool_fetch`` with its lanes, then the while-while warp body."""
+    """One fetched group: ``pool_fetch`` with its lanes (``idle_wait`` with the lanes past
+    the pool's end, in a launch's last group), then the while-while warp body."""
     issued = charge(cnt, hist, costs, POOL_FETCH, n)
+    issued += charge(cnt, hist, costs, IDLE_WAIT, cur.shape[0] - n)
     return issued + warp_body(offsets, op, r0, n, cur, end, acc, costs, cnt, hist)
 
 
@@ -89,8 +92,8 @@ SCHEME = SchemeInfo(
     description="resident warps fetch 32 rays at a time from a shared pool "
     "(ideal scheduling) and run while-while on them",
     kind=TRACE,
-    kernels={"persistent_while_while": (*TRACE_BLOCKS, "pool_fetch")},
-    wide={"bvh4": {"bvh4_persistent_while_while": (*TRACE_BLOCKS, "pool_fetch")}},
+    kernels={"persistent_while_while": (*TRACE_BLOCKS, *POOL_BLOCKS)},
+    wide={"bvh4": {"bvh4_persistent_while_while": (*TRACE_BLOCKS, *POOL_BLOCKS)}},
     persistent=True,
     approximations=(
         "ideal work distribution: each fetch goes to the warp with the fewest instructions "

@@ -23,7 +23,7 @@ from simt_sim.oracles.reference import speculative_dynamic_fetch_launch
 from simt_sim.schemes.dynamic_fetch import DEFAULT_THRESHOLD, fetch_counts
 from simt_sim.schemes.dynamic_fetch import SCHEME as DYNAMIC_FETCH
 from simt_sim.simt.engine import Counts, ReplayParams
-from simt_sim.simt.scheme import TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
+from simt_sim.simt.scheme import FETCH_BLOCKS, TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
 
 
 def replay(
@@ -38,7 +38,7 @@ SCHEME = SchemeInfo(
     description="dynamic fetch around speculative while-while: idle lanes refill below "
     "a threshold, a lane postpones one leaf and keeps traversing",
     kind=TRACE,
-    kernels={"speculative_dynamic_fetch": (*TRACE_BLOCKS, "pool_fetch", "postpone")},
+    kernels={"speculative_dynamic_fetch": (*TRACE_BLOCKS, *FETCH_BLOCKS, "postpone")},
     persistent=True,
     recostable=False,
     approximations=(

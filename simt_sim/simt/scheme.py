@@ -40,6 +40,9 @@ TRACE_BLOCKS = (
     "tri_hit",
     "finish",
 )
+#: the blocks of a persistent kernel's fetches, and of a dynamic-fetch kernel's refills
+POOL_BLOCKS = ("pool_fetch", "idle_wait")
+FETCH_BLOCKS = (*POOL_BLOCKS, "refill_test", "refill_break")
 
 
 @dataclass(frozen=True, eq=False)

@@ -22,6 +22,7 @@ from kernels_ir.__main__ import main
 from kernels_ir.blocks import (
     UNATTRIBUTED,
     access_bytes,
+    convergence_spins,
     divergent_only,
     full_warp_only,
     map_blocks,
@@ -42,7 +43,7 @@ from kernels_ir.build import (
     write_cubins,
 )
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kernel_ir import BLOCKS, CLASSES, TESTS
+from kernels_ir.kernel_ir import BLOCKS, CLASSES, SPIN_BLOCKS, TESTS
 from kernels_ir.sass import classify, parse_listing
 
 DATA = Path(__file__).parents[1] / "data" / "sass"
@@ -259,6 +260,43 @@ def test_the_full_warp_path_of_an_aggregated_atomic_is_not_charged() -> None:
     assert sum(counts["pool_fetch"].values()) == 10
 
 
+SPIN_PATH = """
+.text.k:
+        //## File "k.cu", line 3
+        /*0000*/                   ISETP.GE.U32.AND P0, PT, R8, 0x14, PT ;
+        //## File "k.cu", line 5
+        /*0010*/               @P0 BRA `(.L_x_7) ;
+.L_x_26:
+        /*0020*/                   VOTE.ANY R8, PT, PT ;
+        /*0030*/                   YIELD ;
+.L_x_43:
+        /*0040*/                   VOTEU.ANY UR4, UPT, PT ;
+        /*0050*/                   LOP3.LUT P0, RZ, R8, UR4, RZ, 0xc, !PT ;
+        /*0060*/              @!P0 BRA.U `(.L_x_8) ;
+        /*0070*/                   BRA `(.L_x_26) ;
+        //## File "k.cu", line 7
+.L_x_7:
+        /*0080*/                   VOTE.ANY R9, PT, PT ;
+.L_x_8:
+        /*0090*/                   EXIT ;
+"""
+
+
+def test_a_spin_block_claims_only_the_convergence_spin_on_its_path() -> None:
+    """``refill_break``'s line holds the test's branch (run on every test) and the spin
+    nvcc puts on the taken path (sm_75): the spin is the block, the branch stays with the
+    block before; a vote that does not loop back is no spin."""
+    ins = parse_listing(SPIN_PATH)
+    assert sorted(ins[i].offset for i in convergence_spins(ins)) == list(range(0x20, 0x80, 0x10))
+    owner = parse_markers(
+        "x\n// @block refill_test\nt;\n// @block refill_break\nb;\n// @block finish\nf;\n", "k.cu"
+    )
+    counts, _, _, _ = map_blocks(ins, owner, "k.cu")
+    assert sum(counts["refill_break"].values()) == 6
+    assert sum(counts["refill_test"].values()) == 2  # the ISETP and the branch
+    assert sum(counts["finish"].values()) == 2
+
+
 def test_every_atomic_of_the_kernels_is_issued_by_one_lane() -> None:
     """What makes the full-warp path dead code: each atomicAdd sits under a one-lane test."""
     atomics = [
@@ -327,7 +365,10 @@ def test_committed_ir_has_required_blocks_and_is_current(kernel: str) -> None:
         ir = load(kernel, arch, tests)
         assert ir.source_sha256 == sha, "sources changed: run `python -m kernels_ir build`"
         for block in set(marked.values()):
-            assert ir.cost(block) > 0, f"{kernel} {arch}: marked block {block} is empty"
+            # a spin block is empty where the target waits without a spin (sm_80 on)
+            empty_ok = block in SPIN_BLOCKS and arch != "sm_75"
+            assert ir.cost(block) > 0 or empty_ok, f"{kernel} {arch}: marked block {block} is empty"
+            assert block in ir.blocks
         assert set(ir.blocks) <= set(BLOCKS)
         assert ir.compiler.startswith("nvcc V13.")
         assert f"-arch={arch}" in ir.flags and "-lineinfo" in ir.flags

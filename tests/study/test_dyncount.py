@@ -54,6 +54,21 @@ def test_walk_meets_the_replay_where_the_replay_is_exact(kernel: str) -> None:
     assert abs(d.difference) < 0.01
 
 
+def test_dynamic_fetch_refills_are_charged_on_their_paths() -> None:
+    """The refill test runs on every iteration that leaves lanes tracing while the pool has
+    rays; the break for a refill and the wait of lanes the pool left without a ray, each
+    with its convergence spin, only when taken. A spin's last branch back (1 of its
+    instructions) is charged on each execution but taken only while lanes still arrive."""
+    d = dyncount("dynamic_fetch", "room", "diffuse", warps=4, resolution=(32, 24))
+    ir = load("dynamic_fetch", d.arch)
+    assert d.table.loc["refill_test", "walk"] == d.table.loc["refill_test", "replay"] > 0
+    for block in ("refill_break", "idle_wait"):
+        executions = d.table.loc[block, "replay"] // ir.cost(block)
+        assert executions > 0, block
+        assert 0 <= d.table.loc[block, "replay - walk"] <= executions, block
+    assert abs(d.difference) < 0.01
+
+
 def test_a_warp_of_identical_rays_issues_every_instruction_with_all_lanes() -> None:
     wl = make_workload("room", "ao", cameras="0", resolution=(32, 24), spp=1)
     one = wl.rays.take(np.full(32, 200))
