@@ -12,9 +12,9 @@ loop_control       one iteration of the outer trace loop (termination checks)
 refill_test        dynamic fetch: the lanes still tracing, while the warp's pool has rays,
                    count themselves against the refill threshold
 refill_break       ... fewer than the threshold trace: they leave for the refill (the
-                   compiler's convergence spin before the warp's ballot)
-idle_wait          dynamic fetch: lanes the emptied pool left without a ray go back to
-                   wait for the tracing ones (their own convergence spin)
+                   compiler's convergence spin before the warp's ballot; sm_75 only)
+idle_wait          lanes the pool left without a ray wait for the tracing ones (dynamic
+                   fetch; a persistent launch's last group): their spin, sm_75 only
 trav_step          a traversal step: node fetch and both child box tests (TRAV_* ops)
 trav_none          ... neither child hit: pop the stack          (TRAV_NONE)
 trav_one           ... one child hit: go there                    (TRAV_ONE)

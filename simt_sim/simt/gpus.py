@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from kernels_ir import KernelIR
+from kernels_ir.kernel_ir import SPIN_BLOCKS
 from simt_sim.errors import SimtSimError
 
 #: the GPU a study, the lockstep executor and the CLI cost with when none is named: the
@@ -43,8 +44,9 @@ CLOCKS = ("shader", "sm")
 #: ``_sync`` warp vote has a divergent-warp fallback; GT200's, Fermi's and Kepler's
 #: ``__any`` was one instruction for any warp
 ITS_FIRST_ARCH = 70
-#: the blocks only a GPU with independent thread scheduling runs (the vote's fallback)
-ITS_ONLY_BLOCKS = ("trav_diverged",)
+#: the blocks only a GPU with independent thread scheduling runs: the vote's fallback, and
+#: the convergence spins nvcc puts before a full-warp vote (``kernels_ir.SPIN_BLOCKS``)
+ITS_ONLY_BLOCKS = ("trav_diverged", *SPIN_BLOCKS)
 _ARCH = re.compile(r"sm_(\d+)")
 
 #: relative tolerance between a GPU's lanes x clock and its published peak FP32 rate
@@ -208,11 +210,13 @@ class GpuConfig:
 
 
 def executed_on(ir: KernelIR, gpu: GpuConfig) -> KernelIR:
-    """``ir`` as ``gpu``'s hardware runs it: without :data:`ITS_ONLY_BLOCKS` on a GPU that
+    """``ir`` as ``gpu``'s hardware runs it: :data:`ITS_ONLY_BLOCKS` cost nothing on a GPU that
     has no independent thread scheduling (a block an IR lacks costs nothing)."""
     if gpu.independent_thread_scheduling:
         return ir
-    blocks = {b: row for b, row in ir.blocks.items() if b not in ITS_ONLY_BLOCKS}
+    blocks = {
+        b: dict.fromkeys(row, 0) if b in ITS_ONLY_BLOCKS else row for b, row in ir.blocks.items()
+    }
     moved = {b: row for b, row in ir.bytes.items() if b not in ITS_ONLY_BLOCKS}
     return ir if blocks == ir.blocks else replace(ir, blocks=blocks, bytes=moved)
 

@@ -283,6 +283,27 @@ def test_gtx285_speculative_step_pays_no_divergent_fallback() -> None:
     assert old.recost(ir).block_instructions["trav_diverged"] == 0
 
 
+def test_gtx285_refill_pays_no_convergence_spin() -> None:
+    """sm_75 puts a convergence spin on a dynamic-fetch warp's paths into its full-warp
+    ballot (the break for a refill, the idle lanes' wait); GT200's ``__ballot`` needed
+    none. With one resident warp the schedule is the same on both GPUs; only the RTX 2080
+    Ti pays the spins."""
+    df = get_scheme("dynamic_fetch")
+    ir = kernels_ir.load(df.kernel, "sm_75")
+    trace = synthetic_trace(32 * 40 + 7, seed=3, coherence=4, divergence=0.5)
+    old, new = (
+        simulate_traces([trace], df, ir, get_gpu(g), resident_warps=1)
+        for g in ("gtx285", "rtx2080ti")
+    )
+    spins = 0
+    for block in ("refill_break", "idle_wait"):
+        runs = int(new.executions[block])
+        assert runs == old.executions[block] and runs > 0 and ir.cost(block) > 0, block
+        assert old.block_instructions[block] == 0
+        spins += runs * ir.cost(block)
+    assert new.warp_instructions - old.warp_instructions == spins
+
+
 def test_if_if_warp_where_no_lane_traverses_still_pays_the_guards() -> None:
     """A lane in a leaf takes neither the traversal nor (after the first) the leaf-entry
     branch, yet each iteration runs all three ``if`` tests: they are in loop_control."""
