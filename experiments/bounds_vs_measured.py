@@ -40,6 +40,7 @@ def gpu_table() -> str:
                 "SMs": g.sms,
                 "clock MHz": f"{g.clock_mhz:g} ({g.clock})",
                 "issue / SM clk": f"{g.schedulers} x {g.dispatch:g} = {g.issue_rate:g}",
+                "pairs from": g.pairing_arch,
                 **{p: lanes.get(p, "") for p in PIPES},
                 "peak GFLOPS": f"{g.peak_fp32_gflops:g}",
                 "max warps": g.max_warps_per_sm,

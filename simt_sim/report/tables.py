@@ -27,6 +27,7 @@ DETAIL_COLUMNS = (
     "makespan",
     "ir_arch",
     "issue_bound",
+    "dual_issue_bound",
     "pipe_bound",
     "busiest_pipe",
     "lines_per_warp_step",

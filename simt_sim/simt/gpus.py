@@ -17,6 +17,7 @@ from typing import Any
 
 from kernels_ir import KernelIR
 from kernels_ir.kernel_ir import SPIN_BLOCKS
+from kernels_ir.pairing import PAIRING_ARCHS
 from simt_sim.errors import SimtSimError
 
 #: the GPU a study, the lockstep executor and the CLI cost with when none is named: the
@@ -78,6 +79,11 @@ _FIELDS: dict[str, type | tuple[type, ...]] = {
     "source": str,
 }
 
+#: fields an entry may leave out, with their default: ``pairing_arch`` names the
+#: architecture whose compiler-marked dual-issue pairs (``kernels_ir.pairing``) set the
+#: ``dual_issue`` limit of a GPU that dual-issues (Kepler); empty, the limit is not in force
+_OPTIONAL: dict[str, tuple[type, Any]] = {"pairing_arch": (str, "")}
+
 _FLOAT_FIELDS = ("clock_mhz", "dispatch", "peak_fp32_gflops", "shared_kib_per_sm", "dram_gbps")
 _POSITIVE = (
     "sms", "clock_mhz", "schedulers", "dispatch", "fp32_fma_lanes", "peak_fp32_gflops",
@@ -134,6 +140,10 @@ class GpuConfig:
         Architecture of the KernelIR the GPU is costed with.
     source : str
         Where the figures come from.
+    pairing_arch : str
+        Where ``dispatch`` is 2 because the compiler pairs instructions (Kepler): the
+        architecture whose marked pairs give each block's issue slots
+        (``kernels_ir.pairing``); empty where no such limit applies.
     """
 
     id: str
@@ -159,6 +169,7 @@ class GpuConfig:
     arch: str
     ir_arch: str
     source: str
+    pairing_arch: str = ""
 
     @property
     def clock_hz(self) -> float:
@@ -197,7 +208,7 @@ class GpuConfig:
         """The figures as a plain dict (for model cards and tables), ``issue_rate`` added
         and the lanes flattened (``lanes_fp32`` ...)."""
         out: dict[str, Any] = {}
-        for name in _FIELDS:
+        for name in (*_FIELDS, *_OPTIONAL):
             if name == "lanes":
                 lanes = dict(self.lanes)
                 out.update({f"lanes_{p}": lanes.get(p) for p in PIPES})
@@ -243,12 +254,13 @@ def _parse(entry: Any, where: str) -> GpuConfig:
     missing = [k for k in _FIELDS if k not in entry]
     if missing:
         raise SimtSimError(f"{label}: missing field(s) {', '.join(missing)}; add them")
-    unknown = sorted(set(entry) - set(_FIELDS))
+    unknown = sorted(set(entry) - set(_FIELDS) - set(_OPTIONAL))
     if unknown:
-        raise SimtSimError(
-            f"{label}: unknown field(s) {', '.join(unknown)}; allowed: {', '.join(_FIELDS)}"
-        )
-    for key, kind in _FIELDS.items():
+        allowed = ", ".join((*_FIELDS, *_OPTIONAL))
+        raise SimtSimError(f"{label}: unknown field(s) {', '.join(unknown)}; allowed: {allowed}")
+    entry = {k: default for k, (_, default) in _OPTIONAL.items()} | entry
+    kinds = _FIELDS | {k: kind for k, (kind, _) in _OPTIONAL.items()}
+    for key, kind in kinds.items():
         value = entry[key]
         if isinstance(value, bool) or not isinstance(value, kind):
             raise SimtSimError(f"{label}: field {key} has the wrong type ({value!r}); fix it")
@@ -265,7 +277,17 @@ def _parse(entry: Any, where: str) -> GpuConfig:
         )
     if entry["clock"] not in CLOCKS:
         raise SimtSimError(f"{label}: clock must be one of {', '.join(CLOCKS)}")
-    values = {k: float(entry[k]) if k in _FLOAT_FIELDS else entry[k] for k in _FIELDS}
+    if entry["pairing_arch"] and entry["pairing_arch"] not in PAIRING_ARCHS:
+        raise SimtSimError(
+            f"{label}: pairing_arch must be one of {', '.join(PAIRING_ARCHS)} (or left out), "
+            f"got {entry['pairing_arch']!r}"
+        )
+    if entry["pairing_arch"] and entry["dispatch"] != 2:
+        raise SimtSimError(
+            f"{label}: pairing_arch applies to a GPU that dual-issues (dispatch 2); "
+            f"dispatch is {entry['dispatch']!r}"
+        )
+    values = {k: float(entry[k]) if k in _FLOAT_FIELDS else entry[k] for k in kinds}
     values["lanes"] = _lanes(entry["lanes"], label)
     gpu = GpuConfig(**values)
     if not gpu.fp32_fma_lanes <= entry["lanes"]["fp32"]:

@@ -9,16 +9,19 @@ fetch, whose pool order depends on the costs).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from functools import cache
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR
+from kernels_ir.kernel_ir import BLOCKS, CLASSES, DEFAULT_TESTS, KernelIR
+from kernels_ir.pairing import UNMAPPED_SHARE, block_pair_counts
 from simt_sim.errors import SimtSimError
-from simt_sim.simt.bounds import issue_bound, pipe_bound, roofline
+from simt_sim.simt.bounds import dual_issue_bound, issue_bound, pipe_bound, roofline
 from simt_sim.simt.engine import Counts, class_mix, cost_vector, lane_traffic
 from simt_sim.simt.gpus import GpuConfig, executed_on
 
@@ -173,6 +176,25 @@ class SimResult:
         return issue_bound(self.rays, self.warp_instructions, self.gpu)
 
     @property
+    def issue_slots(self) -> float:
+        """Issue slots the warp instructions fill where two share a slot only if the
+        compiler of the GPU's ``pairing_arch`` paired them (NaN where it has none)."""
+        if not self.gpu.pairing_arch:
+            return float("nan")
+        shares = slot_share_vector(
+            self.model_card.get("ir_kernel", self.scheme),
+            self.model_card.get("ir_tests", DEFAULT_TESTS),
+            self.gpu.pairing_arch,
+        )
+        return float(np.dot(self.counts.executions * self.costs, shares))
+
+    @property
+    def dual_issue_bound(self) -> float:
+        """MRays/s if every scheduler filled an issue slot every clock (NaN: not in force)."""
+        slots = self.issue_slots
+        return float("nan") if math.isnan(slots) else dual_issue_bound(self.rays, slots, self.gpu)
+
+    @property
     def pipe_bound(self) -> float:
         """MRays/s if the busiest pipe for this instruction mix ran every clock."""
         return pipe_bound(self.rays, self.mix, self.gpu)[0]
@@ -187,6 +209,7 @@ class SimResult:
         """Every limit of the roofline, MRays/s (NaN: not in force)."""
         return {
             "issue": self.issue_bound,
+            "dual_issue": self.dual_issue_bound,
             "pipe": self.pipe_bound,
             "bandwidth": self.bandwidth_bound,
         }
@@ -241,6 +264,7 @@ class SimResult:
             "mrays_upper": self.mrays_upper,
             "limit": self.limit,
             "issue_bound": self.issue_bound,
+            "dual_issue_bound": self.dual_issue_bound,
             "pipe_bound": self.pipe_bound,
             "busiest_pipe": self.busiest_pipe,
             "load_bytes_per_ray": self.traffic[0] / self.rays if self.rays else float("nan"),
@@ -290,6 +314,33 @@ class SimResult:
             traffic=lane_traffic(c.active, ir),
             model_card=card,
         )
+
+
+@cache
+def slot_share_vector(kernels: str, tests: str, arch: str) -> np.ndarray:
+    """Issue slots per instruction of each block (``BLOCKS`` order) of the ``+``-joined
+    ``kernels`` built with ``tests`` (as a model card names them), from ``arch``'s pairs;
+    a block none of them has on ``arch`` counts as fully paired
+    (:data:`kernels_ir.pairing.UNMAPPED_SHARE`), so it never tightens the bound."""
+    totals: dict[str, list[int]] = {}
+    for kernel, kind in zip(kernels.split("+"), _each(tests, kernels), strict=True):
+        for block, (n, pairs) in block_pair_counts(kernel, kind, arch).items():
+            row = totals.setdefault(block, [0, 0])
+            row[0] += n
+            row[1] += pairs
+    return np.array(
+        [1 - totals[b][1] / totals[b][0] if totals.get(b, [0])[0] else UNMAPPED_SHARE
+         for b in BLOCKS]
+    )  # fmt: skip
+
+
+def _each(tests: str, kernels: str) -> list[str]:
+    """One tests name per kernel: a card joins equal values into one."""
+    n = kernels.count("+") + 1
+    kinds = tests.split("+")
+    if len(kinds) not in (1, n):
+        raise SimtSimError(f"cannot tell which of the tests {tests} each of {kernels} ran")
+    return kinds if len(kinds) == n else kinds * n
 
 
 def merge(results: Sequence[SimResult]) -> SimResult:

@@ -1,4 +1,5 @@
-"""The roofline of the upper bound: issue, pipe and bandwidth limits, and which binds."""
+"""The roofline of the upper bound: issue, dual issue, pipe and bandwidth limits, and which
+binds."""
 
 from __future__ import annotations
 
@@ -8,7 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from kernels_ir.kernel_ir import CLASSES, KernelIR
+from kernels_ir import load as load_ir
+from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR
+from kernels_ir.pairing import block_pair_counts
 from simt_sim.schemes import get_scheme
 from simt_sim.simt.bounds import issue_bound, pipe_bound, pipe_instructions, roofline
 from simt_sim.simt.gpus import get_gpu, issue_limited
@@ -141,3 +144,29 @@ def test_lane_traffic_is_active_lanes_times_bytes_per_lane() -> None:
     assert r.traffic.tolist() == [32 * r.rays, 8 * r.rays]
     row = r.to_row()
     assert row["load_bytes_per_ray"] == 32 and row["store_bytes_per_ray"] == 8
+
+
+def test_kepler_issue_slots_follow_the_compilers_pairs() -> None:
+    """GTX 680: each block's executions x cost fill cost x (1 - pairs / instructions) issue
+    slots of its sm_35 code, 4 schedulers fill one slot a clock each. So the bound lies
+    between 4 (no pair) and 8 (every instruction paired) warp instructions per clock and
+    binds; a GPU without the compiler's pairs (GTX 480) has no such limit."""
+    trace = synthetic_trace(32 * 8, seed=5)
+    scheme = get_scheme("while_while")
+    ir = load_ir("while_while", "sm_75")
+    r = simulate_traces([trace], scheme, ir, get_gpu("gtx680"))
+    pairs = block_pair_counts("while_while", ir.tests)
+    slots = sum(
+        n_exec * cost * (1 - pairs[b][1] / pairs[b][0])
+        for b, n_exec, cost in zip(BLOCKS, r.counts.executions, r.costs, strict=True)
+        if n_exec * cost
+    )
+    assert r.issue_slots == pytest.approx(slots, rel=1e-12)
+    assert r.dual_issue_bound == pytest.approx(r.rays * 8 * 1006e6 * 4 / slots / 1e6)
+    assert r.issue_bound / 2 < r.dual_issue_bound < r.issue_bound
+    assert r.limit == "dual_issue" and r.mrays_upper == r.dual_issue_bound
+    assert "dual_issue" in r.model_card["bounds_in_force"]
+    assert r.to_row()["dual_issue_bound"] == r.dual_issue_bound
+    fermi = simulate_traces([trace], scheme, ir, get_gpu("gtx480"))
+    assert math.isnan(fermi.dual_issue_bound) and fermi.limit != "dual_issue"
+    assert "dual_issue" not in fermi.model_card["bounds_in_force"]

@@ -136,6 +136,14 @@ def test_unknown_id_lists_known_ids() -> None:
         ),
         (USER_GPU.format(id="x").replace('\narch = "sm_80"', '\narch = "volta"'), "sm_XY"),
         (USER_GPU.format(id="x") * 2, "appears twice"),
+        (
+            USER_GPU.format(id="x").replace("source =", 'pairing_arch = "sm_30"\nsource ='),
+            "pairing_arch must be one of sm_35",
+        ),
+        (
+            USER_GPU.format(id="x").replace("source =", 'pairing_arch = "sm_35"\nsource ='),
+            "dual-issues.*dispatch is 1",
+        ),
         ("[[gpu]\n", "not valid TOML"),
         ("title = 'no gpus'\n", "no \\[\\[gpu\\]\\] entries"),
     ],
@@ -195,3 +203,13 @@ def test_cli_bad_gpus_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
         proc = run_cli("table", *SMALL, "--rays", "primary", "--gpus", str(path), "--out", str(out))
         assert_clean_error(proc, "GPU file" if path.name == "missing.toml" else "TOML")
         assert not out.exists()
+
+
+def test_kepler_pairs_by_its_compilers_marks_and_no_other_gpu_does() -> None:
+    """Only the GPUs that dual-issue (Kepler: 4 schedulers x 2) take their issue slots from
+    the compiler's marked pairs; a user entry may leave the field out."""
+    pairing = {g.id: g.pairing_arch for g in load_gpus().values()}
+    assert {k for k, v in pairing.items() if v} == {"gtx680", "titan"}
+    assert {pairing["gtx680"], pairing["titan"]} == {"sm_35"}
+    assert all(g.dispatch == 2 for g in load_gpus().values() if g.pairing_arch)
+    assert get_gpu("gtx680").figures()["pairing_arch"] == "sm_35"

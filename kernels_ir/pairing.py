@@ -1,0 +1,238 @@
+"""Kepler's dual issue as its compiler directs it: how many of each block's instructions
+may issue paired with the next one.
+
+A Kepler scheduler issues two instructions of one warp in one clock only where ptxas has
+marked the pair: each instruction has a control byte, in a scheduling word ahead of every
+seven, and 0x04 says "issue together with the next" (NVIDIA's GK104 whitepaper moved this
+scheduling into the compiler; the encoding is from envytools' ISA notes and Zhang et al.,
+PPoPP 2017). So an SMX's 8 warp instructions per clock (4 schedulers x 2) are reached only
+by code that pairs every instruction; the marks say how much of ours does.
+
+CUDA 11.8 is the last compiler for Kepler (sm_35, GK110) and the pinned CUDA 13 toolchain
+offers nothing below sm_75, so :func:`build` takes each kernel's PTX from nvcc 13
+(``compute_75``, the IR's flags), re-targets it to sm_35 and assembles and disassembles it
+with CUDA 11.8's ``ptxas`` and ``nvdisasm`` from a directory the caller names. Every
+instruction goes to the block of the kernel source line it comes from (the outermost
+line of an inlined call, where the ``// @block`` markers are), and
+``kernels_ir/pairing/sm_35.json`` holds, per kernel, tests and block, the instructions and
+the marked pairs. The SIMT model's ``dual_issue`` limit reads it (:func:`block_pair_counts`).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import tempfile
+from functools import cache
+from importlib import resources
+from pathlib import Path
+
+from kernels_ir.blocks import UNATTRIBUTED, parse_markers
+from kernels_ir.build import CUDA_DIR, KERNELS, TEST_DEFINES, dumps, find_toolchain, source_sha256
+from kernels_ir.errors import KernelIRError
+from kernels_ir.kernel_ir import TESTS
+
+#: the architectures whose pairing is committed (the one Kepler target CUDA 11.8 offers)
+PAIRING_ARCHS = ("sm_35",)
+PAIRING_DIR = Path(__file__).parent / "pairing"
+#: the control byte of an instruction that issues together with the next one
+DUAL_ISSUE = 0x04
+#: instructions one scheduling word governs
+WORD_SLOTS = 7
+#: an issue slot's share of a block no Kepler instruction maps to: fully paired, the
+#: share the plain issue bound assumes, so such a block never tightens the bound
+UNMAPPED_SHARE = 0.5
+#: nvcc 13 flags that make the PTX the IR's code is compiled from (``build.FLAGS`` without
+#: ``-cubin`` and ptxas's options)
+_PTX_FLAGS = ("-arch=compute_75", "--ptx", "-O3", "-lineinfo", "-std=c++17")
+_PTX_ISA = "7.8"
+
+_SCHED = re.compile(r"^\s*/\* (0x[0-9a-f]{16}) \*/\s*$")
+_INSTR = re.compile(r"^\s*/\*[0-9a-f]{4,}\*/\s+(?P<text>[^;]*);\s*/\* 0x[0-9a-f]{16} \*/\s*$")
+_LINE = re.compile(r'^\s*//## File "(?P<file>[^"]+)", line (?P<line>\d+)\s*$')
+
+
+def control_bytes(word: int) -> list[int]:
+    """The seven control bytes of an sm_35 scheduling word, first instruction first.
+
+    Raises
+    ------
+    KernelIRError
+        If ``word`` is not an sm_35 scheduling word (low 2 bits 0, top 6 bits 0b000010).
+    """
+    if word & 0b11 or word >> 58 != 0b10:
+        raise KernelIRError(f"{word:#018x} is not an sm_35 scheduling word; disassemble sm_35")
+    return [(word >> (2 + 8 * i)) & 0xFF for i in range(WORD_SLOTS)]
+
+
+def listing_pairs(listing: str, source_name: str) -> list[tuple[int | None, bool]]:
+    """Each instruction of an sm_35 ``nvdisasm -c -hex -g -gi`` listing as (its line in
+    ``source_name``, the outermost of its inlined calls; whether it pairs with the next).
+
+    Raises
+    ------
+    KernelIRError
+        If an instruction has no scheduling word before it, or a pair mark follows a pair
+        mark (no instruction issues in two pairs).
+    """
+    out: list[tuple[int | None, bool]] = []
+    pending: list[int] = []
+    line: int | None = None
+    unscheduled = False
+    for raw in listing.splitlines():
+        if m := _LINE.match(raw):
+            if Path(m["file"]).name == source_name:
+                line = int(m["line"])
+        elif m := _SCHED.match(raw):
+            pending = control_bytes(int(m[1], 16))
+        elif m := _INSTR.match(raw):
+            if unscheduled:
+                raise KernelIRError(f"{source_name}: an instruction has no scheduling word")
+            if not pending:
+                # ptxas ends a function with a branch to itself past the last group, which
+                # never runs and has no control byte
+                unscheduled = m["text"].split()[0] == "BRA"
+                if not unscheduled:
+                    raise KernelIRError(f"{source_name}: an instruction has no scheduling word")
+                continue
+            dual = pending.pop(0) == DUAL_ISSUE
+            if dual and out and out[-1][1]:
+                raise KernelIRError(f"{source_name}: two pair marks in a row; not sm_35 code")
+            out.append((line, dual))
+    if not out:
+        raise KernelIRError(f"{source_name}: no instruction in the listing")
+    return out
+
+
+def block_pairs(listing: str, source: str, source_name: str) -> dict[str, list[int]]:
+    """Per block of ``source``'s markers: [instructions, marked pairs] of the listing;
+    instructions of lines outside any block go to ``unattributed``."""
+    owner = parse_markers(source, source_name)
+    counts: dict[str, list[int]] = {}
+    for line, dual in listing_pairs(listing, source_name):
+        row = counts.setdefault(owner.get(line or 0, UNATTRIBUTED), [0, 0])
+        row[0] += 1
+        row[1] += dual
+    return dict(sorted(counts.items()))
+
+
+def _run(cmd: list[str], cwd: Path) -> str:
+    proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        msg = (proc.stderr or proc.stdout).strip().splitlines()
+        raise KernelIRError(f"{Path(cmd[0]).name} failed: {' | '.join(msg[:4])}")
+    return proc.stdout
+
+
+def _version(tool: Path) -> str:
+    out = _run([str(tool), "--version"], CUDA_DIR)
+    m = re.search(r"release [\d.]+, (V[\d.]+)", out)
+    if not m:
+        raise KernelIRError(f"cannot read the version of {tool}; name CUDA 11.8's bin directory")
+    return f"{tool.name} {m[1]}"
+
+
+def _kepler_tools(cuda11_bin: Path) -> tuple[Path, Path]:
+    ptxas, nvdisasm = cuda11_bin / "ptxas", cuda11_bin / "nvdisasm"
+    if not (ptxas.is_file() and nvdisasm.is_file()):
+        raise KernelIRError(
+            f"{cuda11_bin} has no ptxas and nvdisasm; name the bin directory of CUDA 11.8 "
+            "(Debian bookworm's non-free package nvidia-cuda-toolkit has both)"
+        )
+    for tool in (ptxas, nvdisasm):
+        if " V11." not in _version(tool):
+            raise KernelIRError(f"{tool} is not CUDA 11; the last compiler for sm_35 is 11.8")
+    return ptxas, nvdisasm
+
+
+def retarget(ptx: str, arch: str) -> str:
+    """``compute_75`` PTX from nvcc 13 as PTX for ``arch`` that CUDA 11.8 reads (ISA 7.8)."""
+    out, n_version = re.subn(r"^\.version \d+\.\d+$", f".version {_PTX_ISA}", ptx, flags=re.M)
+    out, n_target = re.subn(r"^\.target sm_75$", f".target {arch}", out, flags=re.M)
+    if n_version != 1 or n_target != 1:
+        raise KernelIRError("the PTX has no single .version and .target sm_75 line")
+    return out
+
+
+def build(cuda11_bin: Path, arch: str = "sm_35") -> dict:
+    """Compile every kernel with both sets of tests for ``arch``; return the JSON document
+    ``kernels_ir/pairing/<arch>.json`` holds."""
+    if arch not in PAIRING_ARCHS:
+        raise KernelIRError(f"unknown pairing arch {arch!r}; use {', '.join(PAIRING_ARCHS)}")
+    nvcc = find_toolchain()
+    ptxas, nvdisasm = _kepler_tools(cuda11_bin)
+    kernels: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory(prefix="kernels_ir_pairing_") as tmp:
+        work = Path(tmp)
+        for kernel in KERNELS:
+            source = (CUDA_DIR / f"{kernel}.cu").read_text()
+            entry: dict = {"source_sha256": source_sha256(kernel)}
+            for tests in TESTS:
+                ptx, cubin = work / f"{kernel}.{tests}.ptx", work / f"{kernel}.{tests}.cubin"
+                _run(
+                    [str(nvcc.nvcc), *_PTX_FLAGS, *TEST_DEFINES[tests], "-o", str(ptx),
+                     f"{kernel}.cu"],
+                    CUDA_DIR,
+                )  # fmt: skip
+                ptx.write_text(retarget(ptx.read_text(), arch))
+                _run([str(ptxas), f"-arch={arch}", "-O3", "-o", str(cubin), str(ptx)], CUDA_DIR)
+                listing = _run([str(nvdisasm), "-c", "-hex", "-g", "-gi", str(cubin)], CUDA_DIR)
+                entry[tests] = block_pairs(listing, source, f"{kernel}.cu")
+            kernels[kernel] = entry
+    return {
+        "arch": arch,
+        "compiler": f"{nvcc.version} PTX (compute_75, ISA {_PTX_ISA}), {_version(ptxas)}, "
+        f"{_version(nvdisasm)}",
+        "kernels": kernels,
+    }
+
+
+def write(cuda11_bin: Path, arch: str = "sm_35", out_dir: Path = PAIRING_DIR) -> Path:
+    """:func:`build` into ``out_dir/<arch>.json``; return its path."""
+    doc = build(cuda11_bin, arch)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / f"{arch}.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(dumps(doc))
+    tmp.replace(path)
+    return path
+
+
+@cache
+def load(arch: str = "sm_35") -> dict:
+    """The committed pairing document of ``arch``.
+
+    Raises
+    ------
+    KernelIRError
+        If none is committed for ``arch``.
+    """
+    entry = resources.files("kernels_ir").joinpath("pairing", f"{arch}.json")
+    if not entry.is_file():
+        raise KernelIRError(
+            f"no dual-issue pairing for {arch!r}; archs: {', '.join(PAIRING_ARCHS)}"
+        )
+    return json.loads(entry.read_text())
+
+
+@cache
+def block_pair_counts(kernel: str, tests: str, arch: str = "sm_35") -> dict[str, tuple[int, int]]:
+    """(instructions, marked pairs) of each block of ``kernel`` built with ``tests`` for
+    ``arch`` (a block's issue slots per instruction are 1 - pairs / instructions).
+
+    Raises
+    ------
+    KernelIRError
+        If the pairing of ``arch`` has no entry for ``kernel`` and ``tests``, or the kernel's
+        source changed since it was built (rebuild with ``python -m kernels_ir pairing``).
+    """
+    entry = load(arch)["kernels"].get(kernel)
+    if entry is None or tests not in entry:
+        raise KernelIRError(f"no {arch} pairing of kernel {kernel!r} ({tests} tests)")
+    if entry["source_sha256"] != source_sha256(kernel):
+        raise KernelIRError(
+            f"the {arch} pairing of {kernel} is older than its source; rebuild it with "
+            "`python -m kernels_ir pairing --cuda11 DIR`"
+        )
+    return {b: (int(n), int(pairs)) for b, (n, pairs) in entry[tests].items()}

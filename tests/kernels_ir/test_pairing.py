@@ -1,0 +1,157 @@
+"""kernels_ir.pairing: Kepler's compiler-marked dual-issue pairs, read from sm_35 SASS.
+
+The parser runs on hand-made listings in nvdisasm's format; the committed document is
+checked against the kernels' sources. Rebuilding it needs CUDA 11.8 (the last compiler for
+Kepler), which CI has not: that test runs where ``SIMT_CUDA11_BIN`` names its bin directory.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from kernels_ir import KERNELS, TESTS
+from kernels_ir.blocks import parse_markers
+from kernels_ir.build import CUDA_DIR, dumps, toolchain_available
+from kernels_ir.errors import KernelIRError
+from kernels_ir.pairing import (
+    DUAL_ISSUE,
+    PAIRING_DIR,
+    block_pair_counts,
+    block_pairs,
+    build,
+    control_bytes,
+    listing_pairs,
+    retarget,
+)
+
+
+def word(*controls: int) -> str:
+    """An sm_35 scheduling word holding ``controls`` (padded with 0x20), as nvdisasm prints it."""
+    padded = [*controls, *[0x20] * (7 - len(controls))]
+    value = (0b10 << 58) | sum(c << (2 + 8 * i) for i, c in enumerate(padded))
+    return f"{'':88}/* {value:#018x} */"
+
+
+def instr(addr: int, text: str) -> str:
+    return f"        /*{addr:04x}*/{'':19}{text};{'':40}/* 0x64c03c00089c0006 */"
+
+
+def line(n: int, file: str = "k.cu", inlined: str = "") -> str:
+    at = f' inlined at "/src/{inlined}", line 1' if inlined else ""
+    return f'\t//## File "/src/{file}", line {n}{at}'
+
+
+def test_a_real_word_decodes_to_seven_control_bytes() -> None:
+    """The first scheduling word of speculative_dynamic_fetch's sm_35 code: the 2nd, 4th
+    and 6th instructions pair with the next (MOV32I R25 with MOV R0 ...)."""
+    assert control_bytes(0x08801088108010C0) == [0x30, 0x04, 0x20, 0x04, 0x22, 0x04, 0x20]
+    with pytest.raises(KernelIRError, match="not an sm_35 scheduling word"):
+        control_bytes(0x001FC400FE2007F6)  # a Maxwell control word
+
+
+def test_each_instruction_gets_its_byte_and_its_outermost_line() -> None:
+    listing = "\n".join(
+        [
+            word(0x20, DUAL_ISSUE, 0x21, 0x20),
+            line(3),
+            instr(0x08, "MOV R1, c[0x0][0x44]"),
+            line(40, "common.cuh", inlined="k.cu"),
+            line(5),
+            instr(0x10, "S2R R2, SR_TID.X"),
+            instr(0x18, "IADD R3, R3, 0x1"),
+            ".L_x_1:",
+            line(9, "common.cuh"),
+            instr(0x20, "@P0 EXIT"),
+        ]
+    )
+    assert listing_pairs(listing, "k.cu") == [(3, False), (5, True), (5, False), (5, False)]
+
+
+def test_the_branch_past_the_last_group_is_the_end_marker() -> None:
+    """ptxas ends a function with a branch to itself after the last group, with no control
+    byte; it never runs. Any other instruction without a byte is refused."""
+    group = [word(*[0x20] * 7), line(2), *(instr(8 * (i + 1), "MOV R1, R2") for i in range(7))]
+    end = instr(0x40, "BRA `(.L_x_9)")
+    assert len(listing_pairs("\n".join([*group, end]), "k.cu")) == 7
+    with pytest.raises(KernelIRError, match="no scheduling word"):
+        listing_pairs("\n".join([*group, instr(0x40, "MOV R1, R2")]), "k.cu")
+
+
+def test_two_marks_in_a_row_or_a_missing_word_are_refused() -> None:
+    pair = [instr(8, "MOV R1, R2"), instr(16, "MOV R3, R4")]
+    twice = "\n".join([word(DUAL_ISSUE, DUAL_ISSUE), *pair])
+    with pytest.raises(KernelIRError, match="two pair marks in a row"):
+        listing_pairs(twice, "k.cu")
+    bare = "\n".join([instr(8, "MOV R1, R2")])
+    with pytest.raises(KernelIRError, match="no scheduling word"):
+        listing_pairs(bare, "k.cu")
+    with pytest.raises(KernelIRError, match="no instruction"):
+        listing_pairs(word(0x20), "k.cu")
+
+
+def test_blocks_sum_their_instructions_and_pairs() -> None:
+    source = "// @block ray_setup\nint a;\n// @block trav_step\nint b;\nint c;\n"
+    listing = "\n".join(
+        [
+            word(DUAL_ISSUE, 0x20, DUAL_ISSUE, 0x20, 0x20),
+            line(2),
+            instr(0x08, "MOV R1, R2"),
+            instr(0x10, "MOV R3, R4"),
+            line(4),
+            instr(0x18, "FADD R5, R5, R6"),
+            line(5),
+            instr(0x20, "FMUL R7, R7, R8"),
+            line(1),
+            instr(0x28, "NOP"),
+        ]
+    )
+    counts = block_pairs(listing, source, "k.cu")
+    assert counts == {"ray_setup": [2, 1], "trav_step": [2, 1], "unattributed": [1, 0]}
+
+
+def test_retarget_rewrites_the_version_and_target_once() -> None:
+    ptx = "//\n.version 9.5\n.target sm_75\n.address_size 64\n"
+    assert retarget(ptx, "sm_35") == "//\n.version 7.8\n.target sm_35\n.address_size 64\n"
+    with pytest.raises(KernelIRError, match="single .version"):
+        retarget(".version 9.5\n.target sm_80\n", "sm_35")
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_the_committed_pairing_is_of_todays_kernels(kernel: str) -> None:
+    """Every kernel, both sets of tests: built from today's source, every marked block has
+    sm_35 code but loop_control (dynamic fetch's two instructions sit on other lines
+    there), and no instruction pairs twice (pairs at most half the instructions)."""
+    marked = set(parse_markers((CUDA_DIR / f"{kernel}.cu").read_text()).values())
+    for tests in TESTS:
+        counts = block_pair_counts(kernel, tests)
+        assert marked - set(counts) <= {"loop_control"}
+        assert all(0 <= 2 * pairs <= n + 1 for n, pairs in counts.values())
+        total, pairs = (sum(v) for v in zip(*counts.values(), strict=True))
+        assert 0 < 2 * pairs <= total
+
+
+def test_a_changed_source_needs_a_rebuild(monkeypatch: pytest.MonkeyPatch) -> None:
+    import kernels_ir.pairing as pairing
+
+    block_pair_counts.cache_clear()
+    monkeypatch.setattr(pairing, "source_sha256", lambda kernel: "0" * 64)
+    try:
+        with pytest.raises(KernelIRError, match="older than its source"):
+            block_pair_counts("while_while", "watertight")
+    finally:
+        block_pair_counts.cache_clear()
+
+
+@pytest.mark.toolchain
+@pytest.mark.skipif(
+    not (os.environ.get("SIMT_CUDA11_BIN") and toolchain_available()),
+    reason="needs CUDA 11.8's bin directory in SIMT_CUDA11_BIN and the cuda-toolchain extra",
+)
+def test_rebuilding_the_pairing_gives_the_committed_file() -> None:
+    fresh = dumps(build(Path(os.environ["SIMT_CUDA11_BIN"])))
+    committed = (PAIRING_DIR / "sm_35.json").read_text()
+    assert json.loads(fresh) == json.loads(committed)
