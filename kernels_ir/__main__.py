@@ -132,6 +132,9 @@ def main(argv: list[str] | None = None) -> int:
     except KernelIRError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
 
 
 def _dyncount(args: argparse.Namespace) -> int:

@@ -160,8 +160,8 @@ def build(cuda11_bin: Path, arch: str = "sm_35") -> dict:
     ``kernels_ir/pairing/<arch>.json`` holds."""
     if arch not in PAIRING_ARCHS:
         raise KernelIRError(f"unknown pairing arch {arch!r}; use {', '.join(PAIRING_ARCHS)}")
-    nvcc = find_toolchain()
     ptxas, nvdisasm = _kepler_tools(cuda11_bin)
+    nvcc = find_toolchain()
     kernels: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="kernels_ir_pairing_") as tmp:
         work = Path(tmp)

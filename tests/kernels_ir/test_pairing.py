@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from kernels_ir import KERNELS, TESTS
+from kernels_ir.__main__ import main
 from kernels_ir.blocks import parse_markers
 from kernels_ir.build import CUDA_DIR, dumps, toolchain_available
 from kernels_ir.errors import KernelIRError
@@ -144,6 +145,15 @@ def test_a_changed_source_needs_a_rebuild(monkeypatch: pytest.MonkeyPatch) -> No
             block_pair_counts("while_while", "watertight")
     finally:
         block_pair_counts.cache_clear()
+
+
+def test_the_command_names_a_directory_without_the_tools_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["pairing", "--cuda11", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "has no ptxas and nvdisasm" in err
+    assert not (tmp_path / "sm_35.json").exists()
 
 
 @pytest.mark.toolchain
