@@ -33,10 +33,9 @@ def model_card(
     ``ir_kernel``, ``ir_arch``, ``ir_compiler`` and ``ir_tests`` join the IRs' values (one
     each for a one-kernel scheme); ``ir_blocks`` are the blocks the replay charges, which an IR the
     result is re-costed with must have (``blocks``); ``ir_arch_note`` says when the IR is
-    not the GPU's own; ``bounds_in_force`` names the roofline's limits (issue, dual issue where
-    the GPU's pairing is known, and pipe; a study adds bandwidth where the memory model
-    runs); ``extra`` entries follow in the
-    order given.
+    not the GPU's own; ``bounds_in_force`` names the roofline's limits (issue, dual issue
+    where the GPU's pairing is known, and pipe; a study adds bandwidth where the memory
+    model runs); ``extra`` entries follow in the order given.
     """
     card: dict[str, Any] = {
         "scheme": scheme,
