@@ -94,6 +94,7 @@ def load(kernel: str, arch: str = "sm_90", tests: str = DEFAULT_TESTS) -> Kernel
         notes=notes,
         tests=doc.get("tests", DEFAULT_TESTS),
         bytes={b: {c: int(n) for c, n in row.items()} for b, row in doc.get("bytes", {}).items()},
+        spins={b: {c: int(n) for c, n in row.items()} for b, row in doc.get("spins", {}).items()},
     )
 
 

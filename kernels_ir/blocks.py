@@ -464,6 +464,30 @@ def place_instructions(
     return Placement(block, frozenset(fallback_idx), callers, full_warp)
 
 
+def spins_in_blocks(
+    instructions: Sequence[SassInstruction],
+    owner: dict[int, str],
+    kernel_file: str,
+    loops: dict[int, int] | None = None,
+) -> dict[str, dict[str, int]]:
+    """Per block and class, the charged instructions of convergence spins
+    (:func:`convergence_spins`) that sit in an ordinary block rather than a spin block
+    (``finish``'s before its vote, a speculative step's): a GPU without independent thread
+    scheduling runs that block without them."""
+    instructions = list(instructions)
+    placement = place_instructions(instructions, owner, kernel_file, loops)
+    out: dict[str, dict[str, int]] = {}
+    for i in sorted(convergence_spins(instructions)):
+        block, cls = placement.block[i], classify(instructions[i].opcode)
+        if block in (UNATTRIBUTED, *SPIN_BLOCKS) or cls is None:
+            continue
+        if i in placement.fallback or i in placement.full_warp:
+            continue
+        row = out.setdefault(block, dict.fromkeys(CLASSES, 0))
+        row[cls] += 1
+    return out
+
+
 def _block_before(owner: dict[int, str], line: int) -> str | None:
     """The block of the nearest line above ``line`` that no spin block owns."""
     for above in range(line - 1, 0, -1):

@@ -18,7 +18,13 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
-from kernels_ir.blocks import UNATTRIBUTED, map_blocks, parse_loops, parse_markers
+from kernels_ir.blocks import (
+    UNATTRIBUTED,
+    map_blocks,
+    parse_loops,
+    parse_markers,
+    spins_in_blocks,
+)
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import CLASSES, DEFAULT_TESTS, SPIN_BLOCKS, TESTS
 from kernels_ir.sass import SassInstruction, parse_listing
@@ -218,9 +224,9 @@ def build_one(
     registers, notes = _ptxas_info(log, kernel)
     source = (CUDA_DIR / f"{kernel}.cu").read_text()
     owner = parse_markers(source, f"{kernel}.cu")
-    counts, fallback, moved, full_warp = map_blocks(
-        instructions, owner, f"{kernel}.cu", parse_loops(source)
-    )
+    loops = parse_loops(source)
+    counts, fallback, moved, full_warp = map_blocks(instructions, owner, f"{kernel}.cu", loops)
+    spins = spins_in_blocks(instructions, owner, f"{kernel}.cu", loops)
     unattributed = counts.pop(UNATTRIBUTED, {})
     moved.pop(UNATTRIBUTED, None)
     # a diverged warp's traversal step runs its vote's fallback (charged as trav_diverged
@@ -252,6 +258,7 @@ def build_one(
         "bytes": moved,
         "unattributed": unattributed,
         "divergent_fallback": fallback_sizes,
+        "spins": spins,
         "compiler": tools.version,
         "flags": flags,
         "registers": registers,

@@ -116,7 +116,9 @@ class KernelIR:
     execution of ``block`` issues (for a warp: warp instructions). ``tests`` names the box
     and triangle tests it was built with (:data:`TESTS`). ``bytes[block]`` holds the
     global-memory bytes one lane loads (``ld_global``) and stores (``st_global``) per
-    execution of the block, from the width of each SASS load and store.
+    execution of the block, from the width of each SASS load and store. ``spins[block]``
+    counts, by class, the convergence spins inside ``blocks[block]`` (sm_75), which only a
+    GPU with independent thread scheduling runs.
     """
 
     def moved(self, block: str, cls: str) -> int:
@@ -133,6 +135,7 @@ class KernelIR:
     notes: dict[str, str] = field(default_factory=dict)
     tests: str = DEFAULT_TESTS
     bytes: dict[str, dict[str, int]] = field(default_factory=dict)
+    spins: dict[str, dict[str, int]] = field(default_factory=dict)
 
     def cost(self, block: str) -> int:
         """Total instructions of one execution of ``block`` (0 if the kernel lacks it)."""

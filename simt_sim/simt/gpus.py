@@ -46,7 +46,8 @@ CLOCKS = ("shader", "sm")
 #: ``__any`` was one instruction for any warp
 ITS_FIRST_ARCH = 70
 #: the blocks only a GPU with independent thread scheduling runs: the vote's fallback, and
-#: the convergence spins nvcc puts before a full-warp vote (``kernels_ir.SPIN_BLOCKS``)
+#: the convergence spins nvcc puts before a full-warp vote (``kernels_ir.SPIN_BLOCKS``);
+#: spins inside other blocks are ``KernelIR.spins``
 ITS_ONLY_BLOCKS = ("trav_diverged", *SPIN_BLOCKS)
 _ARCH = re.compile(r"sm_(\d+)")
 
@@ -221,12 +222,16 @@ class GpuConfig:
 
 
 def executed_on(ir: KernelIR, gpu: GpuConfig) -> KernelIR:
-    """``ir`` as ``gpu``'s hardware runs it: :data:`ITS_ONLY_BLOCKS` cost nothing on a GPU that
-    has no independent thread scheduling (a block an IR lacks costs nothing)."""
+    """``ir`` as ``gpu``'s hardware runs it: on a GPU that has no independent thread
+    scheduling, :data:`ITS_ONLY_BLOCKS` cost nothing (a block an IR lacks costs nothing)
+    and the other blocks cost their code less its convergence spins (``ir.spins``)."""
     if gpu.independent_thread_scheduling:
         return ir
     blocks = {
-        b: dict.fromkeys(row, 0) if b in ITS_ONLY_BLOCKS else row for b, row in ir.blocks.items()
+        b: dict.fromkeys(row, 0)
+        if b in ITS_ONLY_BLOCKS
+        else {c: n - ir.spins.get(b, {}).get(c, 0) for c, n in row.items()}
+        for b, row in ir.blocks.items()
     }
     moved = {b: row for b, row in ir.bytes.items() if b not in ITS_ONLY_BLOCKS}
     return ir if blocks == ir.blocks else replace(ir, blocks=blocks, bytes=moved)

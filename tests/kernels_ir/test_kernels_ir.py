@@ -27,6 +27,7 @@ from kernels_ir.blocks import (
     full_warp_only,
     map_blocks,
     parse_markers,
+    spins_in_blocks,
 )
 from kernels_ir.build import (
     CUDA_DIR,
@@ -294,6 +295,19 @@ def test_a_spin_block_claims_only_the_convergence_spin_on_its_path() -> None:
     counts, _, _, _ = map_blocks(ins, owner, "k.cu")
     assert sum(counts["refill_break"].values()) == 6
     assert sum(counts["refill_test"].values()) == 2  # the ISETP and the branch
+    assert sum(counts["finish"].values()) == 2
+
+
+def test_a_spin_inside_an_ordinary_block_is_counted_apart() -> None:
+    """Without a spin block, the spin stays in the block of its lines (charged there on
+    every GPU with independent thread scheduling) and ``spins_in_blocks`` counts it, so a
+    GPU without such scheduling can leave it out; ``finish``'s lone vote is no spin."""
+    ins = parse_listing(SPIN_PATH)
+    owner = parse_markers("x\n// @block refill_test\nt;\nb;\nc;\n// @block finish\nf;\n", "k.cu")
+    counts, _, _, _ = map_blocks(ins, owner, "k.cu")
+    spins = spins_in_blocks(ins, owner, "k.cu")
+    assert set(spins) == {"refill_test"} and spins["refill_test"] == counts["refill_test"]
+    assert spins["refill_test"]["vote_atomic"] == 2 and sum(spins["refill_test"].values()) == 6
     assert sum(counts["finish"].values()) == 2
 
 

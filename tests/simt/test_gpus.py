@@ -9,8 +9,9 @@ import pandas as pd
 import pytest
 from test_cli import SMALL, assert_clean_error, run_cli
 
+import kernels_ir
 from simt_sim.errors import SimtSimError
-from simt_sim.simt.gpus import get_gpu, load_gpus
+from simt_sim.simt.gpus import executed_on, get_gpu, load_gpus
 
 IDS = ("gtx285", "gtx480", "gtx680", "titan", "rtx2080ti", "a100", "rtx4090", "h100", "h200")
 
@@ -213,3 +214,16 @@ def test_kepler_pairs_by_its_compilers_marks_and_no_other_gpu_does() -> None:
     assert {pairing["gtx680"], pairing["titan"]} == {"sm_35"}
     assert all(g.dispatch == 2 for g in load_gpus().values() if g.pairing_arch)
     assert get_gpu("gtx680").figures()["pairing_arch"] == "sm_35"
+
+
+def test_a_gpu_without_independent_scheduling_runs_no_convergence_spin() -> None:
+    """sm_75's speculative step holds a convergence spin (6 instructions) before its vote:
+    GT200, Fermi and Kepler run the step without it, Turing with it."""
+    ir = kernels_ir.load("persistent_speculative_while_while", "sm_75")
+    spin = sum(ir.spins["trav_step"].values())
+    assert spin == 6
+    for gpu_id in ("gtx285", "gtx480", "gtx680"):
+        pre_volta = executed_on(ir, get_gpu(gpu_id))
+        assert pre_volta.cost("trav_step") == ir.cost("trav_step") - spin
+        assert pre_volta.cost("trav_diverged") == 0
+    assert executed_on(ir, get_gpu("rtx2080ti")) is ir

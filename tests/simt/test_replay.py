@@ -265,7 +265,8 @@ def test_recost_to_a_target_without_the_divergent_fallback() -> None:
 def test_gtx285_speculative_step_pays_no_divergent_fallback() -> None:
     """GT200 has no independent thread scheduling: its vote is one instruction for any
     warp, so a diverged speculative step costs what a converged one does; the RTX 2080 Ti
-    (sm_75, the same IR) pays trav_diverged for each."""
+    (sm_75, the same IR) pays trav_diverged for each, and the convergence spins sm_75
+    puts in the step, the loop control and ``finish``."""
     spec = get_scheme("persistent_speculative_while_while")
     ir = kernels_ir.load(spec.kernel, "sm_75")
     trace = synthetic_trace(32 * 40, seed=3, coherence=32, divergence=0.3)
@@ -278,16 +279,22 @@ def test_gtx285_speculative_step_pays_no_divergent_fallback() -> None:
     assert diverged > 0 and ir.cost("trav_diverged") > 0
     assert old.block_instructions["trav_diverged"] == 0
     assert new.block_instructions["trav_diverged"] == diverged * ir.cost("trav_diverged")
-    assert new.warp_instructions - old.warp_instructions == diverged * ir.cost("trav_diverged")
+    spins = {b: sum(row.values()) for b, row in ir.spins.items()}
+    assert spins == {"trav_step": 6, "loop_control": 6, "finish": 6}
+    spun = sum(int(new.executions[b]) * n for b, n in spins.items())
+    assert spun > 0
+    assert new.warp_instructions - old.warp_instructions == (
+        diverged * ir.cost("trav_diverged") + spun
+    )
     # re-costing keeps the GPU's rule
     assert old.recost(ir).block_instructions["trav_diverged"] == 0
 
 
 def test_gtx285_refill_pays_no_convergence_spin() -> None:
     """sm_75 puts a convergence spin on a dynamic-fetch warp's paths into its full-warp
-    ballot (the break for a refill, the idle lanes' wait); GT200's ``__ballot`` needed
-    none. With one resident warp the schedule is the same on both GPUs; only the RTX 2080
-    Ti pays the spins."""
+    ballot (the break for a refill, the idle lanes' wait) and before ``finish``'s vote;
+    GT200's votes needed none. With one resident warp the schedule is the same on both
+    GPUs; only the RTX 2080 Ti pays the spins."""
     df = get_scheme("dynamic_fetch")
     ir = kernels_ir.load(df.kernel, "sm_75")
     trace = synthetic_trace(32 * 40 + 7, seed=3, coherence=4, divergence=0.5)
@@ -301,6 +308,12 @@ def test_gtx285_refill_pays_no_convergence_spin() -> None:
         assert runs == old.executions[block] and runs > 0 and ir.cost(block) > 0, block
         assert old.block_instructions[block] == 0
         spins += runs * ir.cost(block)
+    finish_spin = sum(ir.spins["finish"].values())
+    assert finish_spin == 6 and old.executions["finish"] == new.executions["finish"] > 0
+    assert old.block_instructions["finish"] == new.executions["finish"] * (
+        ir.cost("finish") - finish_spin
+    )
+    spins += new.executions["finish"] * finish_spin
     assert new.warp_instructions - old.warp_instructions == spins
 
 
