@@ -26,6 +26,7 @@ import pandas as pd
 import kernels_ir
 from kernels_ir.kernel_ir import BLOCKS, TRI_TEST_BLOCKS, KernelIR
 from simt_sim.atomic import write_atomic
+from simt_sim.simt.gpus import GpuConfig, executed_on
 from simt_sim.simt.result import INTERSECTION_BLOCKS, TRAVERSAL_BLOCKS, SimResult
 from simt_sim.study.run import run_study
 from simt_sim.study.spec import StudySpec
@@ -389,13 +390,14 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   of while-while.
 - **Speculative versus while-while.** Speculation raises SIMD efficiency as in the paper;
   its speed relative to while-while is {spec_ratio} against the paper's {spec_paper} (errors
-  {spec_err}). Its traversal step costs {spec_more:.0%} more than while-while's
-  ({spec_trav} against {ww_trav} instructions on {arch}: the postpone test and an
-  `__any_sync` vote on every step). On sm_75 to sm_89 a step taken while some lanes have
-  left the loop runs the vote's divergent-warp fallback, {spec_div} instructions more
-  (`trav_diverged`, docs/kernels_ir.md), but only on a GPU with independent thread
-  scheduling (Volta and later): the GTX 285's vote was one instruction for any warp, so the
-  table charges no fallback. sm_90 inlines the vote; with its costs the errors are
+  {spec_err}). Its traversal step costs {spec_trav} instructions on {arch} as the GTX 285
+  runs it, against while-while's {ww_trav}, a postpone test and an `__any_sync` vote on
+  every step included. On sm_75 to sm_89 a step taken while some lanes have left the loop runs
+  the vote's divergent-warp fallback, {spec_div} instructions more (`trav_diverged`,
+  docs/kernels_ir.md), and sm_75 puts a convergence spin of {spec_spin} instructions
+  before the vote, but both only on a GPU with independent thread scheduling (Volta and
+  later): the GTX 285's vote was one instruction for any warp, so the table charges
+  neither. sm_90 inlines the vote; with its costs the errors are
   {spec_err_90}. To match the paper with {arch}'s costs, a speculative step would have to
   cost {spec_even}. Our replay
   also visits no nodes speculatively beyond the recorded
@@ -458,6 +460,7 @@ def agreement(row: pd.Series) -> str:
 
 def deviations(
     arch: str,
+    gpu: GpuConfig,
     factors: np.ndarray,
     calibrated: pd.DataFrame,
     ratios: pd.DataFrame,
@@ -466,11 +469,11 @@ def deviations(
     bvh: str,
     packet: pd.DataFrame,
 ) -> str:
-    """:data:`DEVIATIONS` with the block costs of ``arch``, the measured figures, the
-    BVH verdict ``bvh`` and the exact packet run ``packet``."""
+    """:data:`DEVIATIONS` with the block costs of ``arch`` as ``gpu`` runs them, the
+    measured figures, the BVH verdict ``bvh`` and the exact packet run ``packet``."""
 
     def cost(kernel: str, block: str) -> int:
-        return kernels_ir.load(kernel, arch).cost(block)
+        return executed_on(kernels_ir.load(kernel, arch), gpu).cost(block)
 
     def tri_cost(kernel: str) -> int:
         return sum(cost(kernel, b) for b in TRI_TEST_BLOCKS)
@@ -495,14 +498,19 @@ def deviations(
         ii_loop=cost("if_if", "loop_control"), ii_trav=cost("if_if", "trav_step"),
         ii_tri=tri_cost("if_if"), other=factors[2], ii_lo=ii.min(), ii_hi=ii.max(),
         ii_ratio=span("if_if / while_while"),
-        spec_trav=spec_trav, spec_more=spec_trav / ww_trav - 1,
+        spec_trav=spec_trav,
+        spec_spin=sum(
+            kernels_ir.load("persistent_speculative_while_while", arch)
+            .spins.get("trav_step", {})
+            .values()
+        ),
         spec_ratio=span("speculative / while_while"),
         spec_paper=span("speculative / while_while", "paper"),
         spec_err=errs("speculative / while_while"),
         spec_err_90=errs("speculative / while_while", by_arch["sm_90"]),
         packet_err=errs("packet / while_while"),
         packet_trav=cost("packet", "trav_step"),
-        spec_div=cost("persistent_speculative_while_while", "trav_diverged"),
+        spec_div=kernels_ir.load("persistent_speculative_while_while", arch).cost("trav_diverged"),
         ii_even=even_text("if_if / while_while", "loop_control"),
         spec_even=even_text("speculative / while_while", "trav_step"),
         packet_even=even_text("packet / while_while", "trav_step"),
@@ -617,7 +625,15 @@ def render(
         calibrated.to_markdown(**fmt),
         "",
         deviations(
-            r0.model_card["ir_arch"], factors, calibrated, ratios, by_arch, even, verdict, packet
+            r0.model_card["ir_arch"],
+            r0.gpu,
+            factors,
+            calibrated,
+            ratios,
+            by_arch,
+            even,
+            verdict,
+            packet,
         ),
     ]
     return "\n".join(lines)
