@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser(
         "pairing",
         help="compile every kernel for Kepler with CUDA 11.8 and write which instructions "
-        "the compiler pairs for dual issue (kernels_ir/pairing/ARCH.json)",
+        "the compiler pairs for dual issue (kernels_ir/pairs/ARCH.json)",
     )
     p.add_argument(
         "--cuda11", type=Path, required=True, help="CUDA 11.8's bin directory (ptxas, nvdisasm)"

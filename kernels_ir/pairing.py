@@ -14,7 +14,7 @@ offers nothing below sm_75, so :func:`build` takes each kernel's PTX from nvcc 1
 with CUDA 11.8's ``ptxas`` and ``nvdisasm`` from a directory the caller names. Every
 instruction goes to the block of the kernel source line it comes from (the outermost
 line of an inlined call, where the ``// @block`` markers are), and
-``kernels_ir/pairing/sm_35.json`` holds, per kernel, tests and block, the instructions and
+``kernels_ir/pairs/sm_35.json`` holds, per kernel, tests and block, the instructions and
 the marked pairs. The SIMT model's ``dual_issue`` limit reads it (:func:`block_pair_counts`).
 """
 
@@ -35,7 +35,7 @@ from kernels_ir.kernel_ir import TESTS
 
 #: the architectures whose pairing is committed (the one Kepler target CUDA 11.8 offers)
 PAIRING_ARCHS = ("sm_35",)
-PAIRING_DIR = Path(__file__).parent / "pairing"
+PAIRING_DIR = Path(__file__).parent / "pairs"
 #: the control byte of an instruction that issues together with the next one
 DUAL_ISSUE = 0x04
 #: instructions one scheduling word governs
@@ -157,7 +157,7 @@ def retarget(ptx: str, arch: str) -> str:
 
 def build(cuda11_bin: Path, arch: str = "sm_35") -> dict:
     """Compile every kernel with both sets of tests for ``arch``; return the JSON document
-    ``kernels_ir/pairing/<arch>.json`` holds."""
+    ``kernels_ir/pairs/<arch>.json`` holds."""
     if arch not in PAIRING_ARCHS:
         raise KernelIRError(f"unknown pairing arch {arch!r}; use {', '.join(PAIRING_ARCHS)}")
     ptxas, nvdisasm = _kepler_tools(cuda11_bin)
@@ -208,7 +208,7 @@ def load(arch: str = "sm_35") -> dict:
     KernelIRError
         If none is committed for ``arch``.
     """
-    entry = resources.files("kernels_ir").joinpath("pairing", f"{arch}.json")
+    entry = resources.files("kernels_ir").joinpath("pairs", f"{arch}.json")
     if not entry.is_file():
         raise KernelIRError(
             f"no dual-issue pairing for {arch!r}; archs: {', '.join(PAIRING_ARCHS)}"
