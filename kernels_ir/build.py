@@ -50,6 +50,8 @@ FLAGS = (
 )
 #: the preprocessor flags of each set of tests (kernel_ir.TESTS)
 TEST_DEFINES = {"watertight": (), "published": ("-DSIMT_PUBLISHED_TESTS",)}
+#: the version in a CUDA tool's ``--version`` output (``V13.5.37``)
+RELEASE = re.compile(r"release [\d.]+, (V[\d.]+)")
 _INSTALL_HINT = "install the toolchain with `pip install -e '.[cuda-toolchain]'`"
 
 
@@ -77,8 +79,8 @@ def find_toolchain() -> Toolchain:
         bin_dir = Path(root) / "cu13" / "bin"
         nvcc, nvdisasm = bin_dir / "nvcc", bin_dir / "nvdisasm"
         if nvcc.is_file() and nvdisasm.is_file():
-            out = _run([str(nvcc), "--version"], CUDA_DIR).stdout
-            release = re.search(r"release [\d.]+, (V[\d.]+)", out)
+            out = run_tool([str(nvcc), "--version"], CUDA_DIR).stdout
+            release = RELEASE.search(out)
             build = re.search(r"^Build (\S+)", out, re.MULTILINE)
             if not (release and build):
                 raise KernelIRError(f"cannot read the version of {nvcc}; reinstall the wheels")
@@ -95,7 +97,8 @@ def toolchain_available() -> bool:
     return True
 
 
-def _run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
+def run_tool(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
+    """Run one CUDA tool in ``cwd``; its failure is a one-line KernelIRError."""
     proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         msg = (proc.stderr or proc.stdout).strip().splitlines()
@@ -158,12 +161,12 @@ def _compile(
     cubin = workdir / cubin_filename(kernel, arch, tests)
     flags = nvcc_flags(arch, tests)
     cmd = [str(tools.nvcc), *flags, "-o", str(cubin), f"{kernel}.cu"]
-    proc = _run(cmd, CUDA_DIR)
+    proc = run_tool(cmd, CUDA_DIR)
     log = proc.stdout + proc.stderr
     warnings = [ln for ln in log.splitlines() if "warning" in ln.lower()]
     if warnings:
         raise KernelIRError(f"{kernel} {arch}: compiler warning: {warnings[0].strip()}")
-    listing = _run([str(tools.nvdisasm), "-c", "-g", "-gi", str(cubin)], CUDA_DIR).stdout
+    listing = run_tool([str(tools.nvdisasm), "-c", "-g", "-gi", str(cubin)], CUDA_DIR).stdout
     instructions = [
         i for i in parse_listing(listing) if i.function == kernel or i.function.startswith("$")
     ]
@@ -204,7 +207,9 @@ def write_cubins(
         if kernel not in KERNELS:
             raise KernelIRError(f"unknown kernel {kernel!r}; kernels: {', '.join(KERNELS)}")
         path = (out_dir / cubin_filename(kernel, arch, tests)).resolve()
-        _run([str(tools.nvcc), *nvcc_flags(arch, tests), "-o", str(path), f"{kernel}.cu"], CUDA_DIR)
+        run_tool(
+            [str(tools.nvcc), *nvcc_flags(arch, tests), "-o", str(path), f"{kernel}.cu"], CUDA_DIR
+        )
         paths.append(path)
     return paths
 

@@ -22,14 +22,22 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
 import tempfile
 from functools import cache
 from importlib import resources
 from pathlib import Path
 
 from kernels_ir.blocks import UNATTRIBUTED, parse_markers
-from kernels_ir.build import CUDA_DIR, KERNELS, TEST_DEFINES, dumps, find_toolchain, source_sha256
+from kernels_ir.build import (
+    CUDA_DIR,
+    KERNELS,
+    RELEASE,
+    TEST_DEFINES,
+    dumps,
+    find_toolchain,
+    run_tool,
+    source_sha256,
+)
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import TESTS
 
@@ -117,17 +125,8 @@ def block_pairs(listing: str, source: str, source_name: str) -> dict[str, list[i
     return dict(sorted(counts.items()))
 
 
-def _run(cmd: list[str], cwd: Path) -> str:
-    proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, check=False)
-    if proc.returncode != 0:
-        msg = (proc.stderr or proc.stdout).strip().splitlines()
-        raise KernelIRError(f"{Path(cmd[0]).name} failed: {' | '.join(msg[:4])}")
-    return proc.stdout
-
-
 def _version(tool: Path) -> str:
-    out = _run([str(tool), "--version"], CUDA_DIR)
-    m = re.search(r"release [\d.]+, (V[\d.]+)", out)
+    m = RELEASE.search(run_tool([str(tool), "--version"], CUDA_DIR).stdout)
     if not m:
         raise KernelIRError(f"cannot read the version of {tool}; name CUDA 11.8's bin directory")
     return f"{tool.name} {m[1]}"
@@ -170,14 +169,16 @@ def build(cuda11_bin: Path, arch: str = "sm_35") -> dict:
             entry: dict = {"source_sha256": source_sha256(kernel)}
             for tests in TESTS:
                 ptx, cubin = work / f"{kernel}.{tests}.ptx", work / f"{kernel}.{tests}.cubin"
-                _run(
+                run_tool(
                     [str(nvcc.nvcc), *_PTX_FLAGS, *TEST_DEFINES[tests], "-o", str(ptx),
                      f"{kernel}.cu"],
                     CUDA_DIR,
                 )  # fmt: skip
                 ptx.write_text(retarget(ptx.read_text(), arch))
-                _run([str(ptxas), f"-arch={arch}", "-O3", "-o", str(cubin), str(ptx)], CUDA_DIR)
-                listing = _run([str(nvdisasm), "-c", "-hex", "-g", "-gi", str(cubin)], CUDA_DIR)
+                run_tool([str(ptxas), f"-arch={arch}", "-O3", "-o", str(cubin), str(ptx)], CUDA_DIR)
+                listing = run_tool(
+                    [str(nvdisasm), "-c", "-hex", "-g", "-gi", str(cubin)], CUDA_DIR
+                ).stdout
                 entry[tests] = block_pairs(listing, source, f"{kernel}.cu")
             kernels[kernel] = entry
     return {
