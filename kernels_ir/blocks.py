@@ -354,6 +354,49 @@ def by_frequency(
     return out
 
 
+def by_basic_block(
+    cfg: ControlFlow,
+    placed: Sequence[str | None],
+    instructions: Sequence[SassInstruction],
+    spare: Sequence[bool],
+) -> list[str | None]:
+    """``placed`` with a block's main basic block wholly in that block.
+
+    A basic block runs as a whole, so all its code runs as often. Where the compiler
+    if-converts a nested ``if`` (the triangle test's ``if (hit)`` as predicated moves at
+    the end of the v stage) or sinks code into the one branch that uses it (a u-stage
+    product needed only by the v stage), a basic block holds code of several blocks. It
+    runs with block B when B has a strict majority of its charged instructions and no
+    other basic block holds more of B's code (B's main one): then all of it goes to B.
+    Otherwise the code stays with its marker blocks: a minority in another block's main
+    basic block cannot tell how often it runs (bvh4's k == 1 test and select, run on
+    either of two outcomes, sit in a basic block of their own). ``spare[i]``: a
+    divergent-warp fallback, left alone.
+    """
+    out = list(placed)
+    members: dict[int, list[int]] = {}
+    for b in cfg.reachable:
+        members[b] = [
+            i
+            for i in range(cfg.starts[b], cfg.last(b) + 1)
+            if out[i] is not None and not spare[i] and classify(instructions[i].opcode)
+        ]
+    share: dict[str | None, Counter[int]] = {}
+    for b, idx in members.items():
+        for i in idx:
+            share.setdefault(out[i], Counter())[b] += 1
+    main = {block: max(c, key=lambda b: (c[b], -b)) for block, c in share.items()}
+    for b, idx in members.items():
+        votes = Counter(out[i] for i in idx)
+        if len(votes) < 2:
+            continue
+        ((block, most),) = votes.most_common(1)
+        if 2 * most > len(idx) and main[block] == b:
+            for i in idx:
+                out[i] = block
+    return out
+
+
 def _branch_block(
     cfg: ControlFlow,
     i: int,
@@ -404,13 +447,15 @@ class Placement(NamedTuple):
     subroutine's instruction has its most frequent caller's block (``callers`` has them
     all, with call counts). ``fallback``: the indices of divergent-warp fallbacks
     (:func:`divergent_only`), whose ``block`` is their marker block. ``full_warp``: the
-    indices of full-warp-only paths (:func:`full_warp_only`).
+    indices of full-warp-only paths (:func:`full_warp_only`). ``merged``: the blocks
+    whose code all runs in other blocks' basic blocks (:func:`by_basic_block`).
     """
 
     block: list[str]
     fallback: frozenset[int]
     callers: dict[str, Counter[str]]
     full_warp: frozenset[int] = frozenset()
+    merged: frozenset[str] = frozenset()
 
 
 def place_instructions(
@@ -437,7 +482,10 @@ def place_instructions(
         for i in kernel
     ]
     cfg = build_cfg([instructions[i] for i in kernel])
-    placed = by_frequency(cfg, lines, owner, loops or {})
+    spare = [i in fallback_idx for i in kernel]
+    by_loop = by_frequency(cfg, lines, owner, loops or {})
+    placed = by_basic_block(cfg, by_loop, [instructions[i] for i in kernel], spare)
+    merged = frozenset(by_loop) - frozenset(placed) - {None}
     block = [UNATTRIBUTED] * len(instructions)
     for i, line, freq in zip(kernel, lines, placed, strict=True):
         marker = owner.get(line) if line is not None else None
@@ -461,7 +509,7 @@ def place_instructions(
         if block[i] in SPIN_BLOCKS and i not in spins:
             block[i] = _block_before(owner, instructions[i].line) or UNATTRIBUTED
     full_warp = frozenset(full_warp_only(instructions))
-    return Placement(block, frozenset(fallback_idx), callers, full_warp)
+    return Placement(block, frozenset(fallback_idx), callers, full_warp, merged)
 
 
 def spins_in_blocks(

@@ -23,10 +23,11 @@ from kernels_ir.blocks import (
     map_blocks,
     parse_loops,
     parse_markers,
+    place_instructions,
     spins_in_blocks,
 )
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kernel_ir import CLASSES, DEFAULT_TESTS, SPIN_BLOCKS, TESTS
+from kernels_ir.kernel_ir import CLASSES, DEFAULT_TESTS, RUN_ELSEWHERE, SPIN_BLOCKS, TESTS
 from kernels_ir.sass import SassInstruction, parse_listing
 
 PACKAGE_DIR = Path(__file__).resolve().parent
@@ -241,10 +242,19 @@ def build_one(
     # a spin block without a spin on this target costs nothing, and says so
     for block in set(owner.values()) & set(SPIN_BLOCKS):
         counts.setdefault(block, dict.fromkeys(CLASSES, 0))
-    # every marked block must own code: a marker the compiler left empty would cost nothing
+    # every marked block must own code: a marker the compiler left empty would cost
+    # nothing. A block whose code all runs in another block's basic block (an if-converted
+    # ``if``, blocks.by_basic_block) costs nothing itself, and the notes say so.
+    merged = place_instructions(instructions, owner, f"{kernel}.cu", loops).merged - set(
+        SPIN_BLOCKS
+    )
+    for block in merged:
+        counts.setdefault(block, dict.fromkeys(CLASSES, 0))
+    if merged:
+        notes[RUN_ELSEWHERE] = ", ".join(sorted(merged))
     missing = [
         b
-        for b in sorted(set(owner.values()) - set(SPIN_BLOCKS))
+        for b in sorted(set(owner.values()) - set(SPIN_BLOCKS) - merged)
         if sum(counts.get(b, {}).values()) <= 0
     ]
     if missing:

@@ -108,6 +108,10 @@ TESTS = ("watertight", "published")
 DEFAULT_TESTS = "watertight"
 
 
+#: the notes entry naming the blocks :attr:`KernelIR.run_elsewhere` reads
+RUN_ELSEWHERE = "blocks_run_in_other_basic_blocks"
+
+
 @dataclass(frozen=True)
 class KernelIR:
     """Instruction counts per block, split by instruction class, for one kernel and arch.
@@ -140,6 +144,12 @@ class KernelIR:
     def cost(self, block: str) -> int:
         """Total instructions of one execution of ``block`` (0 if the kernel lacks it)."""
         return int(sum(self.blocks.get(block, {}).values()))
+
+    @property
+    def run_elsewhere(self) -> frozenset[str]:
+        """Marked blocks that cost nothing because all their code runs in other blocks'
+        basic blocks (``kernels_ir.blocks.by_basic_block``; an if-converted ``if``)."""
+        return frozenset(b for b in self.notes.get(RUN_ELSEWHERE, "").split(", ") if b)
 
 
 @dataclass(frozen=True)

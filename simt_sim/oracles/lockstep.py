@@ -46,7 +46,9 @@ an interior node to step, a leaf to enter, a triangle to test, or nothing):
   first when more than half of the warp's ``warp_size`` lanes prefer it (a lane hitting one
   child prefers it, one hitting both the nearer), the other is pushed. At a leaf the warp
   runs the triangle loop over every triangle (``leaf_entry``, ``tri_test``, ``tri_hit`` for
-  the lanes whose hit is accepted); an any-hit warp ends after the leaf in which its last
+  the lanes whose hit is accepted). The kernel keeps no per-lane mask, so every lane still
+  searching tests every triangle, and a stage (``tri_u``, ``tri_v``, ``tri_hit``) is issued
+  when any of them reaches it, useful or not; an any-hit warp ends after the leaf in which its last
   lane found a hit, any other when its stack is empty. ``loop_control`` is charged once per
   node or leaf with every lane that has a ray. A step's *useful* lanes (its active count,
   and the lanes whose TRAV/LEAF/TRI it counts) are those whose ray hit the node's box when
@@ -139,15 +141,19 @@ from simt_sim.simt.engine import (
     TRAV_DIVERGED,
     TRAV_NONE_B,
     TRAV_STEP,
+    TRI_HIT_B,
     TRI_TEST,
+    TRI_U,
+    TRI_V,
     Counts,
     charge,
     charge_tri,
-    charge_tri_stages,
     class_mix,
     cost_vector,
     heap_sift_down,
     lane_traffic,
+    passes_t,
+    passes_u,
     schedule_groups,
     tri_pack,
 )
@@ -651,19 +657,27 @@ def _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i, a
                     ops[base + lane, _C_LEAF] += 1
             j = ~node
             while woop_i[j, 0] != SENTINEL_I32:  # every triangle of the leaf, as the kernel
+                # every lane still searching tests it, so any of them issues a stage; the
+                # useful ones (their ray hit the leaf's box) are the stage's active lanes
+                reached = np.zeros((2, 3), np.int64)  # (all, useful) x (u, v, hit)
                 testing = 0
-                a = np.int64(0)
                 for lane in range(lanes):
-                    if not mask[lane] or done[lane]:
+                    if done[lane]:
                         continue
-                    testing += 1
-                    ops[base + lane, _C_TRI] += 1
+                    useful = mask[lane]
+                    testing += useful
+                    ops[base + lane, _C_TRI] += useful
                     li[lane, _J] = j
                     o = _tri_test(li, lf, lane, woop, woop_i, any_hit)
-                    a += tri_pack(o)
+                    for row in range(1 + useful):
+                        reached[row, 0] += passes_t(o)
+                        reached[row, 1] += passes_u(o)
+                        reached[row, 2] += o == _OP_TRI_HIT
                     done[lane] = any_hit and o == _OP_TRI_HIT
                 cost += _issue(cnt, hist, costs, TRI_TEST, testing)
-                cost += charge_tri_stages(cnt, hist, costs, a)
+                for k, block in enumerate((TRI_U, TRI_V, TRI_HIT_B)):
+                    if reached[0, k]:
+                        cost += _issue(cnt, hist, costs, block, reached[1, k])
                 j += 3
             if any_hit and done.all():
                 break

@@ -325,13 +325,8 @@ def charge_tri(cnt, hist, costs, a):
     """Charge one triangle-loop iteration from its packed counters ``a`` (the sum of its
     lanes' :func:`tri_pack`): ``tri_test``, the stages some lane reached (``tri_u``,
     ``tri_v``) and ``tri_hit``. Returns the instructions."""
-    return charge(cnt, hist, costs, TRI_TEST, a & _TRI_LOW) + charge_tri_stages(cnt, hist, costs, a)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def charge_tri_stages(cnt, hist, costs, a):
-    """:func:`charge_tri` without ``tri_test``, for an executor that issues that itself."""
-    issued = charge(cnt, hist, costs, TRI_U, (a >> _TRI_FIELD) & _TRI_LOW)
+    issued = charge(cnt, hist, costs, TRI_TEST, a & _TRI_LOW)
+    issued += charge(cnt, hist, costs, TRI_U, (a >> _TRI_FIELD) & _TRI_LOW)
     issued += charge(cnt, hist, costs, TRI_V, (a >> (2 * _TRI_FIELD)) & _TRI_LOW)
     return issued + charge(cnt, hist, costs, TRI_HIT_B, a >> (3 * _TRI_FIELD))
 

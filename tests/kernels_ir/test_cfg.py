@@ -1,13 +1,14 @@
 """The SASS control-flow graph and the frequency attribution built on it (kernels_ir.cfg,
-kernels_ir.blocks.by_frequency): hand-made listings whose loops and counts are known, and
-the committed IR of the kernels whose loops the attribution must get right."""
+kernels_ir.blocks.by_frequency and by_basic_block): hand-made listings whose loops and
+counts are known, and the committed IR of the kernels whose loops the attribution must get
+right."""
 
 from __future__ import annotations
 
 import pytest
 
 from kernels_ir import load
-from kernels_ir.blocks import map_blocks, parse_loops, parse_markers
+from kernels_ir.blocks import map_blocks, parse_loops, parse_markers, place_instructions
 from kernels_ir.cfg import build_cfg
 from kernels_ir.errors import KernelIRError
 from kernels_ir.sass import parse_listing
@@ -167,11 +168,12 @@ ENTRY_HEAVY = [
 def test_a_loops_own_block_stays_home_in_the_loop_when_most_of_it_is_outside() -> None:
     """The loop statement's block is the loop's own block even where most of its code is
     the entry test and the exit (found by the SASS walk on if-if): those run once per
-    thread and go to the code around the loop; the latch and the if's test stay in it."""
+    thread and go to the code around the loop (the entry test to ray_setup, the exit's
+    BSYNC to finish, whose basic block it opens); the latch and the if's test stay in it."""
     ins = parse_listing(_listing(ENTRY_HEAVY))
     counts, _, _, _ = map_blocks(ins, parse_markers(SOURCE, "k.cu"), "k.cu", parse_loops(SOURCE))
     total = {b: sum(row.values()) for b, row in counts.items()}
-    assert total == {"ray_setup": 9, "loop_control": 4, "trav_step": 3, "finish": 2}
+    assert total == {"ray_setup": 8, "loop_control": 4, "trav_step": 3, "finish": 3}
 
 
 def test_map_blocks_without_source_loops_still_attributes_by_frequency() -> None:
@@ -197,5 +199,65 @@ def test_while_while_triangle_loop_charges_its_preheader_per_leaf() -> None:
     ir = load("while_while", "sm_75")
     assert ir.cost("leaf_entry") >= 20
     assert ir.cost("tri_test") <= 70
-    stages = ir.cost("tri_test") + ir.cost("tri_u") + ir.cost("tri_v")
-    assert stages + ir.cost("leaf_entry") == 91  # nothing lost on the way
+    stages = ir.cost("tri_test") + ir.cost("tri_u") + ir.cost("tri_v") + ir.cost("tri_hit")
+    assert stages + ir.cost("leaf_entry") == 98  # nothing lost on the way
+
+
+#: a triangle test without loops: the v stage under the t test, the hit under the v stage
+STAGES = """// k.cu
+// @block tri_test
+t;
+if (t_ok) {
+    // @block tri_v
+    v;
+    // @block tri_hit
+    if (hit) best = t;
+    // @block tri_test
+}
+// @block finish
+b;
+"""
+
+
+def test_an_if_converted_block_runs_with_the_basic_block_it_sits_in() -> None:
+    """nvcc turns the hit's ``if`` into a predicated move at the end of the v stage: it
+    runs whenever the v stage does, so tri_v is charged it and tri_hit costs nothing."""
+    rows = [
+        (3, "FADD R1, R1, 1"),
+        (4, "ISETP.NE.AND P0, PT, R1, RZ, PT"),
+        (4, "@!P0 BRA `(.L_x_1)"),
+        *[(6, f"FFMA R{k}, R1, R2, R3") for k in range(2, 6)],
+        (8, "FSETP.GT.AND P1, PT, R2, RZ, PT"),
+        (8, "@P1 MOV R6, R1"),
+        ".L_x_1",
+        (12, "STG.E [R8], R6"),
+        (12, "EXIT"),
+    ]
+    ins = parse_listing(_listing(rows))
+    owner = parse_markers(STAGES, "k.cu")
+    counts, _, _, _ = map_blocks(ins, owner, "k.cu", parse_loops(STAGES))
+    total = {b: sum(row.values()) for b, row in counts.items()}
+    assert total == {"tri_test": 3, "tri_v": 6, "finish": 2}
+    assert place_instructions(ins, owner, "k.cu", parse_loops(STAGES)).merged == {"tri_hit"}
+
+
+def test_a_minority_in_a_basic_block_that_is_no_blocks_main_one_stays() -> None:
+    """A basic block mostly of tri_test code, while most of tri_test lies in another
+    basic block, cannot say how often it runs: its code keeps its marker blocks."""
+    rows = [
+        *[(3, f"FADD R{k}, R{k}, 1") for k in range(1, 4)],
+        (4, "ISETP.NE.AND P0, PT, R1, RZ, PT"),
+        (4, "@!P0 BRA `(.L_x_1)"),
+        (3, "FMUL R4, R1, R1"),
+        (3, "FMUL R5, R2, R2"),
+        (6, "FFMA R6, R4, R5, R3"),
+        ".L_x_1",
+        (12, "STG.E [R8], R6"),
+        (12, "EXIT"),
+    ]
+    ins = parse_listing(_listing(rows))
+    owner = parse_markers(STAGES, "k.cu")
+    counts, _, _, _ = map_blocks(ins, owner, "k.cu", parse_loops(STAGES))
+    total = {b: sum(row.values()) for b, row in counts.items()}
+    assert total == {"tri_test": 7, "tri_v": 1, "finish": 2}
+    assert not place_instructions(ins, owner, "k.cu", parse_loops(STAGES)).merged
