@@ -3,7 +3,8 @@
 For each scene and ray type, camera 0 at 256x192 with 4 secondary rays per primary hit,
 16 warps spread over the image: every binary-tree trace kernel's SASS (sm_75) is run
 lane by lane on those warps (``python -m kernels_ir dyncount`` does one of them) and set
-beside the replay of the same rays on the RTX 2080 Ti. Replaces the generated blocks of
+beside the replay of the same rays on the RTX 2080 Ti, and beside the lockstep executor's
+run of the kernel's control flow where the scheme has one. Replaces the generated blocks of
 docs/kernels_ir.md: the difference per kernel, scene and ray type, and where it comes
 from (per block, summed over the scenes and ray types).
 
@@ -78,6 +79,8 @@ def main(argv: list[str] | None = None) -> int:
                     "kernel": kernel, "scene": scene, "rays": ray_type,
                     "walk": d.walk, "replay": d.replay,
                     "replay vs walk": f"{100 * d.difference:+.1f}%",
+                    "executor vs walk": "-" if d.exact is None
+                    else f"{100 * (d.exact / d.walk - 1):+.1f}%",
                     "hits agree": f"{100 * d.hits_agree:.1f}%",
                 })  # fmt: skip
                 for block, diff in d.table["replay - walk"].items():
@@ -94,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     header = (
         f"`{command}` ({seconds:.0f} s; sm_75, RTX 2080 Ti rules, camera 0 at 256x192, "
-        f"4 secondary rays per hit, {args.warps} warps spread over the image)\n\n"
+        f"4 secondary rays per hit, {args.warps} warps spread over the image; the executor "
+        "is the lockstep executor, simt_sim/oracles/lockstep.py, where a scheme has one)\n\n"
     )
     ratios = scheme_ratios(table)
     print(table.to_string(index=False))

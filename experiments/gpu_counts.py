@@ -248,6 +248,21 @@ def replay_result(trace, kernel: str, scheme_name: str, warps: int):
     )  # fmt: skip
 
 
+def exact_result(bvh, rays, kernel: str, scheme_name: str, warps: int):
+    """The lockstep executor's run of the measured rays (the kernel's control flow, no op
+    stream) on the GPU's configuration, with the launch's warps resident as the replay."""
+    from kernels_ir import load as load_ir
+    from simt_sim.oracles.lockstep import execute
+    from simt_sim.simt.gpus import get_gpu
+
+    scheme = schemes.get_scheme(scheme_name)
+    resident = warps if scheme.launch.persistent else None
+    return execute(
+        bvh, rays, scheme, load_ir(kernel, ARCH), get_gpu(GPU), scene=SCENE,
+        resident_warps=resident,
+    ).result  # fmt: skip
+
+
 @cache
 def ir_listing(kernel: str) -> list:
     """The IR build's SASS of ``kernel`` (compiled once per kernel, not per launch)."""
@@ -301,11 +316,17 @@ def compare() -> tuple[pd.DataFrame, pd.DataFrame]:
         r = replay_result(traces[launch.ray_type], launch.kernel, launch.scheme, launch.warps)
         lanes = int((r.counts.active * r.costs).sum())
         hw, hw_lanes = launch.inst_executed, launch.thread_inst_executed
+        rays = work["rays"][launch.ray_type]
+        exact = "-"
+        if schemes.get_scheme(launch.scheme).lockstep is not None:
+            x = exact_result(work["bvh"], rays, launch.kernel, launch.scheme, launch.warps)
+            exact = f"{100 * (x.warp_instructions / hw - 1):+.1f}%"
         bsync = reconvergence_excess(listing, warps)
         rows.append({
             "kernel": launch.kernel, "rays": launch.ray_type,
             "GPU warp instr": int(hw), "replay": r.warp_instructions,
             "replay vs GPU": f"{100 * (r.warp_instructions / hw - 1):+.1f}%",
+            "executor vs GPU": exact,
             "BSYNC excess": f"{100 * bsync / hw:.1f}%",
             "GPU SIMD eff": round(hw_lanes / (32 * hw), 3),
             "replay SIMD eff": round(lanes / (32 * r.warp_instructions), 3),
@@ -378,8 +399,9 @@ def write_doc(table: pd.DataFrame, share: pd.DataFrame, seconds: float) -> None:
         f"`python experiments/gpu_counts.py compare` ({seconds:.0f} s) on the counters in "
         f"docs/gpu ({launches.device.iloc[0]}, {launches.code.iloc[0]}; {SCENE} camera 0 at "
         f"{RESOLUTION[0]}x{RESOLUTION[1]}, {SPP} secondary rays per hit, {WARPS} warps of "
-        f"each secondary ray type); the replay uses the {GPU} configuration and the "
-        f"{ARCH} IR:\n\n"
+        f"each secondary ray type); the replay and the lockstep executor (which runs each "
+        f"kernel's control flow on the rays, simt_sim/oracles/lockstep.py) use the {GPU} "
+        f"configuration and the {ARCH} IR:\n\n"
     )
     text = DOC.read_text()
     text = splice(text, "gpu-counts", header + table.to_markdown(index=False))

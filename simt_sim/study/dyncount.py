@@ -26,6 +26,7 @@ from kernels_ir.sass import SassInstruction
 from simt_sim import schemes
 from simt_sim.bvh.layout import BVH
 from simt_sim.errors import SimtSimError
+from simt_sim.oracles.lockstep import execute
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.study.workload import make_workload
@@ -60,6 +61,9 @@ class DynCount:
     rays: int
     table: pd.DataFrame
     hits_agree: float
+    exact: int | None = None
+    """The lockstep executor's warp instructions on the same warps (its kernel control
+    flow, no op stream); ``None`` for a scheme without a lockstep body."""
 
     @property
     def walk(self) -> int:
@@ -75,11 +79,16 @@ class DynCount:
         return (self.replay - self.walk) / self.walk
 
     def summary(self) -> str:
+        exact = (
+            ""
+            if self.exact is None
+            else f"; lockstep executor {self.exact} ({100 * (self.exact / self.walk - 1):+.2f}%)"
+        )
         return (
             f"{self.scheme} on {self.scene} {self.ray_type}, {self.warps} warps "
             f"({self.rays} rays), {self.arch} / {self.gpu}: SASS walk {self.walk} warp "
-            f"instructions, replay {self.replay}, difference {100 * self.difference:+.2f}% "
-            f"(hits agree on {100 * self.hits_agree:.2f}% of rays)"
+            f"instructions, replay {self.replay}, difference {100 * self.difference:+.2f}%"
+            f"{exact} (hits agree on {100 * self.hits_agree:.2f}% of rays)"
         )
 
 
@@ -235,6 +244,10 @@ def compare_counts(
     ir = load_ir(kernel, arch)
     resident = 1 if scheme.launch.persistent else None
     result = simulate_traces([trace], scheme, ir, gpu, scene=scene, resident_warps=resident)
+    exact = None
+    if scheme.lockstep is not None:
+        run_exact = execute(bvh, rays, scheme, ir, gpu, scene=scene, resident_warps=resident)
+        exact = run_exact.result.warp_instructions
     walk = walk_blocks(kernel, run.issued, run.instructions)
     replay = pd.Series(result.block_instructions, dtype=np.int64)
     table = pd.DataFrame({"walk": walk, "replay": replay}).fillna(0).astype(np.int64)
@@ -243,5 +256,6 @@ def compare_counts(
     table = table.loc[order + [b for b in table.index if b not in order]]
     table["replay - walk"] = table["replay"] - table["walk"]
     return DynCount(
-        scheme_name, scene, rays.ray_type, arch, gpu_id, run.warps, len(rays.tmin), table, agree
-    )
+        scheme_name, scene, rays.ray_type, arch, gpu_id, run.warps, len(rays.tmin), table, agree,
+        exact,
+    )  # fmt: skip
