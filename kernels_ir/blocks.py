@@ -447,15 +447,15 @@ class Placement(NamedTuple):
     subroutine's instruction has its most frequent caller's block (``callers`` has them
     all, with call counts). ``fallback``: the indices of divergent-warp fallbacks
     (:func:`divergent_only`), whose ``block`` is their marker block. ``full_warp``: the
-    indices of full-warp-only paths (:func:`full_warp_only`). ``merged``: the blocks
-    whose code all runs in other blocks' basic blocks (:func:`by_basic_block`).
+    indices of full-warp-only paths (:func:`full_warp_only`). ``run_elsewhere``: the
+    blocks whose code all runs in other blocks' basic blocks (:func:`by_basic_block`).
     """
 
     block: list[str]
     fallback: frozenset[int]
     callers: dict[str, Counter[str]]
     full_warp: frozenset[int] = frozenset()
-    merged: frozenset[str] = frozenset()
+    run_elsewhere: frozenset[str] = frozenset()
 
 
 def place_instructions(
@@ -485,7 +485,7 @@ def place_instructions(
     spare = [i in fallback_idx for i in kernel]
     by_loop = by_frequency(cfg, lines, owner, loops or {})
     placed = by_basic_block(cfg, by_loop, [instructions[i] for i in kernel], spare)
-    merged = frozenset(by_loop) - frozenset(placed) - {None}
+    run_elsewhere = frozenset(by_loop) - frozenset(placed) - {None}
     block = [UNATTRIBUTED] * len(instructions)
     for i, line, freq in zip(kernel, lines, placed, strict=True):
         marker = owner.get(line) if line is not None else None
@@ -509,7 +509,7 @@ def place_instructions(
         if block[i] in SPIN_BLOCKS and i not in spins:
             block[i] = _block_before(owner, instructions[i].line) or UNATTRIBUTED
     full_warp = frozenset(full_warp_only(instructions))
-    return Placement(block, frozenset(fallback_idx), callers, full_warp, merged)
+    return Placement(block, frozenset(fallback_idx), callers, full_warp, run_elsewhere)
 
 
 def spins_in_blocks(

@@ -245,16 +245,15 @@ def build_one(
     # every marked block must own code: a marker the compiler left empty would cost
     # nothing. A block whose code all runs in another block's basic block (an if-converted
     # ``if``, blocks.by_basic_block) costs nothing itself, and the notes say so.
-    merged = place_instructions(instructions, owner, f"{kernel}.cu", loops).merged - set(
-        SPIN_BLOCKS
-    )
-    for block in merged:
+    placement = place_instructions(instructions, owner, f"{kernel}.cu", loops)
+    elsewhere = placement.run_elsewhere - set(SPIN_BLOCKS)
+    for block in elsewhere:
         counts.setdefault(block, dict.fromkeys(CLASSES, 0))
-    if merged:
-        notes[RUN_ELSEWHERE] = ", ".join(sorted(merged))
+    if elsewhere:
+        notes[RUN_ELSEWHERE] = ", ".join(sorted(elsewhere))
     missing = [
         b
-        for b in sorted(set(owner.values()) - set(SPIN_BLOCKS) - merged)
+        for b in sorted(set(owner.values()) - set(SPIN_BLOCKS) - elsewhere)
         if sum(counts.get(b, {}).values()) <= 0
     ]
     if missing:

@@ -238,7 +238,7 @@ def test_an_if_converted_block_runs_with_the_basic_block_it_sits_in() -> None:
     counts, _, _, _ = map_blocks(ins, owner, "k.cu", parse_loops(STAGES))
     total = {b: sum(row.values()) for b, row in counts.items()}
     assert total == {"tri_test": 3, "tri_v": 6, "finish": 2}
-    assert place_instructions(ins, owner, "k.cu", parse_loops(STAGES)).merged == {"tri_hit"}
+    assert place_instructions(ins, owner, "k.cu", parse_loops(STAGES)).run_elsewhere == {"tri_hit"}
 
 
 def test_a_minority_in_a_basic_block_that_is_no_blocks_main_one_stays() -> None:
@@ -260,4 +260,4 @@ def test_a_minority_in_a_basic_block_that_is_no_blocks_main_one_stays() -> None:
     counts, _, _, _ = map_blocks(ins, owner, "k.cu", parse_loops(STAGES))
     total = {b: sum(row.values()) for b, row in counts.items()}
     assert total == {"tri_test": 7, "tri_v": 1, "finish": 2}
-    assert not place_instructions(ins, owner, "k.cu", parse_loops(STAGES)).merged
+    assert not place_instructions(ins, owner, "k.cu", parse_loops(STAGES)).run_elsewhere
