@@ -219,6 +219,15 @@ b;
 """
 
 
+def _stages_charged(rows: list[tuple[int, str] | str]) -> tuple[dict[str, int], frozenset[str]]:
+    """Instructions per block of a listing of :data:`STAGES`, and the blocks run elsewhere."""
+    ins = parse_listing(_listing(rows))
+    owner, loops = parse_markers(STAGES, "k.cu"), parse_loops(STAGES)
+    counts, _, _, _ = map_blocks(ins, owner, "k.cu", loops)
+    total = {b: sum(row.values()) for b, row in counts.items()}
+    return total, place_instructions(ins, owner, "k.cu", loops).run_elsewhere
+
+
 def test_an_if_converted_block_runs_with_the_basic_block_it_sits_in() -> None:
     """nvcc turns the hit's ``if`` into a predicated move at the end of the v stage: it
     runs whenever the v stage does, so tri_v is charged it and tri_hit costs nothing."""
@@ -233,12 +242,7 @@ def test_an_if_converted_block_runs_with_the_basic_block_it_sits_in() -> None:
         (12, "STG.E [R8], R6"),
         (12, "EXIT"),
     ]
-    ins = parse_listing(_listing(rows))
-    owner = parse_markers(STAGES, "k.cu")
-    counts, _, _, _ = map_blocks(ins, owner, "k.cu", parse_loops(STAGES))
-    total = {b: sum(row.values()) for b, row in counts.items()}
-    assert total == {"tri_test": 3, "tri_v": 6, "finish": 2}
-    assert place_instructions(ins, owner, "k.cu", parse_loops(STAGES)).run_elsewhere == {"tri_hit"}
+    assert _stages_charged(rows) == ({"tri_test": 3, "tri_v": 6, "finish": 2}, {"tri_hit"})
 
 
 def test_a_minority_in_a_basic_block_that_is_no_blocks_main_one_stays() -> None:
@@ -255,9 +259,4 @@ def test_a_minority_in_a_basic_block_that_is_no_blocks_main_one_stays() -> None:
         (12, "STG.E [R8], R6"),
         (12, "EXIT"),
     ]
-    ins = parse_listing(_listing(rows))
-    owner = parse_markers(STAGES, "k.cu")
-    counts, _, _, _ = map_blocks(ins, owner, "k.cu", parse_loops(STAGES))
-    total = {b: sum(row.values()) for b, row in counts.items()}
-    assert total == {"tri_test": 7, "tri_v": 1, "finish": 2}
-    assert not place_instructions(ins, owner, "k.cu", parse_loops(STAGES)).run_elsewhere
+    assert _stages_charged(rows) == ({"tri_test": 7, "tri_v": 1, "finish": 2}, frozenset())
