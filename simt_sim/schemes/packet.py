@@ -19,8 +19,10 @@ Approximations: traversal order and the packet's culling by the lanes' tmax are 
 conserved per lane, so SIMD efficiency here measures the useful fraction of the union.
 The kernel (Aila & Laine's packet semantics, run exactly by
 :mod:`simt_sim.oracles.lockstep`) also steps the nodes its finished any-hit lanes still
-hit and follows a whole-warp order vote; the replay sees neither, and under-counts the
-kernel's warp instructions on incoherent rays (docs/paper_table.md measures by how much).
+hit, follows a whole-warp order vote, and has every lane still searching test every
+triangle of a leaf it enters (a stage is issued when any of them reaches it); the replay
+sees none of these, and under-counts the kernel's warp instructions on incoherent rays
+(docs/paper_table.md measures by how much).
 """
 
 from __future__ import annotations
@@ -193,6 +195,9 @@ SCHEME = SchemeInfo(
         "active lanes of a packet step = lanes whose own ray visits that node",
         "finished any-hit lanes and the whole-warp order vote, which make the kernel visit "
         "more nodes, are not modelled (the lockstep executor measures the error)",
+        "a triangle's stages are issued for the lanes whose own ray enters the leaf; in "
+        "the kernel every lane still searching tests it (the lockstep executor measures "
+        "the error)",
     ),
     replay=replay,
     warp_counts=warp_counts,
