@@ -233,34 +233,24 @@ def import_run(run_dir: Path) -> None:
     print(f"wrote {OUT_DIR}")
 
 
-def replay_result(trace, kernel: str, scheme_name: str, warps: int):
-    """The replay of the measured rays' ``trace`` on the GPU's configuration, with the
-    launch's warps as the resident warps of a persistent kernel."""
+def model_results(trace, bvh, rays, kernel: str, scheme_name: str, warps: int):
+    """The replay of the measured rays' ``trace`` and, where the scheme has a lockstep
+    body, the lockstep executor's run of the rays themselves (``None`` otherwise), both on
+    the GPU's configuration with the launch's warps as a persistent kernel's resident
+    warps."""
     from kernels_ir import load as load_ir
+    from simt_sim.oracles.lockstep import execute
     from simt_sim.simt.gpus import get_gpu
     from simt_sim.simt.replay import simulate_traces
 
     scheme = schemes.get_scheme(scheme_name)
+    ir, gpu = load_ir(kernel, ARCH), get_gpu(GPU)
     resident = warps if scheme.launch.persistent else None
-    return simulate_traces(
-        [trace], scheme, load_ir(kernel, ARCH), get_gpu(GPU), scene=SCENE,
-        resident_warps=resident,
-    )  # fmt: skip
-
-
-def exact_result(bvh, rays, kernel: str, scheme_name: str, warps: int):
-    """The lockstep executor's run of the measured rays (the kernel's control flow, no op
-    stream) on the GPU's configuration, with the launch's warps resident as the replay."""
-    from kernels_ir import load as load_ir
-    from simt_sim.oracles.lockstep import execute
-    from simt_sim.simt.gpus import get_gpu
-
-    scheme = schemes.get_scheme(scheme_name)
-    resident = warps if scheme.launch.persistent else None
-    return execute(
-        bvh, rays, scheme, load_ir(kernel, ARCH), get_gpu(GPU), scene=SCENE,
-        resident_warps=resident,
-    ).result  # fmt: skip
+    replay = simulate_traces([trace], scheme, ir, gpu, scene=SCENE, resident_warps=resident)
+    if scheme.lockstep is None:
+        return replay, None
+    exact = execute(bvh, rays, scheme, ir, gpu, scene=SCENE, resident_warps=resident)
+    return replay, exact.result
 
 
 @cache
@@ -313,14 +303,13 @@ def compare() -> tuple[pd.DataFrame, pd.DataFrame]:
         ins = per_ins[(per_ins.kernel == launch.kernel) & (per_ins.ray_type == launch.ray_type)]
         listing = checked_listing(launch.kernel, ins["sass"])
         warps = ins["warps"].to_numpy()
-        r = replay_result(traces[launch.ray_type], launch.kernel, launch.scheme, launch.warps)
+        r, x = model_results(
+            traces[launch.ray_type], work["bvh"], work["rays"][launch.ray_type],
+            launch.kernel, launch.scheme, launch.warps,
+        )  # fmt: skip
         lanes = int((r.counts.active * r.costs).sum())
         hw, hw_lanes = launch.inst_executed, launch.thread_inst_executed
-        rays = work["rays"][launch.ray_type]
-        exact = "-"
-        if schemes.get_scheme(launch.scheme).lockstep is not None:
-            x = exact_result(work["bvh"], rays, launch.kernel, launch.scheme, launch.warps)
-            exact = f"{100 * (x.warp_instructions / hw - 1):+.1f}%"
+        exact = "-" if x is None else f"{100 * (x.warp_instructions / hw - 1):+.1f}%"
         bsync = reconvergence_excess(listing, warps)
         rows.append({
             "kernel": launch.kernel, "rays": launch.ray_type,
