@@ -82,8 +82,10 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument(
         "--split",
         action="store_true",
-        help="lanes that went different ways issue apart until a convergence barrier "
-        "(default: lanes at one address issue together)",
+        help="lanes that went different ways issue apart until a convergence barrier, as "
+        "on a GPU with independent thread scheduling (default: lanes at one address issue "
+        "together, each barrier once per region, and the replay's per-group barrier "
+        "issues, reconverge, are left out)",
     )
     args = parser.parse_args(argv)
     if args.cmd == "dyncount":

@@ -27,8 +27,15 @@ from kernels_ir.blocks import (
     spins_in_blocks,
 )
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kernel_ir import CLASSES, DEFAULT_TESTS, RUN_ELSEWHERE, SPIN_BLOCKS, TESTS
-from kernels_ir.sass import SassInstruction, parse_listing
+from kernels_ir.kernel_ir import (
+    CLASSES,
+    DEFAULT_TESTS,
+    RECONVERGE,
+    RUN_ELSEWHERE,
+    SPIN_BLOCKS,
+    TESTS,
+)
+from kernels_ir.sass import SassInstruction, base_opcode, classify, parse_listing
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 CUDA_DIR = PACKAGE_DIR / "cuda"
@@ -265,6 +272,12 @@ def build_one(
     notes["total_instructions"] = str(
         sum(sum(r.values()) for r in counts.values()) + sum(unattributed.values())
     )
+    # a group of lanes that reaches a convergence barrier apart issues it again: the
+    # replay charges that BSYNC (each region's first issue is in its own block) on GPUs
+    # with independent thread scheduling. Pre-Volta code has no BSYNC, so no such block.
+    barrier = next((ins for ins in instructions if base_opcode(ins.opcode) == "BSYNC"), None)
+    if barrier is not None:
+        counts[RECONVERGE] = {c: int(c == classify(barrier.opcode)) for c in CLASSES}
     return {
         "kernel": kernel,
         "arch": arch,

@@ -34,6 +34,10 @@ tri_hit            an accepted hit: shrink tmax / record (TRI_HIT)
 finish             a ray terminates: store its result
 shade              path tracing: shade a hit, sample the next direction
 queue_push         wavefront: append a ray to an output queue
+reconverge         a group of lanes that reaches a convergence barrier apart from the
+                   rest of its region issues the barrier again: one ``BSYNC`` (GPUs with
+                   independent thread scheduling; made by the build, no marker; the
+                   region's first issue is in the block that holds the barrier)
 =================  ====================================================================
 
 Instruction classes: fp32, int, ld_global, st_global, local, shared, control, vote_atomic,
@@ -65,7 +69,10 @@ BLOCKS = (
     "finish",
     "shade",
     "queue_push",
+    "reconverge",
 )
+RECONVERGE = "reconverge"
+"""The block of a convergence barrier's issues by groups of lanes that reach it apart."""
 SPIN_BLOCKS = ("refill_break", "idle_wait")
 """Blocks whose code is what the compiler puts on a path (a convergence spin before a warp
 vote, sm_75): a target that needs none (sm_80 on) leaves them empty."""

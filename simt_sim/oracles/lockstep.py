@@ -9,7 +9,8 @@ This module runs the kernels themselves: warps of lanes stepping through the rea
 (the same float32 box and Woop tests as the tracer, :mod:`simt_sim.bvh.geometry`) under each
 scheme's loop structure, charging the same blocks with the same rules as the replay.
 Comparing the two measures the approximation; for while-while and if-if the two must
-agree counter for counter, which pins the replay to the kernels' control flow.
+agree counter for counter, which pins the replay to the kernels' control flow, the
+convergence barriers' issues by groups of lanes that arrive apart (``reconverge``) too.
 
 Kernel control flow per scheme (a lane's *next op* is what its state makes it do next:
 an interior node to step, a leaf to enter, a triangle to test, or nothing):
@@ -146,7 +147,9 @@ from simt_sim.simt.engine import (
     TRI_U,
     TRI_V,
     Counts,
+    apart,
     charge,
+    charge_apart,
     charge_tri,
     class_mix,
     cost_vector,
@@ -155,6 +158,7 @@ from simt_sim.simt.engine import (
     passes_t,
     passes_u,
     schedule_groups,
+    tri_groups,
     tri_pack,
 )
 from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, executed_on, get_gpu
@@ -340,8 +344,11 @@ def _tri_test(li, lf, lane, woop, woop_i, any_hit):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs):
-    """One lockstep traversal step of lanes ``sel[:n]``: trav_step plus outcome branches.
+def _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs,
+                         barriers=False):  # fmt: skip
+    """One lockstep traversal step of lanes ``sel[:n]``: trav_step plus outcome branches
+    (``barriers``: and the issues of the step's closing barrier by each outcome's lanes
+    after the first, as while-while's kernels close it).
 
     Returns the cost issued, or -1 on stack overflow.
     """
@@ -356,19 +363,29 @@ def _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, 
         ops[base + lane, _C_TRAV] += 1
     for o in range(3):
         cost += charge(cnt, hist, costs, TRAV_NONE_B + o, outcome_lanes[o])
+    if barriers:
+        groups = np.int64(0)
+        for o in range(3):
+            groups += np.int64(outcome_lanes[o] > 0)
+        cost += charge_apart(cnt, hist, costs, apart(groups))
     return cost
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _tri_iteration(li, lf, sel, n, woop, woop_i, any_hit, ops, base, cnt, hist, costs):
+def _tri_iteration(li, lf, sel, n, woop, woop_i, any_hit, ops, base, cnt, hist, costs,
+                   barriers=False):  # fmt: skip
     """Lanes ``sel[:n]`` each test their next triangle in lockstep (tri_test, the stages
-    some lane reaches, tri_hit)."""
+    some lane reaches, tri_hit; ``barriers``: the test's closing barrier issued again by
+    each group after the first that leaves it from its own branch)."""
     a = np.int64(0)
     for k in range(n):
         lane = sel[k]
         ops[base + lane, _C_TRI] += 1
         a += tri_pack(_tri_test(li, lf, lane, woop, woop_i, any_hit))
-    return charge_tri(cnt, hist, costs, a)
+    cost = charge_tri(cnt, hist, costs, a)
+    if barriers:
+        cost += charge_apart(cnt, hist, costs, apart(tri_groups(a)))
+    return cost
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -383,15 +400,17 @@ def _lanes_with(li, lanes, kind, sel):
 
 
 @njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def _intersection_loop(li, lf, stack, lanes, sel, tri_sel, woop, woop_i, any_hit, ops, base,
-                       cnt, hist, costs):  # fmt: skip
+def _intersection_loop(li, lf, stack, lanes, alive, sel, tri_sel, woop, woop_i, any_hit, ops,
+                       base, cnt, hist, costs):  # fmt: skip
     """While-while's intersection loop, shared by the binary and wide kernels: while any
-    lane stands on a leaf, ``leaf_entry`` (pop, open the leaf), then its triangle loop."""
+    lane stands on a leaf, ``leaf_entry`` (pop, open the leaf), then its triangle loop.
+    Its convergence barriers: a triangle test's outcomes, and the lanes that leave the
+    triangle loop, or this loop, in different iterations or skip it (of the ``alive``
+    lanes of the outer iteration) each reach the exit apart."""
     cost = np.int64(0)
-    while True:
-        n = _lanes_with(li, lanes, _K_LEAF, sel)
-        if n == 0:
-            break
+    n = _lanes_with(li, lanes, _K_LEAF, sel)
+    exits = np.int64(n < alive)
+    while n > 0:
         cost += charge(cnt, hist, costs, LEAF_ENTRY, n)
         for k in range(n):
             lane = sel[k]
@@ -399,46 +418,72 @@ def _intersection_loop(li, lf, stack, lanes, sel, tri_sel, woop, woop_i, any_hit
             leaf = li[lane, _NODE]
             _pop(li, stack, lane)
             _open_leaf(li, lane, leaf, woop_i)
+        tri_exits = np.int64(0)
+        entered = n
         while True:
             m = 0
             for k in range(n):
                 if _next(li, sel[k]) == _K_TRI:
                     tri_sel[m] = sel[k]
                     m += 1
+            tri_exits += np.int64(m < entered)
             if m == 0:
                 break
+            entered = m
             cost += _tri_iteration(li, lf, tri_sel, m, woop, woop_i, any_hit, ops, base,
-                                   cnt, hist, costs)  # fmt: skip
-    return cost
+                                   cnt, hist, costs, True)  # fmt: skip
+        cost += charge_apart(cnt, hist, costs, apart(tri_exits))
+        after = _lanes_with(li, lanes, _K_LEAF, sel)
+        exits += np.int64(after < n)
+        n = after
+    return cost + charge_apart(cnt, hist, costs, apart(exits))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _while_while(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, base,
+def _while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i, any_hit, ops, base,
                  cnt, hist, costs):  # fmt: skip
-    """While-while on ``lanes`` loaded lanes, after ray_setup; returns cost (-1 overflow).
+    """While-while on ``lanes`` loaded lanes of a binary (``width`` 0) or ``width``-wide
+    tree, after ray_setup; returns cost (-1 overflow).
 
     ``while alive { while any at an interior node: step; while any at a leaf: enter it
-    and test its triangles in lockstep }``, then ``finish``.
+    and test its triangles in lockstep }``, then ``finish``. Each convergence barrier is
+    issued by every group of lanes that reaches it apart, as the replay charges it: a
+    step's outcomes, the lanes that leave the traversal loop after different steps (or
+    skip it), the intersection loop's barriers, the lanes that finish in different
+    outer iterations.
     """
     sel = np.empty(lanes, np.int64)
     tri_sel = np.empty(lanes, np.int64)
+    tnear = np.empty(max(width, 1), np.float32)
+    child = np.empty(max(width, 1), np.int32)
     cost = np.int64(0)
-    while True:
-        alive = lanes - _lanes_with(li, lanes, _K_NONE, sel)
-        if alive == 0:
-            break
+    alive = lanes - _lanes_with(li, lanes, _K_NONE, sel)
+    outer_exits = np.int64(alive < lanes)
+    while alive > 0:
         cost += charge(cnt, hist, costs, LOOP_CONTROL, alive)
-        while True:
-            n = _lanes_with(li, lanes, _K_TRAV, sel)
-            if n == 0:
-                break
-            c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base,
-                                     cnt, hist, costs)  # fmt: skip
+        n = _lanes_with(li, lanes, _K_TRAV, sel)
+        exits = np.int64(n < alive)
+        while n > 0:
+            if width:
+                c = _wide_traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, width,
+                                              tnear, child, ops, base, cnt, hist,
+                                              costs)  # fmt: skip
+            else:
+                c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base,
+                                         cnt, hist, costs, True)  # fmt: skip
             if c < 0:
                 return np.int64(-1)
             cost += c
-        cost += _intersection_loop(li, lf, stack, lanes, sel, tri_sel, woop, woop_i, any_hit,
-                                   ops, base, cnt, hist, costs)  # fmt: skip
+            after = _lanes_with(li, lanes, _K_TRAV, sel)
+            exits += np.int64(after < n)
+            n = after
+        cost += charge_apart(cnt, hist, costs, apart(exits))
+        cost += _intersection_loop(li, lf, stack, lanes, alive, sel, tri_sel, woop, woop_i,
+                                   any_hit, ops, base, cnt, hist, costs)  # fmt: skip
+        after = lanes - _lanes_with(li, lanes, _K_NONE, sel)
+        outer_exits += np.int64(after < alive)
+        alive = after
+    cost += charge_apart(cnt, hist, costs, apart(outer_exits))
     return cost + charge(cnt, hist, costs, FINISH, lanes)
 
 
@@ -448,24 +493,26 @@ def _if_if(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, bas
     """If-if: per outer iteration one traversal step, then a leaf entry, then one triangle.
 
     The ifs are sequential, so a lane whose step lands on a leaf enters it in the same
-    iteration, and a lane that entered a leaf tests its first triangle in it too.
+    iteration, and a lane that entered a leaf tests its first triangle in it too. Each
+    ``if``'s barrier is reached apart by the lanes that skip it and by each way through
+    it; lanes that finish in different iterations reach the loop's exit apart.
     """
     sel = np.empty(lanes, np.int64)
     cost = np.int64(0)
-    while True:
-        alive = lanes - _lanes_with(li, lanes, _K_NONE, sel)
-        if alive == 0:
-            break
+    alive = lanes - _lanes_with(li, lanes, _K_NONE, sel)
+    exits = np.int64(alive < lanes)
+    while alive > 0:
         cost += charge(cnt, hist, costs, LOOP_CONTROL, alive)
         n = _lanes_with(li, lanes, _K_TRAV, sel)
         if n > 0:
             c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base,
-                                     cnt, hist, costs)  # fmt: skip
+                                     cnt, hist, costs, True)  # fmt: skip
             if c < 0:
                 return np.int64(-1)
-            cost += c
+            cost += c + charge_apart(cnt, hist, costs, np.int64(n < alive))
         n = _lanes_with(li, lanes, _K_LEAF, sel)
         cost += charge(cnt, hist, costs, LEAF_ENTRY, n)
+        cost += charge_apart(cnt, hist, costs, apart(np.int64(n > 0) + np.int64(n < alive)))
         for k in range(n):
             lane = sel[k]
             ops[base + lane, _C_LEAF] += 1
@@ -475,7 +522,12 @@ def _if_if(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, bas
         n = _lanes_with(li, lanes, _K_TRI, sel)
         if n > 0:
             cost += _tri_iteration(li, lf, sel, n, woop, woop_i, any_hit, ops, base,
-                                   cnt, hist, costs)  # fmt: skip
+                                   cnt, hist, costs, True)  # fmt: skip
+        cost += charge_apart(cnt, hist, costs, apart(np.int64(n > 0) + np.int64(n < alive)))
+        after = lanes - _lanes_with(li, lanes, _K_NONE, sel)
+        exits += np.int64(after < alive)
+        alive = after
+    cost += charge_apart(cnt, hist, costs, apart(exits))
     return cost + charge(cnt, hist, costs, FINISH, lanes)
 
 
@@ -783,7 +835,8 @@ def _wide_traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, width, tnea
                               base, cnt, hist, costs):  # fmt: skip
     """One lockstep node step of lanes ``sel[:n]`` on a wide tree: ``trav_step``, then
     ``trav_none``, ``trav_one`` and ``trav_both`` with the lanes that hit no child, one
-    child, and two or more. Returns the cost issued, or -1 on stack overflow."""
+    child, and two or more, and the step's closing barrier issued again by each of those
+    groups after the first. Returns the cost issued, or -1 on stack overflow."""
     cost = charge(cnt, hist, costs, TRAV_STEP, n)
     none = 0
     one = 0
@@ -803,35 +856,8 @@ def _wide_traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, width, tnea
     cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_NONE, none)
     cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_ONE, one)
     cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_BOTH, several)
-    return cost
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _wide_while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i, any_hit, ops,
-                      base, cnt, hist, costs):  # fmt: skip
-    """While-while (:func:`_while_while`) with wide node steps; returns cost (-1 overflow)."""
-    sel = np.empty(lanes, np.int64)
-    tri_sel = np.empty(lanes, np.int64)
-    tnear = np.empty(width, np.float32)
-    child = np.empty(width, np.int32)
-    cost = np.int64(0)
-    while True:
-        alive = lanes - _lanes_with(li, lanes, _K_NONE, sel)
-        if alive == 0:
-            break
-        cost += charge(cnt, hist, costs, LOOP_CONTROL, alive)
-        while True:
-            n = _lanes_with(li, lanes, _K_TRAV, sel)
-            if n == 0:
-                break
-            c = _wide_traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, width, tnear,
-                                          child, ops, base, cnt, hist, costs)  # fmt: skip
-            if c < 0:
-                return np.int64(-1)
-            cost += c
-        cost += _intersection_loop(li, lf, stack, lanes, sel, tri_sel, woop, woop_i, any_hit,
-                                   ops, base, cnt, hist, costs)  # fmt: skip
-    return cost + charge(cnt, hist, costs, FINISH, lanes)
+    groups = np.int64(none > 0) + np.int64(one > 0) + np.int64(several > 0)
+    return cost + charge_apart(cnt, hist, costs, apart(groups))
 
 
 @njit(cache=True, nogil=True)
@@ -889,7 +915,7 @@ def _execute_wide(persistent, nodes, width, woop, tri_index, root, origin, direc
             cost += charge(c, h, costs, POOL_FETCH, lanes)
             cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
         cost += charge(c, h, costs, RAY_SETUP, lanes)
-        rest = _wide_while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i,
+        rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i,
                                  any_hit, ops, base, c, h, costs)  # fmt: skip
         overflow[u] = rest < 0
         unit_cost[u] = cost + rest
@@ -1166,7 +1192,7 @@ def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, 
             cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
         cost += charge(c, h, costs, RAY_SETUP, lanes)
         if body == WHILE_WHILE_BODY:
-            rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,
+            rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, 0, woop, woop_i, any_hit,
                                 ops, base, c, h, costs)  # fmt: skip
         elif body == IF_IF_BODY:
             rest = _if_if(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,

@@ -50,6 +50,15 @@ class RefCounts:
         self.hist[block][n] += 1
         return self.costs.get(block, 0)
 
+    def apart(self, groups: int) -> int:
+        """A convergence barrier that ``groups`` groups of lanes reach apart: each group
+        after the first issues it again (``reconverge``, counted with no lanes: the first
+        issue, in the barrier's own block, counted them all)."""
+        extra = max(groups - 1, 0)
+        self.executions["reconverge"] += extra
+        self.hist["reconverge"][0] += extra
+        return self.costs.get("reconverge", 0) * extra
+
 
 class _Lanes:
     """Op streams of the lanes of one warp, with a cursor each."""
@@ -90,14 +99,23 @@ def _tri_charge(ops: dict[int, int], rec: RefCounts) -> int:
     return issued + rec.charge("tri_hit", [lane for lane in lanes if ops[lane] == TRI_HIT])
 
 
-def _tri_loop(w: _Lanes, group: list[int], rec: RefCounts) -> int:
+def _tri_loop(w: _Lanes, group: list[int], rec: RefCounts, barriers: bool = True) -> int:
+    """The triangle loop of the lanes ``group`` that just entered a leaf. ``barriers``: a
+    test's outcomes close it apart, and the lanes that leave after different triangles
+    (or skip the loop: a leaf with no triangle) reach the loop's exit apart."""
     issued = 0
-    while True:
-        x = [lane for lane in group if _is_tri(w.next(lane))]
-        if not x:
-            return issued
-        issued += _tri_charge({lane: w.next(lane) for lane in x}, rec)
+    x = [lane for lane in group if _is_tri(w.next(lane))]
+    exits = int(len(x) < len(group))
+    while x:
+        ops = {lane: w.next(lane) for lane in x}
+        issued += _tri_charge(ops, rec)
+        if barriers:
+            issued += rec.apart(len({_tri_reach(o) for o in ops.values()}))
         w.advance(x)
+        still = [lane for lane in x if _is_tri(w.next(lane))]
+        exits += len(still) < len(x)
+        x = still
+    return issued + (rec.apart(exits) if barriers else 0)
 
 
 def _trav_step(w: _Lanes, t: list[int], rec: RefCounts) -> int:
@@ -108,64 +126,87 @@ def _trav_step(w: _Lanes, t: list[int], rec: RefCounts) -> int:
     return issued
 
 
-def _leaf_loop(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
+def _leaf_loop(w: _Lanes, alive: list[int], rec: RefCounts, barriers: bool = True) -> int:
     """The intersection loop: ``leaf_entry`` and the triangle loop while a lane stands at
-    a leaf."""
+    a leaf. ``barriers``: lanes that leave after different leaves (or skip the loop: out
+    of ops) reach its exit apart, and the triangle loop's barriers."""
     issued = 0
-    while True:
-        leaf = [lane for lane in alive if w.next(lane) == LEAF]
-        if not leaf:
-            break
+    leaf = [lane for lane in alive if w.next(lane) == LEAF]
+    exits = int(len(leaf) < len(alive))
+    while leaf:
         issued += rec.charge("leaf_entry", leaf)
         w.advance(leaf)
-        issued += _tri_loop(w, leaf, rec)
-    return issued
+        issued += _tri_loop(w, leaf, rec, barriers)
+        still = [lane for lane in leaf if w.next(lane) == LEAF]
+        exits += len(still) < len(leaf)
+        leaf = still
+    return issued + (rec.apart(exits) if barriers else 0)
 
 
 def _ww_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
-    """loop_control, traversal loop, intersection loop of while-while."""
+    """loop_control, traversal loop, intersection loop of while-while; a step's outcomes
+    close it apart, and lanes that leave the traversal loop after different steps (or skip
+    it: at a leaf) reach its exit apart."""
     issued = rec.charge("loop_control", alive)
-    while True:
-        t = [lane for lane in alive if _is_trav(w.next(lane))]
-        if not t:
-            break
+    t = [lane for lane in alive if _is_trav(w.next(lane))]
+    exits = int(len(t) < len(alive))
+    while t:
         issued += _trav_step(w, t, rec)
+        issued += rec.apart(len({w.next(lane) for lane in t}))
         w.advance(t)
+        still = [lane for lane in t if _is_trav(w.next(lane))]
+        exits += len(still) < len(t)
+        t = still
+    issued += rec.apart(exits)
     return issued + _leaf_loop(w, alive, rec)
 
 
 def while_while_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
-    """One while-while warp, charged in issue order; returns its instructions."""
+    """One while-while warp, charged in issue order; returns its instructions. Lanes that
+    finish in different outer iterations reach the outer loop's exit apart."""
     w = _Lanes(streams)
     everyone = list(range(len(streams)))
     issued = rec.charge("ray_setup", everyone)
-    while True:
-        alive = [lane for lane in everyone if w.next(lane) is not None]
-        if not alive:
-            break
+    alive = [lane for lane in everyone if w.next(lane) is not None]
+    exits = int(len(alive) < len(everyone))
+    while alive:
         issued += _ww_iteration(w, alive, rec)
+        still = [lane for lane in alive if w.next(lane) is not None]
+        exits += len(still) < len(alive)
+        alive = still
+    issued += rec.apart(exits)
     return issued + rec.charge("finish", everyone)
 
 
 def if_if_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
-    """One if-if warp, charged in issue order; returns its instructions."""
+    """One if-if warp, charged in issue order; returns its instructions. Each ``if``'s
+    barrier is reached apart by the lanes that skip it and by each way through it; lanes
+    that finish in different iterations reach the loop's exit apart."""
     w = _Lanes(streams)
     everyone = list(range(len(streams)))
     issued = rec.charge("ray_setup", everyone)
-    while True:
-        alive = [lane for lane in everyone if w.next(lane) is not None]
-        if not alive:
-            break
+    alive = [lane for lane in everyone if w.next(lane) is not None]
+    exits = int(len(alive) < len(everyone))
+    while alive:
         issued += rec.charge("loop_control", alive)
         t = [lane for lane in alive if _is_trav(w.next(lane))]
         issued += _trav_step(w, t, rec)
+        issued += rec.apart(len({w.next(lane) for lane in t}) + (len(t) < len(alive)))
         w.advance(t)
         leaf = [lane for lane in alive if w.next(lane) == LEAF]
         issued += rec.charge("leaf_entry", leaf)
+        issued += rec.apart((len(leaf) > 0) + (len(leaf) < len(alive)))
         w.advance(leaf)
         x = [lane for lane in alive if _is_tri(w.next(lane))]
-        issued += _tri_charge({lane: w.next(lane) for lane in x}, rec)
+        ops = {lane: w.next(lane) for lane in x}
+        issued += _tri_charge(ops, rec)
+        issued += rec.apart(len({_tri_reach(o) for o in ops.values()}))
+        issued += rec.apart((len(x) > 0) + (len(x) < len(alive)))
         w.advance(x)
+        still = [lane for lane in alive if w.next(lane) is not None]
+        exits += len(still) < len(alive)
+        alive = still
+    issued += rec.apart(exits)
     return issued + rec.charge("finish", everyone)
 
 
@@ -198,8 +239,8 @@ def _spec_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
         group = list(range(len(held)))
         issued += rec.charge("leaf_entry", group)
         pw.advance(group)
-        issued += _tri_loop(pw, group, rec)
-    return issued + _leaf_loop(w, alive, rec)
+        issued += _tri_loop(pw, group, rec, barriers=False)
+    return issued + _leaf_loop(w, alive, rec, barriers=False)
 
 
 def _idle_wait(n: int, rec: RefCounts) -> int:

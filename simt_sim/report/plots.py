@@ -53,6 +53,7 @@ BLOCK_COLOURS = {
     "finish": "#2ca02c",
     "shade": "#e377c2",
     "queue_push": "#8c564b",
+    "reconverge": "#525252",
 }
 assert set(BLOCK_COLOURS) == set(BLOCKS)
 

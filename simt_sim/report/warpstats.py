@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kernels_ir.kernel_ir import RECONVERGE
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.reference import RefCounts
 from simt_sim.schemes import SCHEMES
@@ -129,6 +130,12 @@ class _Log(RefCounts):
         if lanes:
             self.events.append((block, len(lanes)))
         return super().charge(block, lanes)
+
+    def apart(self, groups: int) -> int:
+        # a barrier issued again by a group that arrives apart: its lanes count with the
+        # region's first issue, so it shows as an issue with none
+        self.events.extend([(RECONVERGE, 0)] * max(groups - 1, 0))
+        return super().apart(groups)
 
 
 def warp_timeline(

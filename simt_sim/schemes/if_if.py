@@ -10,6 +10,13 @@ those that just stepped onto one): ``leaf_entry``, advance; then lanes at a TRI 
 (including those that just entered a leaf): one ``tri_test`` (+ the stages it reaches,
 ``tri_u`` and ``tri_v``, + ``tri_hit``), advance.
 Finally ``finish`` with every lane that had a ray.
+
+Each ``if`` closes with a convergence barrier. On a GPU with independent thread scheduling
+every group of lanes that reaches it apart issues it (``reconverge``, beyond the first
+group): the lanes that skip the ``if`` and each way through it (a step's outcomes, the
+lanes entering a leaf, those testing a triangle, and inside the test the lanes rejected
+at the t, u and v stage and those that hit); lanes that finish in different iterations
+reach the loop's exit apart.
 """
 
 from __future__ import annotations
@@ -28,9 +35,12 @@ from simt_sim.simt.engine import (
     RAY_SETUP,
     TRAV_NONE_B,
     TRAV_STEP,
+    TRI_LANES,
     Counts,
     ReplayParams,
+    apart,
     charge,
+    charge_apart,
     charge_tri,
     chunk_bounds,
     chunk_counts,
@@ -44,6 +54,7 @@ from simt_sim.simt.engine import (
     per_warp_table,
     popcount,
     record_warp,
+    tri_groups,
     tri_pack,
 )
 from simt_sim.simt.scheme import TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
@@ -65,6 +76,7 @@ def _warp(offsets, op, r0, n, cur, end, costs, cnt, hist):
         end[lane] = offsets[r0 + lane + 1]
         alive |= np.int64(cur[lane] < end[lane]) << lane
     issued = charge(cnt, hist, costs, RAY_SETUP, n)
+    exits = np.int64(popcount(alive) < n)  # lanes with no op leave at once
     while alive:
         issued += charge(cnt, hist, costs, LOOP_CONTROL, popcount(alive))
         k = 0
@@ -101,7 +113,19 @@ def _warp(offsets, op, r0, n, cur, end, costs, cnt, hist):
         issued += charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)
         issued += charge(cnt, hist, costs, LEAF_ENTRY, nl)
         issued += charge_tri(cnt, hist, costs, tri)
+        # each ``if`` closes with a barrier, reached apart by the lanes that skipped it and
+        # by each way through it: a step's outcomes, a test's (``tri_groups``)
+        a = popcount(alive)
+        nt = tri & TRI_LANES
+        groups = np.int64(c0 > 0) + np.int64(c1 > 0) + np.int64(k > c0 + c1) + np.int64(k < a)
+        groups_leaf = np.int64(nl > 0) + np.int64(nl < a)
+        groups_tri = np.int64(nt > 0) + np.int64(nt < a)
+        extra = apart(groups) + apart(groups_leaf) + apart(groups_tri) + apart(tri_groups(tri))
+        issued += charge_apart(cnt, hist, costs, extra)
+        exits += np.int64((alive & ~nxt) != 0)
         alive = nxt
+    # lanes that finish in different iterations reach the loop's exit barrier apart
+    issued += charge_apart(cnt, hist, costs, apart(exits))
     return issued + charge(cnt, hist, costs, FINISH, n)
 
 

@@ -5,11 +5,12 @@ Warps hold 32 consecutive paths (path-id order, i.e. Morton order of pixels). Pe
 - ``ray_setup`` once with every lane that has a path (path start);
 - per bounce ``b``, while any lane's path is alive (the bounce loop reconverges every
   iteration): ``loop_control`` with the alive lanes; the **extend** trace of those lanes
-  under while-while's loop nest (:func:`~simt_sim.schemes.while_while.outer_step`:
+  under while-while's loop nest (:func:`~simt_sim.schemes.while_while.trace_lanes`:
   ``loop_control`` per outer trace iteration, then the traversal and intersection
-  loops); ``shade`` with the lanes whose extend ray hit; the **connect** (shadow, any-hit)
-  trace of the lanes that sent one, under the same loop nest; ``finish`` with the lanes
-  whose path ended in this iteration (miss, roulette or the bounce limit).
+  loops, and their convergence barriers' issues by groups that arrive apart); ``shade``
+  with the lanes whose extend ray hit; the **connect** (shadow, any-hit) trace of the
+  lanes that sent one, under the same loop nest; ``finish`` with the lanes whose path
+  ended in this iteration (miss, roulette or the bounce limit).
 
 A lane whose path has ended idles until every path of its warp has ended: that waste is
 what the wavefront scheme removes by compacting live paths into queues.
@@ -37,7 +38,7 @@ from numba import njit, prange
 
 from kernels_ir.kernel_ir import KernelIR
 from simt_sim.errors import SimtSimError
-from simt_sim.schemes.while_while import WINDOW, classify, outer_step
+from simt_sim.schemes.while_while import WINDOW, classify, trace_lanes
 from simt_sim.simt.engine import (
     FINISH,
     LEAF_ENTRY,
@@ -124,9 +125,7 @@ def _trace(offsets, op, rows, p0, lanes, n, cur, end, acc, costs, cnt, hist):
         cur[lane] = offsets[r]
         end[lane] = offsets[r + 1]
         trav, leaf = classify(op, cur, end, lane, trav, leaf)
-    while trav | leaf:
-        trav = outer_step(op, cur, end, trav, leaf, acc, costs, cnt, hist)[1]
-        leaf = np.int64(0)
+    trace_lanes(op, cur, end, trav, leaf, n, acc, costs, cnt, hist)
 
 
 @njit(cache=True, nogil=True)

@@ -19,6 +19,10 @@ group, the outer loop body mirrors the speculative kernel of Aila & Laine:
 One outer iteration is :func:`spec_outer_step`, shared with speculative dynamic fetch,
 which runs the same kernel body between refills.
 
+No ``reconverge`` is charged: on a GPU with independent thread scheduling this kernel's
+lanes leave the traversal loop for the leaf loop with no barrier between them, which the
+replay does not model (docs/gpu_results.md), so neither are the leaf loop's barriers.
+
 Approximation: each ray's ops are replayed from its recorded (non-speculative) stream, so
 op counts per ray are preserved; the real kernel may also visit nodes that a stale tmax
 no longer culls. That error is measured against an exact lockstep executor elsewhere.
@@ -194,7 +198,7 @@ def spec_outer_step(op, cur, end, trav, leaf, scratch, acc, post, costs, cnt, hi
             pcur[lane] = park[lane] + 1
             tri |= np.int64(pcur[lane] < park_end[lane]) << lane
         issued += tri_loop(op, pcur, park_end, tri, acc, costs, cnt, hist)[0]
-    i_issued, i_trav = isect_loop(op, cur, end, leaf | t_leaf, acc, costs, cnt, hist)
+    i_issued, i_trav = isect_loop(op, cur, end, leaf | t_leaf, acc, costs, cnt, hist)[:2]
     return issued + i_issued, trav | i_trav
 
 

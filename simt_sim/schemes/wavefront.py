@@ -49,7 +49,7 @@ from simt_sim.simt.engine import (
     empty_counts,
     lane_traffic,
 )
-from simt_sim.simt.gpus import GpuConfig
+from simt_sim.simt.gpus import GpuConfig, executed_on
 from simt_sim.simt.occupancy import kernel_occupancy
 from simt_sim.simt.replay import PathReplay
 from simt_sim.simt.result import SimResult
@@ -147,8 +147,9 @@ def simulate_kernels(
     """One SimResult per wavefront kernel (each re-costable with its own IR).
 
     ``rays``: paths for generate, queue entries (extend rays) for extend and shade, shadow
-    rays for connect.
+    rays for connect. Each IR is costed as ``gpu`` runs it (``gpus.executed_on``).
     """
+    irs = {k: executed_on(irs[k], gpu) for k in KERNELS}
     costs = {k: cost_vector(irs[k]) for k in KERNELS}
     counts = replay_kernels(pt, costs, gpu.warp_size)
     ext = replayed_ops(counts["wavefront_extend"])

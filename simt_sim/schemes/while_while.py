@@ -13,6 +13,14 @@ is lost. Per warp:
   stage and ``tri_hit`` with the TRI_HIT lanes, advance;
 - ``finish`` with every lane that had a ray.
 
+Convergence barriers: the kernels close a step's outcome ``if``, a triangle test and each
+loop with one. Pre-Volta GPUs rejoin lanes on a stack at no cost; on a GPU with
+independent thread scheduling every group of lanes that reaches a barrier apart issues it
+(docs/gpu_results.md), so each group after the first is charged ``reconverge``: one per
+further outcome of a step (none, one, both) and of a test (rejected at t, u or v; hit),
+and one per further iteration after which lanes leave a loop (lanes that skip a loop
+arrive on their own).
+
 The traversal and intersection loops are shared with the persistent and dynamic-fetch
 schemes, which run the same kernel body. A warp's lanes are bits of an int64 mask
 (``engine.MAX_MASK_LANES``): a loop visits only the lanes that execute it and hands the
@@ -41,7 +49,9 @@ from simt_sim.simt.engine import (
     TRAV_STEP,
     Counts,
     ReplayParams,
+    apart,
     charge,
+    charge_apart,
     charge_tri,
     chunk_bounds,
     chunk_counts,
@@ -56,6 +66,7 @@ from simt_sim.simt.engine import (
     popcount,
     record_warp,
     step,
+    tri_groups,
     tri_pack,
 )
 from simt_sim.simt.scheme import TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
@@ -96,6 +107,17 @@ def trav_lanes(a):
     return a & _LOW
 
 
+@njit(cache=True, nogil=True, inline="always")
+def trav_groups(a):
+    """Groups of lanes that close one traversal step apart, from its packed counters ``a``:
+    one per outcome taken (none, one, both), each leaving the step's ``if`` from a branch
+    of its own."""
+    k = a & _LOW
+    c0 = (a >> _FIELD) & _LOW
+    c1 = a >> (2 * _FIELD)
+    return np.int64(c0 > 0) + np.int64(c1 > 0) + np.int64(k > c0 + c1)
+
+
 @njit(cache=True, nogil=True)
 def trav_loop(op, cur, end, trav, acc, costs, cnt, hist):
     """Inner traversal loop of the lanes in mask ``trav`` (all at a TRAV op).
@@ -105,14 +127,20 @@ def trav_loop(op, cur, end, trav, acc, costs, cnt, hist):
     interact inside the loop, so each lane runs ahead through up to ``len(acc)``
     iterations, adding its outcome to that iteration's packed counters in ``acc`` (all
     zero on entry and on return); then the window's iterations are charged. Returns the
-    instructions issued and the mask of lanes that stopped at a LEAF.
+    instructions issued, the mask of lanes that stopped at a LEAF, the barrier issues of
+    groups that closed a step apart (:func:`trav_groups`, beyond the first) and the
+    iterations after which some lane left the loop (each such group reaches the loop's
+    exit barrier apart).
     """
     issued = np.int64(0)
     leaf = np.int64(0)
+    extra = np.int64(0)
+    exits = np.int64(0)
     window = acc.shape[0]
     while trav:
         nxt = np.int64(0)
         span = 0
+        left = np.uint64(0)  # bit j - 1: a lane left after the window's j-th iteration
         m = trav
         while m:
             lane = lowest_lane(m)
@@ -126,10 +154,12 @@ def trav_loop(op, cur, end, trav, acc, costs, cnt, hist):
                 c += 1
                 j += 1
                 if c == e:
+                    left |= np.uint64(1) << np.uint64(j - 1)
                     break
                 o = op[np.uint64(c)]
                 if o > TRAV_BOTH:
                     leaf |= is_leaf(o) << lane
+                    left |= np.uint64(1) << np.uint64(j - 1)
                     break
                 if j == window:
                     nxt |= np.int64(1) << lane
@@ -138,9 +168,11 @@ def trav_loop(op, cur, end, trav, acc, costs, cnt, hist):
             span = max(span, j)
         for j in range(span):
             issued += charge_trav(cnt, hist, costs, acc[j])
+            extra += apart(trav_groups(acc[j]))
             acc[j] = 0
+        exits += np.int64(popcount(left))
         trav = nxt
-    return issued, leaf
+    return issued, leaf, extra, exits
 
 
 @njit(cache=True, nogil=True)
@@ -149,16 +181,21 @@ def tri_loop(op, cur, end, tri, acc, costs, cnt, hist):
 
     While any lane is at a TRI op: ``tri_test`` with them, ``tri_u`` / ``tri_v`` with
     those whose test reached that stage, ``tri_hit`` with the TRI_HIT ones, advance one
-    op. Run ahead lane by lane as in :func:`trav_loop`. Returns the
-    instructions issued and the masks of lanes that stopped at a LEAF and at a TRAV.
+    op. Run ahead lane by lane as in :func:`trav_loop`. Returns the instructions issued,
+    the masks of lanes that stopped at a LEAF and at a TRAV, the barrier issues of groups
+    that closed a test apart (``engine.tri_groups``, beyond the first) and the iterations
+    after which some lane left the loop.
     """
     issued = np.int64(0)
     leaf = np.int64(0)
     trav = np.int64(0)
+    extra = np.int64(0)
+    exits = np.int64(0)
     window = acc.shape[0]
     while tri:
         nxt = np.int64(0)
         span = 0
+        left = np.uint64(0)
         m = tri
         while m:
             lane = lowest_lane(m)
@@ -172,11 +209,13 @@ def tri_loop(op, cur, end, tri, acc, costs, cnt, hist):
                 c += 1
                 j += 1
                 if c == e:
+                    left |= np.uint64(1) << np.uint64(j - 1)
                     break
                 o = op[np.uint64(c)]
                 if o < TRI_MISS:
                     leaf |= is_leaf(o) << lane
                     trav |= is_trav(o) << lane
+                    left |= np.uint64(1) << np.uint64(j - 1)
                     break
                 if j == window:
                     nxt |= np.int64(1) << lane
@@ -187,8 +226,10 @@ def tri_loop(op, cur, end, tri, acc, costs, cnt, hist):
             a = acc[j]
             acc[j] = 0
             issued += charge_tri(cnt, hist, costs, a)
+            extra += apart(tri_groups(a))
+        exits += np.int64(popcount(left))
         tri = nxt
-    return issued, leaf, trav
+    return issued, leaf, trav, extra, exits
 
 
 @njit(cache=True, nogil=True)
@@ -197,10 +238,15 @@ def isect_loop(op, cur, end, leaf, acc, costs, cnt, hist):
 
     While any lane is at a LEAF: ``leaf_entry`` with those lanes, then their triangle
     loop. Lanes at a TRAV op or out of ops leave the loop and wait. Returns the
-    instructions issued and the mask of lanes that stopped at a TRAV.
+    instructions issued, the mask of lanes that stopped at a TRAV, the barrier issues of
+    groups that closed a triangle test or left a triangle loop apart (a lane whose leaf
+    has no triangle reaches that loop's exit on its own), and the iterations after which
+    some lane left this loop.
     """
     issued = np.int64(0)
     trav = np.int64(0)
+    extra = np.int64(0)
+    exits = np.int64(0)
     while leaf:
         issued += charge(cnt, hist, costs, LEAF_ENTRY, popcount(leaf))
         tri = np.int64(0)
@@ -213,11 +259,16 @@ def isect_loop(op, cur, end, leaf, acc, costs, cnt, hist):
             tri |= is_tri(o) << lane
             nxt |= is_leaf(o) << lane
             trav |= is_trav(o) << lane
-        t_issued, t_leaf, t_trav = tri_loop(op, cur, end, tri, acc, costs, cnt, hist)
+        t_issued, t_leaf, t_trav, t_extra, t_exits = tri_loop(
+            op, cur, end, tri, acc, costs, cnt, hist
+        )
         issued += t_issued
+        extra += t_extra + apart(t_exits + np.int64((leaf & ~tri) != 0))
         trav |= t_trav
-        leaf = nxt | t_leaf
-    return issued, trav
+        after = nxt | t_leaf
+        exits += np.int64((leaf & ~after) != 0)
+        leaf = after
+    return issued, trav, extra, exits
 
 
 @njit(cache=True, nogil=True)
@@ -225,12 +276,39 @@ def outer_step(op, cur, end, trav, leaf, acc, costs, cnt, hist):
     """One outer-loop iteration of the lanes at a TRAV (mask ``trav``) or a LEAF (``leaf``).
 
     Returns the instructions issued and the mask of lanes with ops left afterwards (all
-    of them at a TRAV op: the next iteration's ``trav``, with no lane at a LEAF).
+    of them at a TRAV op: the next iteration's ``trav``, with no lane at a LEAF). Groups
+    of lanes that reach one of the iteration's convergence barriers apart each issue it
+    (``reconverge``): a step's outcomes, the traversal loop's exits (lanes already at a
+    leaf skip the loop: one group more), a triangle test's outcomes, the triangle and
+    intersection loops' exits (lanes out of ops skip the intersection loop).
     """
-    issued = charge(cnt, hist, costs, LOOP_CONTROL, popcount(trav | leaf))
-    t_issued, t_leaf = trav_loop(op, cur, end, trav, acc, costs, cnt, hist)
-    i_issued, alive = isect_loop(op, cur, end, leaf | t_leaf, acc, costs, cnt, hist)
-    return issued + t_issued + i_issued, alive
+    alive = trav | leaf
+    issued = charge(cnt, hist, costs, LOOP_CONTROL, popcount(alive))
+    t_issued, t_leaf, t_extra, t_exits = trav_loop(op, cur, end, trav, acc, costs, cnt, hist)
+    entering = leaf | t_leaf
+    i_issued, after, i_extra, i_exits = isect_loop(op, cur, end, entering, acc, costs, cnt,
+                                                   hist)  # fmt: skip
+    extra = t_extra + apart(t_exits + np.int64(leaf != 0))
+    extra += i_extra + apart(i_exits + np.int64((alive & ~entering) != 0))
+    issued += charge_apart(cnt, hist, costs, extra)
+    return issued + t_issued + i_issued, after
+
+
+@njit(cache=True, nogil=True)
+def trace_lanes(op, cur, end, trav, leaf, n, acc, costs, cnt, hist):
+    """The outer loop of ``n`` lanes, those with ops at a TRAV (mask ``trav``) or a LEAF
+    (``leaf``): :func:`outer_step` until no lane has ops left. Lanes that finish in
+    different iterations (a lane with no op at all: before the first) reach the loop's
+    exit barrier apart. Returns the instructions issued."""
+    issued = np.int64(0)
+    exits = np.int64(popcount(trav | leaf) < n)
+    while trav | leaf:
+        alive = trav | leaf
+        o_issued, trav = outer_step(op, cur, end, trav, leaf, acc, costs, cnt, hist)
+        issued += o_issued
+        exits += np.int64((alive & ~trav) != 0)
+        leaf = np.int64(0)
+    return issued + charge_apart(cnt, hist, costs, apart(exits))
 
 
 @njit(cache=True, nogil=True)
@@ -250,10 +328,7 @@ def warp_body(offsets, op, r0, n, cur, end, acc, costs, cnt, hist):
         end[lane] = offsets[r0 + lane + 1]
         trav, leaf = classify(op, cur, end, lane, trav, leaf)
     issued = charge(cnt, hist, costs, RAY_SETUP, n)
-    while trav | leaf:
-        o_issued, trav = outer_step(op, cur, end, trav, leaf, acc, costs, cnt, hist)
-        issued += o_issued
-        leaf = np.int64(0)
+    issued += trace_lanes(op, cur, end, trav, leaf, n, acc, costs, cnt, hist)
     issued += charge(cnt, hist, costs, FINISH, n)
     return issued
 

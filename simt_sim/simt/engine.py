@@ -23,6 +23,7 @@ from numba import njit, prange, types
 from numba.extending import intrinsic
 
 from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR
+from kernels_ir.kernel_ir import RECONVERGE as RECONVERGE_BLOCK
 from simt_sim.errors import SimtSimError
 from simt_sim.types.optrace import (
     LEAF,
@@ -54,6 +55,7 @@ TRI_HIT_B = BLOCKS.index("tri_hit")
 FINISH = BLOCKS.index("finish")
 SHADE = BLOCKS.index("shade")
 QUEUE_PUSH = BLOCKS.index("queue_push")
+RECONVERGE = BLOCKS.index(RECONVERGE_BLOCK)
 # trav_none, trav_one, trav_both follow each other in BLOCKS, in op-code order
 assert BLOCKS[TRAV_NONE_B : TRAV_NONE_B + 3] == ("trav_none", "trav_one", "trav_both")
 
@@ -267,6 +269,24 @@ def charge(cnt, hist, costs, block, n):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def charge_apart(cnt, hist, costs, extra):
+    """Charge ``extra`` issues of convergence barriers by groups of lanes that reached them
+    apart from the first group of their region (``reconverge``; it costs nothing on a GPU
+    without independent thread scheduling). The first group's issue, in the block that
+    holds the barrier, already counted every lane of the region, so these count none."""
+    cnt[0, RECONVERGE] += extra
+    hist[RECONVERGE, 0] += extra
+    return costs[RECONVERGE] * extra
+
+
+@njit(cache=True, nogil=True, inline="always")
+def apart(groups):
+    """Issues of a convergence barrier beyond the first, for ``groups`` groups of lanes
+    that reach it apart (0 for none or one)."""
+    return max(groups - 1, 0)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def op_at(op, c, e):
     """The op at cursor ``c`` of a stream ending at ``e``, or NO_OP past it (branch-free).
 
@@ -329,6 +349,22 @@ def charge_tri(cnt, hist, costs, a):
     issued += charge(cnt, hist, costs, TRI_U, (a >> _TRI_FIELD) & _TRI_LOW)
     issued += charge(cnt, hist, costs, TRI_V, (a >> (2 * _TRI_FIELD)) & _TRI_LOW)
     return issued + charge(cnt, hist, costs, TRI_HIT_B, a >> (3 * _TRI_FIELD))
+
+
+#: mask of a packed triangle step's lanes (:func:`tri_pack`'s first field)
+TRI_LANES = _TRI_LOW
+
+
+@njit(cache=True, nogil=True, inline="always")
+def tri_groups(a):
+    """Groups of lanes that close one triangle test apart, from its packed counters ``a``
+    (:func:`tri_pack`): those rejected at the t, u and v stage and those that hit, each
+    leaving the test from a branch of its own (0 to 4)."""
+    k = a & _TRI_LOW
+    u = (a >> _TRI_FIELD) & _TRI_LOW
+    v = (a >> (2 * _TRI_FIELD)) & _TRI_LOW
+    h = a >> (3 * _TRI_FIELD)
+    return np.int64(k > u) + np.int64(u > v) + np.int64(v > h) + np.int64(h > 0)
 
 
 @njit(cache=True, nogil=True)

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from kernels_ir import KernelIR
-from kernels_ir.kernel_ir import SPIN_BLOCKS
+from kernels_ir.kernel_ir import RECONVERGE, SPIN_BLOCKS
 from kernels_ir.pairing import PAIRING_ARCHS
 from simt_sim.errors import SimtSimError
 
@@ -45,10 +45,11 @@ CLOCKS = ("shader", "sm")
 #: ``_sync`` warp vote has a divergent-warp fallback; GT200's, Fermi's and Kepler's
 #: ``__any`` was one instruction for any warp
 ITS_FIRST_ARCH = 70
-#: the blocks only a GPU with independent thread scheduling runs: the vote's fallback, and
-#: the convergence spins nvcc puts before a full-warp vote (``kernels_ir.SPIN_BLOCKS``);
-#: spins inside other blocks are ``KernelIR.spins``
-ITS_ONLY_BLOCKS = ("trav_diverged", *SPIN_BLOCKS)
+#: the blocks only a GPU with independent thread scheduling runs: the vote's fallback, a
+#: convergence barrier issued again by lanes that reach it apart (pre-Volta GPUs rejoin
+#: lanes on a stack, with no instruction), and the convergence spins nvcc puts before a
+#: full-warp vote (``kernels_ir.SPIN_BLOCKS``); spins inside other blocks are ``KernelIR.spins``
+ITS_ONLY_BLOCKS = ("trav_diverged", RECONVERGE, *SPIN_BLOCKS)
 _ARCH = re.compile(r"sm_(\d+)")
 
 #: relative tolerance between a GPU's lanes x clock and its published peak FP32 rate

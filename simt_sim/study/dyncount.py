@@ -10,6 +10,7 @@ block (and the source lines) that cause it. ``python -m kernels_ir dyncount`` pr
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from functools import cache
 
@@ -21,8 +22,8 @@ from kernels_ir.blocks import UNATTRIBUTED, parse_loops, parse_markers, place_in
 from kernels_ir.build import CUDA_DIR, compile_listing
 from kernels_ir.emulate import PARAM_BASE, Program, run_kernel
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kernel_ir import BLOCKS
-from kernels_ir.sass import SassInstruction
+from kernels_ir.kernel_ir import BLOCKS, RECONVERGE
+from kernels_ir.sass import SassInstruction, base_opcode
 from simt_sim import schemes
 from simt_sim.bvh.layout import BVH
 from simt_sim.errors import SimtSimError
@@ -112,14 +113,31 @@ def pick_warps(n_rays: int, warps: int) -> np.ndarray:
     return (chosen[:, None] * WARP + np.arange(WARP)).ravel()
 
 
+def barrier_excess(instructions: list[SassInstruction], issued: np.ndarray) -> dict[int, int]:
+    """Issues of each ``BSYNC`` beyond those of the ``BSSY`` that opens its region, by the
+    ``BSYNC``'s index: every group of lanes that reaches a convergence barrier apart issues
+    it, where one converged warp would issue it once (``reconverge``)."""
+    where = {label: i for i, ins in enumerate(instructions) for label in ins.labels}
+    excess = {}
+    for i, ins in enumerate(instructions):
+        if base_opcode(ins.opcode) == "BSSY":
+            # the region's target is the reconvergence point, just after its BSYNC
+            bsync = where[re.search(r"\((\.L_x_\d+)\)", ins.text).group(1)] - 1
+            if base_opcode(instructions[bsync].opcode) == "BSYNC":
+                excess[bsync] = excess.get(bsync, 0) + int(issued[bsync]) - int(issued[i])
+    return {i: n for i, n in excess.items() if n > 0}
+
+
 def walk_blocks(kernel: str, issued: np.ndarray, instructions: list[SassInstruction]) -> pd.Series:
     """Issued warp instructions per IR block (a divergent-warp fallback of the traversal
     step is ``trav_diverged``, as the IR build names it; any other is :data:`FALLBACK`; a
-    full-warp-only path is :data:`FULL_WARP`)."""
+    full-warp-only path is :data:`FULL_WARP`; a barrier's issues beyond its region's
+    first, :func:`barrier_excess`, are ``reconverge``)."""
     source = (CUDA_DIR / f"{kernel}.cu").read_text()
     placement = place_instructions(
         instructions, parse_markers(source, f"{kernel}.cu"), f"{kernel}.cu", parse_loops(source)
     )
+    apart = barrier_excess(instructions, issued)
     out: dict[str, int] = {}
     for i, times in enumerate(issued):
         if not times:
@@ -129,7 +147,10 @@ def walk_blocks(kernel: str, issued: np.ndarray, instructions: list[SassInstruct
             block = DIVERGED if block == "trav_step" else FALLBACK
         elif i in placement.full_warp:
             block = FULL_WARP
-        out[block] = out.get(block, 0) + int(times)
+        extra = apart.get(i, 0)
+        out[block] = out.get(block, 0) + int(times) - extra
+        if extra:
+            out[RECONVERGE] = out.get(RECONVERGE, 0) + extra
     return pd.Series(out, dtype=np.int64)
 
 
@@ -220,7 +241,11 @@ def compare_counts(
     recorded traces of the same rays on ``gpu_id``, whose IR architecture the walk runs.
 
     Persistent kernels run as one resident warp that fetches the rays from the pool in
-    order, and the replay is given one resident warp to match.
+    order, and the replay is given one resident warp to match. ``merge``: the walk's
+    lanes at one address issue together, as ideal reconvergence would, so each barrier
+    is issued once per region and the replay's and executor's ``reconverge`` (issues by
+    groups that arrive apart) are left out; without it lanes issue apart until a barrier
+    joins them, as a GPU with independent thread scheduling may run them.
     """
     scheme = schemes.get_scheme(scheme_name)
     if scheme.layout != "bvh2" or scheme.kind != "trace":
@@ -248,8 +273,12 @@ def compare_counts(
     if scheme.lockstep is not None:
         run_exact = execute(bvh, rays, scheme, ir, gpu, scene=scene, resident_warps=resident)
         exact = run_exact.result.warp_instructions
+        if merge:
+            exact -= run_exact.result.block_instructions[RECONVERGE]
     walk = walk_blocks(kernel, run.issued, run.instructions)
     replay = pd.Series(result.block_instructions, dtype=np.int64)
+    if merge:  # lanes rejoin at once: each barrier is issued once per region
+        replay = replay.drop(RECONVERGE)
     table = pd.DataFrame({"walk": walk, "replay": replay}).fillna(0).astype(np.int64)
     table = table[(table != 0).any(axis=1)]
     order = [b for b in (*BLOCKS, FALLBACK, FULL_WARP, UNATTRIBUTED) if b in table.index]

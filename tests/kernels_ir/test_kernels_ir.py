@@ -393,9 +393,11 @@ def test_committed_ir_has_required_blocks_and_is_current(kernel: str) -> None:
         assert f"-arch={arch}" in ir.flags and "-lineinfo" in ir.flags
         assert 0 < ir.registers <= 255
         total = int(ir.notes["total_instructions"])
-        assert total == sum(ir.cost(b) for b in ir.blocks) + int(
+        # reconverge repeats a BSYNC that its region's block already holds
+        assert total == sum(ir.cost(b) for b in ir.blocks if b != "reconverge") + int(
             ir.notes["unattributed_instructions"]
         )
+        assert ir.cost("reconverge") == (1 if kernel != "wavefront_generate" else 0)
         assert int(ir.notes["unattributed_instructions"]) <= max(25, total // 10)
 
 

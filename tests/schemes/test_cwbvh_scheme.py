@@ -273,8 +273,9 @@ def test_the_kernel_has_exactly_the_blocks_it_is_charged(arch: str) -> None:
     for tests in kernels_ir.kernel_ir.TESTS:
         ir = kernels_ir.load(NAME, arch, tests=tests)
         charged = {b for b in BLOCKS if ir.cost(b) > 0}
-        # the wait of lanes past the pool's end is a convergence spin on sm_75 only
-        assert charged | {"idle_wait"} == set(BLOCKS_CHARGED), (arch, tests)
+        # the wait of lanes past the pool's end is a convergence spin on sm_75 only; every
+        # build has convergence barriers, whose per-group issues this replay leaves out
+        assert charged | {"idle_wait"} == {*BLOCKS_CHARGED, "reconverge"}, (arch, tests)
         assert ("idle_wait" in charged) == (arch == "sm_75"), (arch, tests)
         assert ir.blocks["trav_step"]["local"] >= 1 and ir.blocks["loop_control"]["local"] >= 1
         assert ir.blocks["trav_step"]["ld_global"] >= 5  # the 80-byte node, 5 x 16 bytes

@@ -72,6 +72,13 @@ class Counter:
             self.active[block] += n
             self.hist[(block, n)] += 1
 
+    def apart(self, groups: int) -> None:
+        """A barrier reached by ``groups`` groups apart: each after the first issues it
+        again, with no lane counted."""
+        if groups > 1:
+            self.executions["reconverge"] += groups - 1
+            self.hist[("reconverge", 0)] += groups - 1
+
     def arrays(self, warp_size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         ex = np.array([self.executions[b] for b in BLOCKS], np.int64)
         ac = np.array([self.active[b] for b in BLOCKS], np.int64)
@@ -82,43 +89,63 @@ class Counter:
 
 
 def ref_trace(streams: list[list[int]], c: Counter) -> None:
-    """While-while loop nest (no ray_setup / finish) over the given lanes' op streams."""
+    """While-while loop nest (no ray_setup / finish) over the given lanes' op streams, with
+    its convergence barriers: a step's outcomes and a triangle test's (t, u, v rejected,
+    hit) close them apart, and lanes that leave a loop in different iterations (or skip
+    it) reach its exit apart."""
     cur = [0] * len(streams)
 
     def nxt(i: int) -> int | None:
         return streams[i][cur[i]] if cur[i] < len(streams[i]) else None
 
-    while True:
-        alive = [i for i in range(len(streams)) if nxt(i) is not None]
-        if not alive:
-            return
+    def reach(o: int) -> tuple[int, bool]:
+        return int(tri_stages(o)), o == TRI_HIT
+
+    alive = [i for i in range(len(streams)) if nxt(i) is not None]
+    outer_exits = int(len(alive) < len(streams))
+    while alive:
         c.charge("loop_control", len(alive))
-        while True:
-            trav = [i for i in alive if nxt(i) is not None and nxt(i) < LEAF]
-            if not trav:
-                break
+        trav = [i for i in alive if nxt(i) < LEAF]
+        exits = int(len(trav) < len(alive))
+        while trav:
             c.charge("trav_step", len(trav))
             for code, name in enumerate(("trav_none", "trav_one", "trav_both")):
                 c.charge(name, sum(1 for i in trav if nxt(i) == code))
+            c.apart(len({nxt(i) for i in trav}))
             for i in trav:
                 cur[i] += 1
-        while True:
-            leaf = [i for i in alive if nxt(i) == LEAF]
-            if not leaf:
-                break
+            still = [i for i in trav if nxt(i) is not None and nxt(i) < LEAF]
+            exits += len(still) < len(trav)
+            trav = still
+        c.apart(exits)
+        leaf = [i for i in alive if nxt(i) == LEAF]
+        exits = int(len(leaf) < len(alive))
+        while leaf:
             c.charge("leaf_entry", len(leaf))
             for i in leaf:
                 cur[i] += 1
-            while True:
-                tri = [i for i in leaf if nxt(i) is not None and nxt(i) > LEAF]
-                if not tri:
-                    break
+            tri = [i for i in leaf if nxt(i) is not None and nxt(i) > LEAF]
+            tri_exits = int(len(tri) < len(leaf))
+            while tri:
                 c.charge("tri_test", len(tri))
                 c.charge("tri_u", sum(1 for i in tri if tri_stages(nxt(i)) >= 2))
                 c.charge("tri_v", sum(1 for i in tri if tri_stages(nxt(i)) >= 3))
                 c.charge("tri_hit", sum(1 for i in tri if nxt(i) == TRI_HIT))
+                c.apart(len({reach(nxt(i)) for i in tri}))
                 for i in tri:
                     cur[i] += 1
+                still = [i for i in tri if nxt(i) is not None and nxt(i) > LEAF]
+                tri_exits += len(still) < len(tri)
+                tri = still
+            c.apart(tri_exits)
+            still = [i for i in leaf if nxt(i) == LEAF]
+            exits += len(still) < len(leaf)
+            leaf = still
+        c.apart(exits)
+        still = [i for i in alive if nxt(i) is not None]
+        outer_exits += len(still) < len(alive)
+        alive = still
+    c.apart(outer_exits)
 
 
 def _ops(trace: OpTrace, row: int) -> list[int]:

@@ -294,7 +294,8 @@ def test_gtx285_refill_pays_no_convergence_spin() -> None:
     """sm_75 puts a convergence spin on a dynamic-fetch warp's paths into its full-warp
     ballot (the break for a refill, the idle lanes' wait) and before ``finish``'s vote;
     GT200's votes needed none. With one resident warp the schedule is the same on both
-    GPUs; only the RTX 2080 Ti pays the spins."""
+    GPUs; only the RTX 2080 Ti pays the spins, and the barriers issued again by groups of
+    lanes that arrive apart (GT200 rejoined its lanes on a stack, with no instruction)."""
     df = get_scheme("dynamic_fetch")
     ir = kernels_ir.load(df.kernel, "sm_75")
     trace = synthetic_trace(32 * 40 + 7, seed=3, coherence=4, divergence=0.5)
@@ -303,7 +304,7 @@ def test_gtx285_refill_pays_no_convergence_spin() -> None:
         for g in ("gtx285", "rtx2080ti")
     )
     spins = 0
-    for block in ("refill_break", "idle_wait"):
+    for block in ("refill_break", "idle_wait", "reconverge"):
         runs = int(new.executions[block])
         assert runs == old.executions[block] and runs > 0 and ir.cost(block) > 0, block
         assert old.block_instructions[block] == 0

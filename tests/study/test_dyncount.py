@@ -62,6 +62,29 @@ def test_walk_meets_the_replay_where_the_replay_is_exact(kernel: str) -> None:
     assert abs(d.difference) < 0.005
 
 
+@pytest.mark.parametrize("kernel", ["while_while", "if_if", "persistent_while_while"])
+def test_lanes_that_arrive_apart_issue_the_barriers_the_replay_charges(kernel: str) -> None:
+    """On a GPU with independent thread scheduling each group of lanes that reaches a
+    convergence barrier apart issues it. The walk's split schedule runs the groups apart;
+    its barrier issues beyond each region's first are the replay's ``reconverge``: the same
+    count for while-while and if-if, and for the persistent kernel all but the pool
+    fetch's barrier, which the replay leaves out. With them both counts meet; the default
+    schedule merges the groups and the replay's ``reconverge`` is left out."""
+    split = dyncount(
+        scheme_of_kernel(kernel), "room", "diffuse", warps=4, resolution=(32, 24), merge=False
+    )
+    walk, replay = split.table.loc["reconverge", ["walk", "replay"]]
+    assert replay > 0.015 * split.walk
+    if kernel.startswith("persistent"):
+        assert 0 <= walk - replay <= 0.02 * walk
+    else:
+        assert replay == walk
+    assert split.exact == split.replay and abs(split.difference) < 0.005
+    merged = dyncount(scheme_of_kernel(kernel), "room", "diffuse", warps=4, resolution=(32, 24))
+    assert "reconverge" not in merged.table.index
+    assert split.replay - merged.replay == replay
+
+
 def test_dynamic_fetch_refills_are_charged_on_their_paths() -> None:
     """The refill test runs on every iteration that leaves lanes tracing while the pool has
     rays; the break for a refill and the wait of lanes the pool left without a ray, each
