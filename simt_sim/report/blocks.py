@@ -3,7 +3,8 @@
 The way a profiler's source view shows a kernel author where the time goes: per scene x
 ray type x scheme x GPU, each block the kernel executed (``trav_step``, ``tri_test``,
 ``leaf_entry`` ...) with its executions, warp instructions, share of the scheme's total and
-SIMD efficiency (active lanes per issued instruction over the warp size).
+SIMD efficiency (active lanes per issued instruction over the warp size; none for
+``reconverge``, whose lanes count with each barrier's first issue in its own block).
 """
 
 from __future__ import annotations
@@ -38,7 +39,9 @@ def block_rows(results: Sequence[SimResult]) -> pd.DataFrame:
                 "block": block, "cost": int(b["cost"]), "executions": int(b["executions"]),
                 "warp_instructions": issued,
                 "share": issued / total if total else float("nan"),
-                "simd_efficiency": b["active_sum"] / (r.warp_size * b["executions"]),
+                "simd_efficiency": b["active_sum"] / (r.warp_size * b["executions"])
+                if b["active_sum"]
+                else float("nan"),
             })  # fmt: skip
     return pd.DataFrame(rows, columns=list(COLUMNS))
 
