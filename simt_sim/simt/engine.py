@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -164,6 +165,18 @@ class Counts:
     hist: np.ndarray
     warp_totals: np.ndarray | None = None
     makespan: int = 0
+
+    def __post_init__(self) -> None:
+        # numba caches compiled replays beside their modules and re-checks only that
+        # module's source, so after an upgrade that adds a block, the code of an unchanged
+        # module still counts the old blocks
+        if self.executions.shape != (N_BLOCKS,):
+            root = Path(__file__).resolve().parents[1]
+            raise SimtSimError(
+                f"a replay counted {self.executions.shape[0]} blocks where this simt-sim has "
+                f"{N_BLOCKS}: numba's cache holds code of an older version; delete it with "
+                f"find {root} -name '*.nb[ic]' -delete and run again"
+            )
 
     def __add__(self, other: Counts) -> Counts:
         if self.warp_totals is None or other.warp_totals is None:

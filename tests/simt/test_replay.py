@@ -12,7 +12,7 @@ import kernels_ir
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
 from simt_sim.errors import SimtSimError
 from simt_sim.schemes import get_scheme, names
-from simt_sim.simt.engine import scan_trace
+from simt_sim.simt.engine import Counts, scan_trace
 from simt_sim.simt.gpus import GpuConfig, get_gpu, issue_limited
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult, merge
@@ -417,3 +417,14 @@ def test_empty_input_gives_an_empty_result() -> None:
     assert r.rays == 2 and r.executions["trav_step"] == 0
     assert r.executions["ray_setup"] == r.executions["finish"] == 1
     assert simulate_traces([], get_scheme("if_if"), ir_for("if_if"), gpu_for()).rays == 0
+
+
+def test_counters_of_another_block_count_are_refused_with_the_cache_advice() -> None:
+    """numba re-checks only a module's own source, so after an upgrade that adds a block an
+    unchanged module's cached replay still counts the old blocks: such counters are refused
+    in words that say how to clear the cache."""
+    n = len(BLOCKS) - 1
+    with pytest.raises(
+        SimtSimError, match=r"counted \d+ blocks where .* -name '\*\.nb\[ic\]' -delete"
+    ):
+        Counts(np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros((n, 33), np.int64))
