@@ -154,7 +154,9 @@ from simt_sim.simt.engine import (
     class_mix,
     cost_vector,
     heap_sift_down,
+    if_groups,
     lane_traffic,
+    outcome_groups,
     passes_t,
     passes_u,
     schedule_groups,
@@ -364,9 +366,7 @@ def _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, 
     for o in range(3):
         cost += charge(cnt, hist, costs, TRAV_NONE_B + o, outcome_lanes[o])
     if barriers:
-        groups = np.int64(0)
-        for o in range(3):
-            groups += np.int64(outcome_lanes[o] > 0)
+        groups = outcome_groups(outcome_lanes[0], outcome_lanes[1], outcome_lanes[2])
         cost += charge_apart(cnt, hist, costs, apart(groups))
     return cost
 
@@ -512,7 +512,7 @@ def _if_if(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, bas
             cost += c + charge_apart(cnt, hist, costs, np.int64(n < alive))
         n = _lanes_with(li, lanes, _K_LEAF, sel)
         cost += charge(cnt, hist, costs, LEAF_ENTRY, n)
-        cost += charge_apart(cnt, hist, costs, apart(np.int64(n > 0) + np.int64(n < alive)))
+        cost += charge_apart(cnt, hist, costs, apart(if_groups(n, alive)))
         for k in range(n):
             lane = sel[k]
             ops[base + lane, _C_LEAF] += 1
@@ -523,7 +523,7 @@ def _if_if(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, bas
         if n > 0:
             cost += _tri_iteration(li, lf, sel, n, woop, woop_i, any_hit, ops, base,
                                    cnt, hist, costs, True)  # fmt: skip
-        cost += charge_apart(cnt, hist, costs, apart(np.int64(n > 0) + np.int64(n < alive)))
+        cost += charge_apart(cnt, hist, costs, apart(if_groups(n, alive)))
         after = lanes - _lanes_with(li, lanes, _K_NONE, sel)
         exits += np.int64(after < alive)
         alive = after
@@ -856,8 +856,7 @@ def _wide_traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, width, tnea
     cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_NONE, none)
     cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_ONE, one)
     cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_BOTH, several)
-    groups = np.int64(none > 0) + np.int64(one > 0) + np.int64(several > 0)
-    return cost + charge_apart(cnt, hist, costs, apart(groups))
+    return cost + charge_apart(cnt, hist, costs, apart(outcome_groups(none, one, several)))
 
 
 @njit(cache=True, nogil=True)

@@ -44,6 +44,7 @@ from simt_sim.simt.engine import (
     charge_tri,
     chunk_bounds,
     chunk_counts,
+    if_groups,
     is_leaf,
     is_trav,
     is_tri,
@@ -51,6 +52,7 @@ from simt_sim.simt.engine import (
     lowest_lane,
     no_per_warp,
     op_at,
+    outcome_groups,
     per_warp_table,
     popcount,
     record_warp,
@@ -78,7 +80,8 @@ def _warp(offsets, op, r0, n, cur, end, costs, cnt, hist):
     issued = charge(cnt, hist, costs, RAY_SETUP, n)
     exits = np.int64(popcount(alive) < n)  # lanes with no op leave at once
     while alive:
-        issued += charge(cnt, hist, costs, LOOP_CONTROL, popcount(alive))
+        a = popcount(alive)
+        issued += charge(cnt, hist, costs, LOOP_CONTROL, a)
         k = 0
         c0 = 0
         c1 = 0
@@ -115,12 +118,9 @@ def _warp(offsets, op, r0, n, cur, end, costs, cnt, hist):
         issued += charge_tri(cnt, hist, costs, tri)
         # each ``if`` closes with a barrier, reached apart by the lanes that skipped it and
         # by each way through it: a step's outcomes, a test's (``tri_groups``)
-        a = popcount(alive)
-        nt = tri & TRI_LANES
-        groups = np.int64(c0 > 0) + np.int64(c1 > 0) + np.int64(k > c0 + c1) + np.int64(k < a)
-        groups_leaf = np.int64(nl > 0) + np.int64(nl < a)
-        groups_tri = np.int64(nt > 0) + np.int64(nt < a)
-        extra = apart(groups) + apart(groups_leaf) + apart(groups_tri) + apart(tri_groups(tri))
+        groups = outcome_groups(c0, c1, k - c0 - c1) + np.int64(k < a)
+        extra = apart(groups) + apart(if_groups(nl, a)) + apart(if_groups(tri & TRI_LANES, a))
+        extra += apart(tri_groups(tri))
         issued += charge_apart(cnt, hist, costs, extra)
         exits += np.int64((alive & ~nxt) != 0)
         alive = nxt

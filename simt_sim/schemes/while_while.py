@@ -62,6 +62,7 @@ from simt_sim.simt.engine import (
     lowest_lane,
     next_op,
     no_per_warp,
+    outcome_groups,
     per_warp_table,
     popcount,
     record_warp,
@@ -115,7 +116,7 @@ def trav_groups(a):
     k = a & _LOW
     c0 = (a >> _FIELD) & _LOW
     c1 = a >> (2 * _FIELD)
-    return np.int64(c0 > 0) + np.int64(c1 > 0) + np.int64(k > c0 + c1)
+    return outcome_groups(c0, c1, k - c0 - c1)
 
 
 @njit(cache=True, nogil=True)

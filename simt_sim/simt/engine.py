@@ -300,6 +300,21 @@ def apart(groups):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def outcome_groups(none, one, both):
+    """Groups of lanes that close one traversal step apart: one per outcome some lane took
+    (``none``, ``one``, ``both``: the lanes of each), each leaving the step's ``if`` chain
+    from a branch of its own."""
+    return np.int64(none > 0) + np.int64(one > 0) + np.int64(both > 0)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def if_groups(taken, lanes):
+    """Groups of lanes that close an ``if`` apart: those of the ``lanes`` that took it
+    (``taken`` of them) and those that skipped it."""
+    return np.int64(taken > 0) + np.int64(taken < lanes)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def op_at(op, c, e):
     """The op at cursor ``c`` of a stream ending at ``e``, or NO_OP past it (branch-free).
 
