@@ -1,8 +1,9 @@
 """The CUDA traversal kernels and the instruction cost of their blocks (KernelIR).
 
 The JSON files under ``kernels_ir/ir`` are generated from the kernels' SASS by
-``python -m kernels_ir build`` (needs the ``cuda-toolchain`` extra) and committed, so
-:func:`load` needs no CUDA toolchain.
+``python -m kernels_ir build`` (needs the ``cuda-toolchain`` extra; Kepler's, sm_35, by
+``python -m kernels_ir kepler`` with CUDA 11.8) and committed, so :func:`load` needs no
+CUDA toolchain.
 """
 
 from __future__ import annotations
@@ -13,12 +14,13 @@ from importlib.resources.abc import Traversable
 
 import pandas as pd
 
-from kernels_ir.build import ARCHS, KERNELS
+from kernels_ir.build import ARCHS, KEPLER_ARCH, KERNELS
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import BLOCKS, CLASSES, DEFAULT_TESTS, TESTS, KernelIR
 
 __all__ = [
     "ARCHS",
+    "ALL_ARCHS",
     "BLOCKS",
     "CLASSES",
     "KERNELS",
@@ -30,6 +32,10 @@ __all__ = [
     "load",
     "summary_table",
 ]
+
+
+#: every target with committed IR, oldest first
+ALL_ARCHS = (KEPLER_ARCH, *ARCHS)
 
 
 def _ir_files(tests: str = DEFAULT_TESTS) -> dict[tuple[str, str], Traversable]:
@@ -47,7 +53,7 @@ def _ir_files(tests: str = DEFAULT_TESTS) -> dict[tuple[str, str], Traversable]:
 def _order(pair: tuple[str, str]) -> tuple[int, int, str, str]:
     kernel, arch = pair
     k = KERNELS.index(kernel) if kernel in KERNELS else len(KERNELS)
-    a = ARCHS.index(arch) if arch in ARCHS else len(ARCHS)
+    a = ALL_ARCHS.index(arch) if arch in ALL_ARCHS else len(ALL_ARCHS)
     return (k, a, kernel, arch)
 
 
@@ -120,7 +126,7 @@ def summary_table(arch: str = "sm_90") -> pd.DataFrame:
     (0 where a kernel lacks the block), plus registers and unattributed instructions."""
     kernels = [k for k, a in available() if a == arch]
     if not kernels:
-        raise KernelIRError(f"no KernelIR for arch {arch!r}; archs: {', '.join(ARCHS)}")
+        raise KernelIRError(f"no KernelIR for arch {arch!r}; archs: {', '.join(ALL_ARCHS)}")
     irs = [load(k, arch) for k in kernels]
     used = [b for b in BLOCKS if any(b in ir.blocks for ir in irs)]
     table = pd.DataFrame(

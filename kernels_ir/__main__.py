@@ -1,5 +1,5 @@
-"""``python -m kernels_ir build [--check]``, ``show KERNEL``, ``summary``, ``pairing`` and
-``dyncount``.
+"""``python -m kernels_ir build [--check]``, ``show KERNEL``, ``summary``, ``cubins``,
+``kepler`` and ``dyncount``.
 
 ``dyncount`` is the one command that needs the simulator (scenes, rays, the replay): it
 runs a kernel's SASS on real warps and sets the count beside the replay's
@@ -13,11 +13,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from kernels_ir import format_ir_table, load, pairing, summary_table
+from kernels_ir import format_ir_table, kepler, load, summary_table
 from kernels_ir.build import ARCHS, IR_DIR, KERNELS, build_all, check, write_cubins
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
-from kernels_ir.pairing import PAIRING_ARCHS
 
 
 def to_markdown(table: pd.DataFrame) -> str:
@@ -59,14 +58,14 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--tests", choices=TESTS, default=DEFAULT_TESTS)
     c.add_argument("--out", type=Path, required=True, help="output directory")
     p = sub.add_parser(
-        "pairing",
-        help="compile every kernel for Kepler with CUDA 11.8 and write which instructions "
-        "the compiler pairs for dual issue (kernels_ir/pairs/ARCH.json)",
+        "kepler",
+        help="compile every kernel for Kepler (sm_35) with CUDA 11.8 and write its IR "
+        "(kernels_ir/ir/*.sm_35*.json) and the instructions the compiler pairs for dual "
+        "issue (kernels_ir/pairs/sm_35.json)",
     )
     p.add_argument(
         "--cuda11", type=Path, required=True, help="CUDA 11.8's bin directory (ptxas, nvdisasm)"
     )
-    p.add_argument("--arch", choices=PAIRING_ARCHS, default=PAIRING_ARCHS[0])
     d = sub.add_parser(
         "dyncount",
         help="walk a kernel's SASS on real warps and compare its instruction count with "
@@ -104,8 +103,9 @@ def main(argv: list[str] | None = None) -> int:
             paths = build_all(args.out, kernels, archs, jobs=args.jobs, tests=tests)
             print(f"wrote {len(paths)} files to {args.out}")
             return 0
-        if args.cmd == "pairing":
-            print(f"wrote {pairing.write(args.cuda11, args.arch)}")
+        if args.cmd == "kepler":
+            paths = kepler.write(args.cuda11)
+            print(f"wrote {len(paths)} files: {paths[0]} and the sm_35 IR in {paths[1].parent}")
             return 0
         if args.cmd == "cubins":
             kernels = tuple(args.kernel or KERNELS)

@@ -17,7 +17,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 from kernels_ir.errors import KernelIRError
-from kernels_ir.sass import SassInstruction, base_opcode, branch_target
+from kernels_ir.sass import SassInstruction, base_opcode, branch_target, stack_pop
 
 #: opcodes that end a path (an unguarded one has no fall-through successor)
 _ENDS = ("EXIT", "RET", "KILL")
@@ -89,7 +89,7 @@ class ControlFlow:
 
 
 def _is_branch(ins: SassInstruction) -> bool:
-    return base_opcode(ins.opcode) in _BRANCHES
+    return base_opcode(ins.opcode) in _BRANCHES or stack_pop(ins)
 
 
 def build_cfg(instructions: Sequence[SassInstruction]) -> ControlFlow:
@@ -132,7 +132,9 @@ def build_cfg(instructions: Sequence[SassInstruction]) -> ControlFlow:
         if _is_branch(ins):
             succ.append(index[at[branch_target(ins) or ""]])
         # a guarded branch or end falls through; so does anything that is neither
-        conditional = ins.guarded or len(ins.text.split(",")) > 1 and _is_branch(ins)
+        conditional = ins.guarded or (
+            base_opcode(ins.opcode) in _BRANCHES and len(ins.text.split(",")) > 1
+        )
         if (not (_is_branch(ins) or op in _ENDS) or conditional) and last + 1 < n:
             succ.append(b + 1)
         successors.append(tuple(dict.fromkeys(succ)))

@@ -8,10 +8,7 @@ scheduling into the compiler; the encoding is from envytools' ISA notes and Zhan
 PPoPP 2017). So an SMX's 8 warp instructions per clock (4 schedulers x 2) are reached only
 by code that pairs every instruction; the marks say how much of ours does.
 
-CUDA 11.8 is the last compiler for Kepler (sm_35, GK110) and the pinned CUDA 13 toolchain
-offers nothing below sm_75, so :func:`build` takes each kernel's PTX from nvcc 13
-(``compute_75``, the IR's flags), re-targets it to sm_35 and assembles and disassembles it
-with CUDA 11.8's ``ptxas`` and ``nvdisasm`` from a directory the caller names. Every
+:mod:`kernels_ir.kepler` compiles the kernels for Kepler (sm_35) with CUDA 11.8. Every
 instruction goes to the block of the kernel source line it comes from (the outermost
 line of an inlined call, where the ``// @block`` markers are), and
 ``kernels_ir/pairs/sm_35.json`` holds, per kernel, tests and block, the instructions and
@@ -22,27 +19,16 @@ from __future__ import annotations
 
 import json
 import re
-import tempfile
 from functools import cache
 from importlib import resources
 from pathlib import Path
 
 from kernels_ir.blocks import UNATTRIBUTED, parse_markers
-from kernels_ir.build import (
-    CUDA_DIR,
-    KERNELS,
-    RELEASE,
-    TEST_DEFINES,
-    dumps,
-    find_toolchain,
-    run_tool,
-    source_sha256,
-)
+from kernels_ir.build import KEPLER_ARCH, source_sha256
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kernel_ir import TESTS
 
 #: the architectures whose pairing is committed (the one Kepler target CUDA 11.8 offers)
-PAIRING_ARCHS = ("sm_35",)
+PAIRING_ARCHS = (KEPLER_ARCH,)
 PAIRING_DIR = Path(__file__).parent / "pairs"
 #: the control byte of an instruction that issues together with the next one
 DUAL_ISSUE = 0x04
@@ -51,10 +37,6 @@ WORD_SLOTS = 7
 #: an issue slot's share of a block no Kepler instruction maps to: fully paired, the
 #: share the plain issue bound assumes, so such a block never tightens the bound
 UNMAPPED_SHARE = 0.5
-#: nvcc 13 flags that make the PTX the IR's code is compiled from (``build.FLAGS`` without
-#: ``-cubin`` and ptxas's options)
-_PTX_FLAGS = ("-arch=compute_75", "--ptx", "-O3", "-lineinfo", "-std=c++17")
-_PTX_ISA = "7.8"
 
 _SCHED = re.compile(r"^\s*/\* (0x[0-9a-f]{16}) \*/\s*$")
 _INSTR = re.compile(r"^\s*/\*[0-9a-f]{4,}\*/\s+(?P<text>[^;]*);\s*/\* 0x[0-9a-f]{16} \*/\s*$")
@@ -125,81 +107,6 @@ def block_pairs(listing: str, source: str, source_name: str) -> dict[str, list[i
     return dict(sorted(counts.items()))
 
 
-def _version(tool: Path) -> str:
-    m = RELEASE.search(run_tool([str(tool), "--version"], CUDA_DIR).stdout)
-    if not m:
-        raise KernelIRError(f"cannot read the version of {tool}; name CUDA 11.8's bin directory")
-    return f"{tool.name} {m[1]}"
-
-
-def _kepler_tools(cuda11_bin: Path) -> tuple[Path, Path]:
-    ptxas, nvdisasm = cuda11_bin / "ptxas", cuda11_bin / "nvdisasm"
-    if not (ptxas.is_file() and nvdisasm.is_file()):
-        raise KernelIRError(
-            f"{cuda11_bin} has no ptxas and nvdisasm; name the bin directory of CUDA 11.8 "
-            "(Debian bookworm's non-free package nvidia-cuda-toolkit has both)"
-        )
-    for tool in (ptxas, nvdisasm):
-        if " V11." not in _version(tool):
-            raise KernelIRError(f"{tool} is not CUDA 11; the last compiler for sm_35 is 11.8")
-    return ptxas, nvdisasm
-
-
-def retarget(ptx: str, arch: str) -> str:
-    """``compute_75`` PTX from nvcc 13 as PTX for ``arch`` that CUDA 11.8 reads (ISA 7.8)."""
-    out, n_version = re.subn(r"^\.version \d+\.\d+$", f".version {_PTX_ISA}", ptx, flags=re.M)
-    out, n_target = re.subn(r"^\.target sm_75$", f".target {arch}", out, flags=re.M)
-    if n_version != 1 or n_target != 1:
-        raise KernelIRError("the PTX has no single .version and .target sm_75 line")
-    return out
-
-
-def build(cuda11_bin: Path, arch: str = "sm_35") -> dict:
-    """Compile every kernel with both sets of tests for ``arch``; return the JSON document
-    ``kernels_ir/pairs/<arch>.json`` holds."""
-    if arch not in PAIRING_ARCHS:
-        raise KernelIRError(f"unknown pairing arch {arch!r}; use {', '.join(PAIRING_ARCHS)}")
-    ptxas, nvdisasm = _kepler_tools(cuda11_bin)
-    nvcc = find_toolchain()
-    kernels: dict[str, dict] = {}
-    with tempfile.TemporaryDirectory(prefix="kernels_ir_pairing_") as tmp:
-        work = Path(tmp)
-        for kernel in KERNELS:
-            source = (CUDA_DIR / f"{kernel}.cu").read_text()
-            entry: dict = {"source_sha256": source_sha256(kernel)}
-            for tests in TESTS:
-                ptx, cubin = work / f"{kernel}.{tests}.ptx", work / f"{kernel}.{tests}.cubin"
-                run_tool(
-                    [str(nvcc.nvcc), *_PTX_FLAGS, *TEST_DEFINES[tests], "-o", str(ptx),
-                     f"{kernel}.cu"],
-                    CUDA_DIR,
-                )  # fmt: skip
-                ptx.write_text(retarget(ptx.read_text(), arch))
-                run_tool([str(ptxas), f"-arch={arch}", "-O3", "-o", str(cubin), str(ptx)], CUDA_DIR)
-                listing = run_tool(
-                    [str(nvdisasm), "-c", "-hex", "-g", "-gi", str(cubin)], CUDA_DIR
-                ).stdout
-                entry[tests] = block_pairs(listing, source, f"{kernel}.cu")
-            kernels[kernel] = entry
-    return {
-        "arch": arch,
-        "compiler": f"{nvcc.version} PTX (compute_75, ISA {_PTX_ISA}), {_version(ptxas)}, "
-        f"{_version(nvdisasm)}",
-        "kernels": kernels,
-    }
-
-
-def write(cuda11_bin: Path, arch: str = "sm_35", out_dir: Path = PAIRING_DIR) -> Path:
-    """:func:`build` into ``out_dir/<arch>.json``; return its path."""
-    doc = build(cuda11_bin, arch)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / f"{arch}.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(dumps(doc))
-    tmp.replace(path)
-    return path
-
-
 @cache
 def load(arch: str = "sm_35") -> dict:
     """The committed pairing document of ``arch``.
@@ -226,7 +133,7 @@ def block_pair_counts(kernel: str, tests: str, arch: str = "sm_35") -> dict[str,
     ------
     KernelIRError
         If the pairing of ``arch`` has no entry for ``kernel`` and ``tests``, or the kernel's
-        source changed since it was built (rebuild with ``python -m kernels_ir pairing``).
+        source changed since it was built (rebuild with ``python -m kernels_ir kepler``).
     """
     entry = load(arch)["kernels"].get(kernel)
     if entry is None or tests not in entry:
@@ -234,6 +141,6 @@ def block_pair_counts(kernel: str, tests: str, arch: str = "sm_35") -> dict[str,
     if entry["source_sha256"] != source_sha256(kernel):
         raise KernelIRError(
             f"the {arch} pairing of {kernel} is older than its source; rebuild it with "
-            "`python -m kernels_ir pairing --cuda11 DIR`"
+            "`python -m kernels_ir kepler --cuda11 DIR`"
         )
     return {b: (int(n), int(pairs)) for b, (n, pairs) in entry[tests].items()}

@@ -23,6 +23,8 @@ _FUNC = re.compile(r"^\s*\.text\.(?P<name>[A-Za-z_][\w$.]*):\s*$")
 _SUBROUTINE = re.compile(r"^(?P<name>\$[\w$.]+):\s*$")
 _LABEL = re.compile(r"^(?P<name>\.L[\w$.]*):\s*$")
 _TARGET = re.compile(r"`\((?P<name>[\w$.]+)\)")
+#: nvdisasm's note of where a pre-Volta stack pop (``NOP.S``, ``BRK``) sends its lanes
+_POP_TARGET = re.compile(r"TARGET= (?P<name>[\w$.]+) ")
 _LINE = re.compile(r'^\s*//## File "(?P<file>[^"]*)", line (?P<line>\d+)(?P<rest>.*)$')
 _INLINED = re.compile(r'inlined at "(?P<file>[^"]*)", line (?P<line>\d+)')
 _INSN = re.compile(r"^\s*/\*(?P<off>[0-9a-f]{4,})\*/\s+(?P<text>[^;]*);")
@@ -35,7 +37,8 @@ OPCODE_CLASSES: dict[str, tuple[str, ...]] = {
         "FADD", "FADD32I", "FMUL", "FMUL32I", "FFMA", "FFMA32I", "FMNMX", "FSETP", "FSET",
         "FSEL", "FCHK", "FSWZADD", "HFMA2", "HADD2", "HMUL2", "HSETP2", "HMNMX2", "FRND",
         "F2F", "F2I", "I2F", "I2FP", "F2IP", "FMNMX3", "FADD2", "FMUL2", "FFMA2", "FMNMX2",
-        "UFADD", "UFMUL", "UFFMA", "UFMNMX", "UFSETP", "UFSEL", "UF2F", "UI2F", "UF2I",
+        "UFADD", "UFMUL", "UFFMA", "UFMNMX", "UFSETP", "UFSEL", "UF2F", "UI2F", "UF2I", "FCMP",
+        "RRO",
     ),
     "int": (
         "IADD", "IADD3", "IADD32I", "IMAD", "IMAD32I", "IMUL", "IMNMX", "VIMNMX", "VIMNMX3",
@@ -44,7 +47,7 @@ OPCODE_CLASSES: dict[str, tuple[str, ...]] = {
         "P2R", "R2P", "PLOP3", "PSETP", "S2R", "S2UR", "CS2R", "LDC", "ULDC", "UMOV", "UIADD3",
         "UIMAD", "ULOP3", "USHF", "USEL", "UISETP", "ULEA", "UPLOP3", "UPRMT", "UFLO", "UPOPC",
         "UBMSK", "UBREV", "R2UR", "UP2UR", "UR2P", "UVIADD", "UIMNMX", "UVIMNMX", "LDCU",
-        "IMNMX3",
+        "IMNMX3", "ICMP", "ISET", "IMUL32I", "BFE", "BFI", "ISUB",
     ),
     "ld_global": ("LDG", "LD", "LDGSTS", "UBLKCP", "LDGDEPBAR"),
     "st_global": ("STG", "ST"),
@@ -53,14 +56,16 @@ OPCODE_CLASSES: dict[str, tuple[str, ...]] = {
     "control": (
         "BRA", "BRX", "BRXU", "JMP", "JMX", "JMXU", "BSSY", "BSYNC", "BREAK", "BPT", "EXIT",
         "RET", "CALL", "WARPSYNC", "BAR", "BMOV", "YIELD", "KILL", "NANOSLEEP", "DEPBAR",
-        "MEMBAR", "ERRBAR", "CCTL", "ACQBULK", "ELECT", "ENDCOLLECTIVE",
+        "MEMBAR", "ERRBAR", "CCTL", "ACQBULK", "ELECT", "ENDCOLLECTIVE", "SSY", "PBK", "BRK",
+        "PCNT", "CONT", "SYNC", "TEXDEPBAR",
     ),
     "vote_atomic": ("VOTE", "VOTEU", "ATOM", "ATOMG", "RED", "REDUX", "SHFL", "MATCH"),
     "sfu": ("MUFU",),
 }
 # fmt: on
 _CLASS_OF = {op: cls for cls, ops in OPCODE_CLASSES.items() for op in ops}
-#: opcodes that issue no work and are not counted at all
+#: opcodes that issue no work and are not counted at all (but a pre-Volta ``NOP.S``, which
+#: pops the reconvergence stack: :func:`stack_pop`)
 EXCLUDED = ("NOP",)
 
 
@@ -98,15 +103,30 @@ def classify(opcode: str) -> str | None:
     """
     base = base_opcode(opcode)
     if base in EXCLUDED:
-        return None
+        return "control" if _pops(opcode) else None
     return _CLASS_OF.get(base, "other")
 
 
+def _pops(opcode: str) -> bool:
+    return base_opcode(opcode) == "BRK" or "S" in opcode.split(".")[1:]
+
+
+def stack_pop(ins: SassInstruction) -> bool:
+    """True for a pre-Volta instruction that pops the reconvergence stack: ``BRK`` or one
+    with the ``.S`` flag (sm_35). Its lanes go on at the label that the matching ``PBK`` or
+    ``SSY`` pushed, which nvdisasm notes beside it, so for control flow it is a branch."""
+    return _pops(ins.opcode) and _POP_TARGET.search(ins.text) is not None
+
+
 def branch_target(ins: SassInstruction) -> str | None:
-    """The label or subroutine a ``BRA`` or ``CALL`` jumps to (``None`` for anything else)."""
-    if base_opcode(ins.opcode) not in ("BRA", "CALL"):
+    """The label or subroutine a ``BRA`` or ``CALL`` jumps to, or where a pre-Volta stack
+    pop sends its lanes (:func:`stack_pop`); ``None`` for anything else."""
+    if stack_pop(ins):
+        m = _POP_TARGET.search(ins.text)
+    elif base_opcode(ins.opcode) in ("BRA", "CALL"):
+        m = _TARGET.search(ins.text)
+    else:
         return None
-    m = _TARGET.search(ins.text)
     return m.group("name") if m else None
 
 

@@ -11,7 +11,7 @@ from kernels_ir import load
 from kernels_ir.blocks import map_blocks, parse_loops, parse_markers, place_instructions
 from kernels_ir.cfg import build_cfg
 from kernels_ir.errors import KernelIRError
-from kernels_ir.sass import parse_listing
+from kernels_ir.sass import classify, parse_listing, stack_pop
 
 
 def _listing(rows: list[tuple[int, str] | str]) -> str:
@@ -107,6 +107,43 @@ def test_cfg_nests_loops_and_keeps_a_continue_in_one_loop() -> None:
     assert cfg.encloses(0, 1) and not cfg.encloses(1, 0) and cfg.encloses(None, 1)
     # the continue's test is conditional: the second latch does not run every iteration
     assert cfg.block_of[9] not in outer.every_iteration
+
+
+def test_cfg_follows_keplers_stack_pops_as_branches() -> None:
+    """sm_35 code has no BSSY/BSYNC: ``SSY``/``PBK`` push where lanes reconverge, and a
+    ``.S`` instruction or ``BRK`` sends its lanes there (nvdisasm notes the target). A
+    guarded pop falls through for the other lanes; an unguarded one does not."""
+    rows = [
+        (3, "MOV R1, c[0x0][0x44]"),
+        (5, "PBK `(.L_x_2)"),
+        ".L_x_0",
+        (7, "ISETP.NE.AND P1, PT, R3, RZ, PT"),
+        (7, "SSY `(.L_x_1)"),
+        (7, '@P1 NOP.S (*"TARGET= .L_x_1 "*)'),
+        (8, 'FADD.S R4, R4, 1 (*"TARGET= .L_x_1 "*)'),
+        ".L_x_1",
+        (5, "ISETP.NE.AND P0, PT, R2, RZ, PT"),
+        (5, '@!P0 BRK (*"TARGET= .L_x_2 "*)'),
+        (5, "BRA `(.L_x_0)"),
+        ".L_x_2",
+        (12, "EXIT"),
+    ]
+    ins = parse_listing(_listing(rows))
+    assert [stack_pop(i) for i in ins] == [False] * 4 + [True, True, False, True, False, False]
+    cfg = build_cfg(ins)
+    assert cfg.starts == (0, 2, 5, 6, 8, 9)
+    assert cfg.successors == ((1,), (3, 2), (3,), (5, 4), (1,), ())
+    assert list(cfg.loops) == [0]
+    loop = cfg.loops[0]
+    assert (loop.header, loop.body, loop.latches) == (1, {1, 2, 3, 4}, {4})
+    # the pop that only moves lanes is issued (control); a plain NOP is padding
+    assert [classify(op) for op in ("NOP.S", "NOP", "FADD.S", "BRK", "SSY")] == [
+        "control",
+        None,
+        "fp32",
+        "control",
+        "control",
+    ]
 
 
 def test_cfg_refuses_indirect_branches_and_unknown_labels() -> None:

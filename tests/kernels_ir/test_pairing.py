@@ -1,32 +1,23 @@
 """kernels_ir.pairing: Kepler's compiler-marked dual-issue pairs, read from sm_35 SASS.
 
 The parser runs on hand-made listings in nvdisasm's format; the committed document is
-checked against the kernels' sources. Rebuilding it needs CUDA 11.8 (the last compiler for
-Kepler), which CI has not: that test runs where ``SIMT_CUDA11_BIN`` names its bin directory.
+checked against the kernels' sources (rebuilding it: tests/kernels_ir/test_kepler.py).
 """
 
 from __future__ import annotations
 
-import json
-import os
-from pathlib import Path
-
 import pytest
 
 from kernels_ir import KERNELS, TESTS
-from kernels_ir.__main__ import main
 from kernels_ir.blocks import parse_markers
-from kernels_ir.build import CUDA_DIR, dumps, toolchain_available
+from kernels_ir.build import CUDA_DIR
 from kernels_ir.errors import KernelIRError
 from kernels_ir.pairing import (
     DUAL_ISSUE,
-    PAIRING_DIR,
     block_pair_counts,
     block_pairs,
-    build,
     control_bytes,
     listing_pairs,
-    retarget,
 )
 
 
@@ -114,13 +105,6 @@ def test_blocks_sum_their_instructions_and_pairs() -> None:
     assert counts == {"ray_setup": [2, 1], "trav_step": [2, 1], "unattributed": [1, 0]}
 
 
-def test_retarget_rewrites_the_version_and_target_once() -> None:
-    ptx = "//\n.version 9.5\n.target sm_75\n.address_size 64\n"
-    assert retarget(ptx, "sm_35") == "//\n.version 7.8\n.target sm_35\n.address_size 64\n"
-    with pytest.raises(KernelIRError, match="single .version"):
-        retarget(".version 9.5\n.target sm_80\n", "sm_35")
-
-
 @pytest.mark.parametrize("kernel", KERNELS)
 def test_the_committed_pairing_is_of_todays_kernels(kernel: str) -> None:
     """Every kernel, both sets of tests: built from today's source, every marked block has
@@ -145,23 +129,3 @@ def test_a_changed_source_needs_a_rebuild(monkeypatch: pytest.MonkeyPatch) -> No
             block_pair_counts("while_while", "watertight")
     finally:
         block_pair_counts.cache_clear()
-
-
-def test_the_command_names_a_directory_without_the_tools_in_one_line(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    assert main(["pairing", "--cuda11", str(tmp_path)]) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "has no ptxas and nvdisasm" in err
-    assert not (tmp_path / "sm_35.json").exists()
-
-
-@pytest.mark.toolchain
-@pytest.mark.skipif(
-    not (os.environ.get("SIMT_CUDA11_BIN") and toolchain_available()),
-    reason="needs CUDA 11.8's bin directory in SIMT_CUDA11_BIN and the cuda-toolchain extra",
-)
-def test_rebuilding_the_pairing_gives_the_committed_file() -> None:
-    fresh = dumps(build(Path(os.environ["SIMT_CUDA11_BIN"])))
-    committed = (PAIRING_DIR / "sm_35.json").read_text()
-    assert json.loads(fresh) == json.loads(committed)
