@@ -196,6 +196,30 @@ def test_cli_gpus_file_adds_a_gpu_to_table_and_gpus(tmp_path: Path) -> None:
     assert "gtx285x2" in set(pd.read_csv(io.StringIO(listed.stdout))["id"])
 
 
+def test_a_gpus_file_can_cost_a_gpu_with_keplers_code(tmp_path: Path) -> None:
+    """`ir_arch = "sm_35"` costs the replay with the committed Kepler IR: the same
+    executions as with sm_75 code, each block at its sm_35 cost (no BSYNC there, so
+    ``reconverge`` costs nothing), and the table's total is their sum."""
+    base = USER_GPU.replace('arch = "sm_80"', 'arch = "sm_13"')
+    path = tmp_path / "mine.toml"
+    path.write_text(
+        base.format(id="k35").replace('ir_arch = "sm_13"', 'ir_arch = "sm_35"')
+        + base.format(id="t75").replace('ir_arch = "sm_13"', 'ir_arch = "sm_75"')
+    )
+    args = ["table", *SMALL, "--rays", "primary", "--schemes", "while_while", "--spp", "1"]
+    args += ["--gpus", str(path), "--gpu", "k35,t75", "--format", "csv"]
+    table, blocks = run_cli(*args), run_cli(*args, "--by-block")
+    assert table.returncode == blocks.returncode == 0, table.stderr + blocks.stderr
+    totals = pd.read_csv(io.StringIO(table.stdout)).set_index("gpu")
+    assert totals["ir_arch"].to_dict() == {"k35": "sm_35", "t75": "sm_75"}
+    by = pd.read_csv(io.StringIO(blocks.stdout)).set_index(["gpu", "block"])
+    kepler = kernels_ir.load("while_while", "sm_35")
+    k35 = by.loc["k35"]
+    assert k35["executions"].equals(by.loc["t75"]["executions"])
+    assert k35["cost"].to_dict() == {b: kepler.cost(b) for b in k35.index}
+    assert (k35["cost"] * k35["executions"]).sum() == totals.loc["k35", "warp_instructions"]
+
+
 def test_cli_bad_gpus_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text("[[gpu]\n")
