@@ -508,6 +508,16 @@ def place_instructions(
     for i in kernel:
         if block[i] in SPIN_BLOCKS and i not in spins:
             block[i] = _block_before(owner, instructions[i].line) or UNATTRIBUTED
+    # ptxas ends a function with a branch to itself, which never runs; sm_75 and later
+    # leave it without a line, sm_35 gives it the last one (finish's)
+    for i in kernel:
+        ins = instructions[i]
+        if (
+            base_opcode(ins.opcode) == "BRA"
+            and not ins.guarded
+            and branch_target(ins) in ins.labels
+        ):
+            block[i] = UNATTRIBUTED
     full_warp = frozenset(full_warp_only(instructions))
     return Placement(block, frozenset(fallback_idx), callers, full_warp, run_elsewhere)
 

@@ -11,7 +11,8 @@ per kernel and set of tests gives two documents:
   convergence barrier and no divergent-warp fallback; a warp that diverges pushes its
   reconvergence point (``SSY``, ``PBK``) and its lanes reach it by a stack pop (an ``.S``
   instruction or ``BRK``), which the CFG follows as a branch (:func:`kernels_ir.sass.stack_pop`);
-- Kepler's dual-issue pairs (``kernels_ir/pairs/sm_35.json``, :mod:`kernels_ir.pairing`).
+- Kepler's dual-issue pairs (``kernels_ir/pairs/sm_35.json``, :mod:`kernels_ir.pairing`),
+  per block of that IR.
 
 `python -m kernels_ir build` neither writes nor checks these files (CI has no CUDA 11.8);
 a test checks that each was built from today's source.
@@ -23,6 +24,7 @@ import re
 import tempfile
 from pathlib import Path
 
+from kernels_ir.blocks import parse_loops, parse_markers, place_instructions
 from kernels_ir.build import (
     CUDA_DIR,
     IR_DIR,
@@ -40,7 +42,7 @@ from kernels_ir.build import (
 )
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import TESTS
-from kernels_ir.pairing import PAIRING_DIR, block_pairs
+from kernels_ir.pairing import PAIRING_DIR, block_pairs, pair_marks
 
 #: nvcc 13 flags that make the PTX the IR's code is compiled from (``build.FLAGS`` without
 #: ``-cubin`` and ptxas's options)
@@ -100,6 +102,7 @@ def build(cuda11_bin: Path) -> tuple[dict, dict[str, dict]]:
         work = Path(tmp)
         for kernel in KERNELS:
             source = (CUDA_DIR / f"{kernel}.cu").read_text()
+            owner, loops = parse_markers(source, f"{kernel}.cu"), parse_loops(source)
             entry: dict = {"source_sha256": source_sha256(kernel)}
             for tests in TESTS:
                 ptx, cubin = work / f"{kernel}.{tests}.ptx", work / f"{kernel}.{tests}.cubin"
@@ -110,11 +113,14 @@ def build(cuda11_bin: Path) -> tuple[dict, dict[str, dict]]:
                 listing = run_tool(
                     [str(nvdisasm), "-c", "-hex", "-g", "-gi", str(cubin)], CUDA_DIR
                 ).stdout
-                entry[tests] = block_pairs(listing, source, f"{kernel}.cu")
+                instructions = kernel_instructions(listing, kernel)
+                placed = place_instructions(instructions, owner, f"{kernel}.cu", loops)
+                marks = pair_marks(listing, f"{kernel}.cu")
+                entry[tests] = block_pairs(instructions, placed, marks)
                 flags = [*ptx_flags, "ptxas", *PTXAS_FLAGS]
                 irs[ir_filename(kernel, KEPLER_ARCH, tests)] = ir_document(
-                    kernel, KEPLER_ARCH, tests, kernel_instructions(listing, kernel),
-                    proc.stdout + proc.stderr, flags, compiler,
+                    kernel, KEPLER_ARCH, tests, instructions, proc.stdout + proc.stderr, flags,
+                    compiler,
                 )  # fmt: skip
             kernels[kernel] = entry
     return {"arch": KEPLER_ARCH, "compiler": compiler, "kernels": kernels}, irs

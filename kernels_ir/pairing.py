@@ -9,23 +9,25 @@ PPoPP 2017). So an SMX's 8 warp instructions per clock (4 schedulers x 2) are re
 by code that pairs every instruction; the marks say how much of ours does.
 
 :mod:`kernels_ir.kepler` compiles the kernels for Kepler (sm_35) with CUDA 11.8. Every
-instruction goes to the block of the kernel source line it comes from (the outermost
-line of an inlined call, where the ``// @block`` markers are), and
-``kernels_ir/pairs/sm_35.json`` holds, per kernel, tests and block, the instructions and
-the marked pairs. The SIMT model's ``dual_issue`` limit reads it (:func:`block_pair_counts`).
+instruction goes to the block its Kepler IR charges it to (the markers and the CFG, as for
+every target), and ``kernels_ir/pairs/sm_35.json`` holds, per kernel, tests and block, the
+instructions and the marked pairs. The SIMT model's ``dual_issue`` limit reads it
+(:func:`block_pair_counts`).
 """
 
 from __future__ import annotations
 
 import json
 import re
+from collections.abc import Sequence
 from functools import cache
 from importlib import resources
 from pathlib import Path
 
-from kernels_ir.blocks import UNATTRIBUTED, parse_markers
+from kernels_ir.blocks import Placement
 from kernels_ir.build import KEPLER_ARCH, source_sha256
 from kernels_ir.errors import KernelIRError
+from kernels_ir.sass import SassInstruction, classify
 
 #: the architectures whose pairing is committed (the one Kepler target CUDA 11.8 offers)
 PAIRING_ARCHS = (KEPLER_ARCH,)
@@ -39,8 +41,9 @@ WORD_SLOTS = 7
 UNMAPPED_SHARE = 0.5
 
 _SCHED = re.compile(r"^\s*/\* (0x[0-9a-f]{16}) \*/\s*$")
-_INSTR = re.compile(r"^\s*/\*[0-9a-f]{4,}\*/\s+(?P<text>[^;]*);\s*/\* 0x[0-9a-f]{16} \*/\s*$")
-_LINE = re.compile(r'^\s*//## File "(?P<file>[^"]+)", line (?P<line>\d+)\s*$')
+_INSTR = re.compile(
+    r"^\s*/\*(?P<off>[0-9a-f]{4,})\*/\s+(?P<text>[^;]*);\s*/\* 0x[0-9a-f]{16} \*/\s*$"
+)
 
 
 def control_bytes(word: int) -> list[int]:
@@ -56,9 +59,10 @@ def control_bytes(word: int) -> list[int]:
     return [(word >> (2 + 8 * i)) & 0xFF for i in range(WORD_SLOTS)]
 
 
-def listing_pairs(listing: str, source_name: str) -> list[tuple[int | None, bool]]:
-    """Each instruction of an sm_35 ``nvdisasm -c -hex -g -gi`` listing as (its line in
-    ``source_name``, the outermost of its inlined calls; whether it pairs with the next).
+def pair_marks(listing: str, name: str) -> dict[int, bool]:
+    """Each instruction of an sm_35 ``nvdisasm -c -hex`` listing of one function, by its
+    offset: whether ptxas marked it to issue together with the next one (``name`` is for
+    messages).
 
     Raises
     ------
@@ -66,44 +70,46 @@ def listing_pairs(listing: str, source_name: str) -> list[tuple[int | None, bool
         If an instruction has no scheduling word before it, or a pair mark follows a pair
         mark (no instruction issues in two pairs).
     """
-    out: list[tuple[int | None, bool]] = []
+    out: dict[int, bool] = {}
     pending: list[int] = []
-    line: int | None = None
     unscheduled = False
     for raw in listing.splitlines():
-        if m := _LINE.match(raw):
-            if Path(m["file"]).name == source_name:
-                line = int(m["line"])
-        elif m := _SCHED.match(raw):
+        if m := _SCHED.match(raw):
             pending = control_bytes(int(m[1], 16))
         elif m := _INSTR.match(raw):
             if unscheduled:
-                raise KernelIRError(f"{source_name}: an instruction has no scheduling word")
+                raise KernelIRError(f"{name}: an instruction has no scheduling word")
             if not pending:
                 # ptxas ends a function with a branch to itself past the last group, which
                 # never runs and has no control byte
                 unscheduled = m["text"].split()[0] == "BRA"
                 if not unscheduled:
-                    raise KernelIRError(f"{source_name}: an instruction has no scheduling word")
+                    raise KernelIRError(f"{name}: an instruction has no scheduling word")
                 continue
             dual = pending.pop(0) == DUAL_ISSUE
-            if dual and out and out[-1][1]:
-                raise KernelIRError(f"{source_name}: two pair marks in a row; not sm_35 code")
-            out.append((line, dual))
+            if dual and out and list(out.values())[-1]:
+                raise KernelIRError(f"{name}: two pair marks in a row; not sm_35 code")
+            out[int(m["off"], 16)] = dual
     if not out:
-        raise KernelIRError(f"{source_name}: no instruction in the listing")
+        raise KernelIRError(f"{name}: no instruction in the listing")
     return out
 
 
-def block_pairs(listing: str, source: str, source_name: str) -> dict[str, list[int]]:
-    """Per block of ``source``'s markers: [instructions, marked pairs] of the listing;
-    instructions of lines outside any block go to ``unattributed``."""
-    owner = parse_markers(source, source_name)
+def block_pairs(
+    instructions: Sequence[SassInstruction], placement: Placement, marks: dict[int, bool]
+) -> dict[str, list[int]]:
+    """Per block: [instructions, marked pairs] of the ``instructions`` the IR counts in it
+    (``placement``: :func:`kernels_ir.blocks.place_instructions`; not its full-warp-only
+    or divergent-warp paths, which the IR counts apart), so a block's share of pairs is
+    that of the very code its cost counts."""
+    apart = placement.full_warp | placement.fallback
     counts: dict[str, list[int]] = {}
-    for line, dual in listing_pairs(listing, source_name):
-        row = counts.setdefault(owner.get(line or 0, UNATTRIBUTED), [0, 0])
+    for i, ins in enumerate(instructions):
+        if classify(ins.opcode) is None or ins.offset not in marks or i in apart:
+            continue
+        row = counts.setdefault(placement.block[i], [0, 0])
         row[0] += 1
-        row[1] += dual
+        row[1] += marks[ins.offset]
     return dict(sorted(counts.items()))
 
 

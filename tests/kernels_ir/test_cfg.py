@@ -297,3 +297,17 @@ def test_a_minority_in_a_basic_block_that_is_no_blocks_main_one_stays() -> None:
         (12, "EXIT"),
     ]
     assert _stages_charged(rows) == ({"tri_test": 7, "tri_v": 1, "finish": 2}, frozenset())
+
+
+def test_the_branch_to_itself_that_ends_a_function_is_charged_to_no_block() -> None:
+    """ptxas ends a function with a branch to itself past its last EXIT; it never runs (an
+    H200 counts 0 for it). On sm_35 and sm_90+ it carries the kernel's last line, so its
+    marker would charge it on every execution of that block."""
+    rows = [(3, "MOV R1, RZ"), (5, "STG.E [R2], R1"), (5, "EXIT"), ".L_x_9", (5, "BRA `(.L_x_9)")]
+    ins = parse_listing(_listing(rows))
+    counts = map_blocks(ins, {3: "ray_setup", 5: "finish"}, "k.cu").counts
+    charged = sum(sum(row.values()) for block, row in counts.items() if block != "unattributed")
+    assert (
+        charged == 3
+        and sum(counts["unattributed"].values()) == counts["unattributed"]["control"] == 1
+    )

@@ -14,6 +14,7 @@ import subprocess
 import tempfile
 from pathlib import Path
 
+import pandas as pd
 import pytest
 
 import kernels_ir
@@ -26,7 +27,9 @@ from kernels_ir.blocks import (
     divergent_only,
     full_warp_only,
     map_blocks,
+    parse_loops,
     parse_markers,
+    place_instructions,
     spins_in_blocks,
 )
 from kernels_ir.build import (
@@ -512,6 +515,30 @@ def test_cubins_hold_the_code_the_ir_counts(tmp_path: Path) -> None:
         write_cubins(tmp_path, "sm_61", ("if_if",))
     assert main(["cubins", "--arch", "sm_90", "--kernel", "packet", "--out", str(tmp_path)]) == 0
     assert (tmp_path / cubin_filename("packet", "sm_90")).stat().st_size > 0
+
+
+@pytest.mark.toolchain
+@pytest.mark.skipif(not toolchain_available(), reason=NO_TOOLCHAIN)
+def test_every_instruction_the_ir_charges_ran_on_the_h200() -> None:
+    """An H200's per-instruction counters (docs/gpu, the kernels it ran, three ray types):
+    none of the instructions the sm_90 IR charges to a block has a count of 0. (ptxas's
+    branch to itself at a function's end, which never runs, was charged to ``finish`` or
+    packet's ``trav_step`` on sm_90 and later until it was left unattributed.)"""
+    counters = pd.read_csv(Path(__file__).parents[2] / "docs" / "gpu" / "h200_instructions.csv.gz")
+    warps = counters.groupby(["kernel", "offset"])["warps"].sum()
+    for kernel in sorted(counters["kernel"].unique()):
+        instructions = compile_listing(kernel, "sm_90")
+        source = (CUDA_DIR / f"{kernel}.cu").read_text()
+        owner, loops = parse_markers(source, f"{kernel}.cu"), parse_loops(source)
+        placed = place_instructions(instructions, owner, f"{kernel}.cu", loops)
+        apart = placed.fallback | placed.full_warp
+        never = [
+            (placed.block[i], ins.text)
+            for i, ins in enumerate(instructions)
+            if ins.function == kernel and classify(ins.opcode) and i not in apart
+            and placed.block[i] != UNATTRIBUTED and warps[(kernel, ins.offset)] == 0
+        ]  # fmt: skip
+        assert never == [], kernel
 
 
 @pytest.mark.slow

@@ -8,17 +8,18 @@ from __future__ import annotations
 
 import pytest
 
-from kernels_ir import KERNELS, TESTS
-from kernels_ir.blocks import parse_markers
-from kernels_ir.build import CUDA_DIR
+from kernels_ir import KERNELS, TESTS, load
+from kernels_ir.blocks import UNATTRIBUTED, Placement
+from kernels_ir.build import KEPLER_ARCH
 from kernels_ir.errors import KernelIRError
 from kernels_ir.pairing import (
     DUAL_ISSUE,
     block_pair_counts,
     block_pairs,
     control_bytes,
-    listing_pairs,
+    pair_marks,
 )
+from kernels_ir.sass import parse_listing
 
 
 def word(*controls: int) -> str:
@@ -45,7 +46,7 @@ def test_a_real_word_decodes_to_seven_control_bytes() -> None:
         control_bytes(0x001FC400FE2007F6)  # a Maxwell control word
 
 
-def test_each_instruction_gets_its_byte_and_its_outermost_line() -> None:
+def test_each_instruction_gets_its_byte_by_its_offset() -> None:
     listing = "\n".join(
         [
             word(0x20, DUAL_ISSUE, 0x21, 0x20),
@@ -60,7 +61,7 @@ def test_each_instruction_gets_its_byte_and_its_outermost_line() -> None:
             instr(0x20, "@P0 EXIT"),
         ]
     )
-    assert listing_pairs(listing, "k.cu") == [(3, False), (5, True), (5, False), (5, False)]
+    assert pair_marks(listing, "k.cu") == {0x08: False, 0x10: True, 0x18: False, 0x20: False}
 
 
 def test_the_branch_past_the_last_group_is_the_end_marker() -> None:
@@ -68,27 +69,29 @@ def test_the_branch_past_the_last_group_is_the_end_marker() -> None:
     byte; it never runs. Any other instruction without a byte is refused."""
     group = [word(*[0x20] * 7), line(2), *(instr(8 * (i + 1), "MOV R1, R2") for i in range(7))]
     end = instr(0x40, "BRA `(.L_x_9)")
-    assert len(listing_pairs("\n".join([*group, end]), "k.cu")) == 7
+    assert len(pair_marks("\n".join([*group, end]), "k.cu")) == 7
     with pytest.raises(KernelIRError, match="no scheduling word"):
-        listing_pairs("\n".join([*group, instr(0x40, "MOV R1, R2")]), "k.cu")
+        pair_marks("\n".join([*group, instr(0x40, "MOV R1, R2")]), "k.cu")
 
 
 def test_two_marks_in_a_row_or_a_missing_word_are_refused() -> None:
     pair = [instr(8, "MOV R1, R2"), instr(16, "MOV R3, R4")]
     twice = "\n".join([word(DUAL_ISSUE, DUAL_ISSUE), *pair])
     with pytest.raises(KernelIRError, match="two pair marks in a row"):
-        listing_pairs(twice, "k.cu")
+        pair_marks(twice, "k.cu")
     bare = "\n".join([instr(8, "MOV R1, R2")])
     with pytest.raises(KernelIRError, match="no scheduling word"):
-        listing_pairs(bare, "k.cu")
+        pair_marks(bare, "k.cu")
     with pytest.raises(KernelIRError, match="no instruction"):
-        listing_pairs(word(0x20), "k.cu")
+        pair_marks(word(0x20), "k.cu")
 
 
-def test_blocks_sum_their_instructions_and_pairs() -> None:
-    source = "// @block ray_setup\nint a;\n// @block trav_step\nint b;\nint c;\n"
+def test_blocks_sum_the_instructions_and_pairs_the_ir_counts_in_them() -> None:
+    """Each counted instruction in the block the IR charges it to; a full-warp-only path
+    (counted apart in the IR) and an uncounted NOP are left out."""
     listing = "\n".join(
         [
+            ".text.k:",
             word(DUAL_ISSUE, 0x20, DUAL_ISSUE, 0x20, 0x20),
             line(2),
             instr(0x08, "MOV R1, R2"),
@@ -101,19 +104,24 @@ def test_blocks_sum_their_instructions_and_pairs() -> None:
             instr(0x28, "NOP"),
         ]
     )
-    counts = block_pairs(listing, source, "k.cu")
-    assert counts == {"ray_setup": [2, 1], "trav_step": [2, 1], "unattributed": [1, 0]}
+    instructions = parse_listing(listing)
+    blocks = ["ray_setup", "ray_setup", "trav_step", "trav_step", "unattributed"]
+    placement = Placement(blocks, frozenset(), {}, full_warp=frozenset({3}))
+    counts = block_pairs(instructions, placement, pair_marks(listing, "k.cu"))
+    assert counts == {"ray_setup": [2, 1], "trav_step": [1, 1]}
 
 
 @pytest.mark.parametrize("kernel", KERNELS)
 def test_the_committed_pairing_is_of_todays_kernels(kernel: str) -> None:
-    """Every kernel, both sets of tests: built from today's source, every marked block has
-    sm_35 code but loop_control (dynamic fetch's two instructions sit on other lines
-    there), and no instruction pairs twice (pairs at most half the instructions)."""
-    marked = set(parse_markers((CUDA_DIR / f"{kernel}.cu").read_text()).values())
+    """Every kernel, both sets of tests: built from today's source, each block's
+    instructions those its Kepler IR counts, and no instruction pairs twice (pairs at most
+    half the instructions)."""
     for tests in TESTS:
         counts = block_pair_counts(kernel, tests)
-        assert marked - set(counts) <= {"loop_control"}
+        ir = load(kernel, KEPLER_ARCH, tests)
+        assert {b: n for b, (n, _) in counts.items() if b != UNATTRIBUTED} == {
+            b: ir.cost(b) for b in ir.blocks if ir.cost(b)
+        }
         assert all(0 <= 2 * pairs <= n + 1 for n, pairs in counts.values())
         total, pairs = (sum(v) for v in zip(*counts.values(), strict=True))
         assert 0 < 2 * pairs <= total
