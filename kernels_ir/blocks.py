@@ -508,8 +508,8 @@ def place_instructions(
     for i in kernel:
         if block[i] in SPIN_BLOCKS and i not in spins:
             block[i] = _block_before(owner, instructions[i].line) or UNATTRIBUTED
-    # ptxas ends a function with a branch to itself, which never runs; sm_75 and later
-    # leave it without a line, sm_35 gives it the last one (finish's)
+    # ptxas ends a function with a branch to itself, which never runs; sm_75 to sm_89
+    # leave it without a line, sm_35 and sm_90 on give it the kernel's last one
     for i in kernel:
         ins = instructions[i]
         if (
