@@ -28,13 +28,14 @@ from __future__ import annotations
 
 import re
 from collections import Counter
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import PurePath
+from types import MappingProxyType
 from typing import NamedTuple
 
 from kernels_ir.cfg import ControlFlow, build_cfg
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kernel_ir import BLOCKS, CLASSES, SPIN_BLOCKS
+from kernels_ir.kernel_ir import BLOCKS, CLASSES, SPIN_BLOCKS, STEP_OUTCOMES
 from kernels_ir.sass import SassInstruction, base_opcode, branch_target, classify
 
 UNATTRIBUTED = "unattributed"
@@ -397,6 +398,37 @@ def by_basic_block(
     return out
 
 
+def shared_outcomes(
+    cfg: ControlFlow,
+    placed: Sequence[str | None],
+    instructions: Sequence[SassInstruction],
+    spare: Sequence[bool],
+) -> dict[int, tuple[str, ...]]:
+    """Code that two outcomes of a node step run in common: for each basic block holding
+    code of two or more of :data:`STEP_OUTCOMES` (``placed``, after
+    :func:`by_basic_block`, which gives a basic block wholly to a block that holds most of
+    it), its charged instructions with the outcomes it holds.
+
+    Only one outcome runs per step, so a basic block with code of two is one that nvcc
+    merged their paths into, and it runs on either: packet's pop after no child hit runs
+    with its move to the one child hit on sm_75 to sm_90 (an H200 issues it on both), and
+    sm_100 and sm_120 share code between the one-hit and both-hit paths. Each outcome
+    present is charged all of it, the step's own code in it too. ``spare[i]``: a
+    divergent-warp fallback, left alone.
+    """
+    out: dict[int, tuple[str, ...]] = {}
+    for b in cfg.reachable:
+        idx = [
+            i
+            for i in range(cfg.starts[b], cfg.last(b) + 1)
+            if placed[i] is not None and not spare[i] and classify(instructions[i].opcode)
+        ]
+        outcomes = tuple(o for o in STEP_OUTCOMES if any(placed[i] == o for i in idx))
+        if len(outcomes) >= 2:
+            out.update(dict.fromkeys(idx, outcomes))
+    return out
+
+
 def _branch_block(
     cfg: ControlFlow,
     i: int,
@@ -449,6 +481,9 @@ class Placement(NamedTuple):
     (:func:`divergent_only`), whose ``block`` is their marker block. ``full_warp``: the
     indices of full-warp-only paths (:func:`full_warp_only`). ``run_elsewhere``: the
     blocks whose code all runs in other blocks' basic blocks (:func:`by_basic_block`).
+    ``shared``: the indices of code that two outcomes of a node step run in common
+    (:func:`shared_outcomes`), each with every outcome it is charged to (``block`` is the
+    first).
     """
 
     block: list[str]
@@ -456,6 +491,11 @@ class Placement(NamedTuple):
     callers: dict[str, Counter[str]]
     full_warp: frozenset[int] = frozenset()
     run_elsewhere: frozenset[str] = frozenset()
+    shared: Mapping[int, tuple[str, ...]] = MappingProxyType({})
+
+    def blocks_of(self, i: int) -> tuple[str, ...]:
+        """Every block instruction ``i`` is charged to, once each."""
+        return self.shared.get(i, (self.block[i],))
 
 
 def place_instructions(
@@ -485,6 +525,8 @@ def place_instructions(
     spare = [i in fallback_idx for i in kernel]
     by_loop = by_frequency(cfg, lines, owner, loops or {})
     placed = by_basic_block(cfg, by_loop, [instructions[i] for i in kernel], spare)
+    common = shared_outcomes(cfg, placed, [instructions[i] for i in kernel], spare)
+    shared = {kernel[j]: outcomes for j, outcomes in common.items()}
     run_elsewhere = frozenset(by_loop) - frozenset(placed) - {None}
     block = [UNATTRIBUTED] * len(instructions)
     for i, line, freq in zip(kernel, lines, placed, strict=True):
@@ -518,8 +560,12 @@ def place_instructions(
             and branch_target(ins) in ins.labels
         ):
             block[i] = UNATTRIBUTED
+    for i, outcomes in shared.items():
+        block[i] = outcomes[0]
     full_warp = frozenset(full_warp_only(instructions))
-    return Placement(block, frozenset(fallback_idx), callers, full_warp, run_elsewhere)
+    return Placement(
+        block, frozenset(fallback_idx), callers, full_warp, run_elsewhere, MappingProxyType(shared)
+    )
 
 
 def spins_in_blocks(
@@ -602,7 +648,8 @@ def map_blocks(
             continue
         sites = placement.callers.get(ins.function)
         if not ins.function.startswith("$"):
-            charge(i, placement.block[i], cls)
+            for block in placement.blocks_of(i):
+                charge(i, block, cls)
         elif not sites or i > last_ret.get(ins.function, -1):
             charge(i, UNATTRIBUTED, cls)
         else:

@@ -71,6 +71,8 @@ BLOCKS = (
     "queue_push",
     "reconverge",
 )
+STEP_OUTCOMES = ("trav_none", "trav_one", "trav_both")
+"""The blocks of a node step's outcomes: exactly one of them runs per step."""
 RECONVERGE = "reconverge"
 """The block of a convergence barrier's issues by groups of lanes that reach it apart."""
 SPIN_BLOCKS = ("refill_break", "idle_wait")

@@ -107,9 +107,10 @@ def block_pairs(
     for i, ins in enumerate(instructions):
         if classify(ins.opcode) is None or ins.offset not in marks or i in apart:
             continue
-        row = counts.setdefault(placement.block[i], [0, 0])
-        row[0] += 1
-        row[1] += marks[ins.offset]
+        for block in placement.blocks_of(i):
+            row = counts.setdefault(block, [0, 0])
+            row[0] += 1
+            row[1] += marks[ins.offset]
     return dict(sorted(counts.items()))
 
 

@@ -311,3 +311,47 @@ def test_the_branch_to_itself_that_ends_a_function_is_charged_to_no_block() -> N
         charged == 3
         and sum(counts["unattributed"].values()) == counts["unattributed"]["control"] == 1
     )
+
+
+#: a node step whose one-hit and no-hit paths nvcc merged into one basic block
+OUTCOMES_SOURCE = """// k.cu
+x;
+if (a) {
+    // @block trav_both
+    both;
+    // @block trav_step
+} else {
+    // @block trav_one
+    one;
+    // @block trav_none
+    none;
+    // @block trav_step
+}
+"""
+
+
+def test_a_basic_block_two_outcomes_share_is_charged_to_each() -> None:
+    """Only one outcome of a step runs per step, so code of two in one basic block runs on
+    either: each is charged all of it (packet's sm_75 to sm_90 code; an H200 issues that
+    basic block on steps with one child hit and with none)."""
+    owner = {2: "trav_step", **parse_markers(OUTCOMES_SOURCE, "k.cu")}
+    rows = [
+        (2, "FADD R1, R1, R2"),
+        (2, "@P0 BRA `(.L_x_1)"),
+        (5, "FADD R3, R3, R4"),
+        (5, "BRA `(.L_x_2)"),
+        ".L_x_1",
+        (9, "SEL R5, R6, R7, P1"),
+        (9, "ISETP.NE.AND P2, PT, R5, RZ, PT"),
+        (11, "LDS R8, [R9]"),
+        (11, "IADD3 R10, R10, -0x1, RZ"),
+        ".L_x_2",
+        (13, "EXIT"),
+    ]
+    ins = parse_listing(_listing(rows))
+    placement = place_instructions(ins, owner, "k.cu")
+    assert placement.blocks_of(4) == placement.blocks_of(7) == ("trav_none", "trav_one")
+    assert placement.blocks_of(0) == ("trav_step",)
+    counts = map_blocks(ins, owner, "k.cu").counts
+    totals = {block: sum(row.values()) for block, row in counts.items()}
+    assert totals == {"trav_step": 3, "trav_both": 2, "trav_one": 4, "trav_none": 4}
