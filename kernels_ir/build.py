@@ -20,6 +20,7 @@ from pathlib import Path
 
 from kernels_ir.blocks import (
     UNATTRIBUTED,
+    Placement,
     map_blocks,
     parse_loops,
     parse_markers,
@@ -185,6 +186,14 @@ def kernel_instructions(listing: str, kernel: str) -> list[SassInstruction]:
     """The instructions of ``kernel`` and of the compiler subroutines (``$__internal_*``)
     it calls, in listing order, from an ``nvdisasm -c -g -gi`` listing."""
     return [i for i in parse_listing(listing) if i.function == kernel or i.function.startswith("$")]
+
+
+def place_kernel(kernel: str, instructions: list[SassInstruction]) -> Placement:
+    """Where the IR charges each of ``kernel``'s ``instructions``
+    (:func:`kernels_ir.blocks.place_instructions` with its source's markers and loops)."""
+    source = (CUDA_DIR / f"{kernel}.cu").read_text()
+    owner, loops = parse_markers(source, f"{kernel}.cu"), parse_loops(source)
+    return place_instructions(instructions, owner, f"{kernel}.cu", loops)
 
 
 def compile_listing(kernel: str, arch: str, tests: str = DEFAULT_TESTS) -> list[SassInstruction]:

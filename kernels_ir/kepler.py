@@ -24,7 +24,6 @@ import re
 import tempfile
 from pathlib import Path
 
-from kernels_ir.blocks import parse_loops, parse_markers, place_instructions
 from kernels_ir.build import (
     CUDA_DIR,
     IR_DIR,
@@ -37,6 +36,7 @@ from kernels_ir.build import (
     ir_document,
     ir_filename,
     kernel_instructions,
+    place_kernel,
     run_tool,
     source_sha256,
 )
@@ -101,8 +101,6 @@ def build(cuda11_bin: Path) -> tuple[dict, dict[str, dict]]:
     with tempfile.TemporaryDirectory(prefix="kernels_ir_kepler_") as tmp:
         work = Path(tmp)
         for kernel in KERNELS:
-            source = (CUDA_DIR / f"{kernel}.cu").read_text()
-            owner, loops = parse_markers(source, f"{kernel}.cu"), parse_loops(source)
             entry: dict = {"source_sha256": source_sha256(kernel)}
             for tests in TESTS:
                 ptx, cubin = work / f"{kernel}.{tests}.ptx", work / f"{kernel}.{tests}.cubin"
@@ -114,7 +112,7 @@ def build(cuda11_bin: Path) -> tuple[dict, dict[str, dict]]:
                     [str(nvdisasm), "-c", "-hex", "-g", "-gi", str(cubin)], CUDA_DIR
                 ).stdout
                 instructions = kernel_instructions(listing, kernel)
-                placed = place_instructions(instructions, owner, f"{kernel}.cu", loops)
+                placed = place_kernel(kernel, instructions)
                 marks = pair_marks(listing, f"{kernel}.cu")
                 entry[tests] = block_pairs(instructions, placed, marks)
                 flags = [*ptx_flags, "ptxas", *PTXAS_FLAGS]

@@ -72,7 +72,7 @@ def pair_marks(listing: str, name: str) -> dict[int, bool]:
     """
     out: dict[int, bool] = {}
     pending: list[int] = []
-    unscheduled = False
+    unscheduled = last = False
     for raw in listing.splitlines():
         if m := _SCHED.match(raw):
             pending = control_bytes(int(m[1], 16))
@@ -87,9 +87,9 @@ def pair_marks(listing: str, name: str) -> dict[int, bool]:
                     raise KernelIRError(f"{name}: an instruction has no scheduling word")
                 continue
             dual = pending.pop(0) == DUAL_ISSUE
-            if dual and out and list(out.values())[-1]:
+            if dual and last:
                 raise KernelIRError(f"{name}: two pair marks in a row; not sm_35 code")
-            out[int(m["off"], 16)] = dual
+            out[int(m["off"], 16)] = last = dual
     if not out:
         raise KernelIRError(f"{name}: no instruction in the listing")
     return out

@@ -18,8 +18,8 @@ import numpy as np
 import pandas as pd
 
 from kernels_ir import load as load_ir
-from kernels_ir.blocks import UNATTRIBUTED, parse_loops, parse_markers, place_instructions
-from kernels_ir.build import CUDA_DIR, compile_listing
+from kernels_ir.blocks import UNATTRIBUTED
+from kernels_ir.build import CUDA_DIR, compile_listing, place_kernel
 from kernels_ir.emulate import PARAM_BASE, Program, run_kernel
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import BLOCKS, RECONVERGE
@@ -133,10 +133,7 @@ def walk_blocks(kernel: str, issued: np.ndarray, instructions: list[SassInstruct
     step is ``trav_diverged``, as the IR build names it; any other is :data:`FALLBACK`; a
     full-warp-only path is :data:`FULL_WARP`; a barrier's issues beyond its region's
     first, :func:`barrier_excess`, are ``reconverge``)."""
-    source = (CUDA_DIR / f"{kernel}.cu").read_text()
-    placement = place_instructions(
-        instructions, parse_markers(source, f"{kernel}.cu"), f"{kernel}.cu", parse_loops(source)
-    )
+    placement = place_kernel(kernel, instructions)
     apart = barrier_excess(instructions, issued)
     out: dict[str, int] = {}
     for i, times in enumerate(issued):

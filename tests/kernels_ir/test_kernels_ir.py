@@ -27,9 +27,7 @@ from kernels_ir.blocks import (
     divergent_only,
     full_warp_only,
     map_blocks,
-    parse_loops,
     parse_markers,
-    place_instructions,
     spins_in_blocks,
 )
 from kernels_ir.build import (
@@ -42,6 +40,7 @@ from kernels_ir.build import (
     dumps,
     find_toolchain,
     ir_filename,
+    place_kernel,
     source_sha256,
     toolchain_available,
     write_cubins,
@@ -528,9 +527,7 @@ def test_every_instruction_the_ir_charges_ran_on_the_h200() -> None:
     warps = counters.groupby(["kernel", "offset"])["warps"].sum()
     for kernel in sorted(counters["kernel"].unique()):
         instructions = compile_listing(kernel, "sm_90")
-        source = (CUDA_DIR / f"{kernel}.cu").read_text()
-        owner, loops = parse_markers(source, f"{kernel}.cu"), parse_loops(source)
-        placed = place_instructions(instructions, owner, f"{kernel}.cu", loops)
+        placed = place_kernel(kernel, instructions)
         apart = placed.fallback | placed.full_warp
         never = [
             (placed.block[i], ins.text)
