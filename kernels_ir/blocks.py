@@ -550,6 +550,12 @@ def place_instructions(
     for i in kernel:
         if block[i] in SPIN_BLOCKS and i not in spins:
             block[i] = _block_before(owner, instructions[i].line) or UNATTRIBUTED
+    # a spin's branch back to its vote runs only when lanes arrive apart; the ideal
+    # schedule the replay models has them arrive together, so it runs once and leaves
+    for i in kernel:
+        ins = instructions[i]
+        if i in spins and base_opcode(ins.opcode) == "BRA" and not ins.guarded:
+            block[i] = UNATTRIBUTED
     # ptxas ends a function with a branch to itself, which never runs; sm_75 to sm_89
     # leave it without a line, sm_35 and sm_90 on give it the kernel's last one
     for i in kernel:
