@@ -3,8 +3,9 @@
 An error (or Ctrl-C) never leaves a half-written file and never destroys what was there:
 on the command line a Ctrl-C pressed while the file is written stops the rename
 (:func:`simt_sim.progress.checkpoint`), and a second one, which ends the process at once,
-removes the temporary file. Tables, figures and regenerated goldens are all written this
-way.
+removes the temporary file. One pressed just after the rename finds the file whole: the
+run still ends as interrupted (status 130), beside the finished file. Tables, figures and
+regenerated goldens are all written this way.
 """
 
 from __future__ import annotations
