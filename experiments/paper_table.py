@@ -399,8 +399,8 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   runs it, against while-while's {ww_trav}, a postpone test and an `__any_sync` vote on
   every step included. On sm_75 to sm_89 a step taken while some lanes have left the loop runs
   the vote's divergent-warp fallback, {spec_div} instructions more (`trav_diverged`,
-  docs/kernels_ir.md), and sm_75 puts a convergence spin of {spec_spin} instructions
-  before the vote, but both only on a GPU with independent thread scheduling (Volta and
+  docs/kernels_ir.md), and sm_75 puts a convergence spin before the vote ({spec_spin}
+  instructions issued), but both only on a GPU with independent thread scheduling (Volta and
   later): the GTX 285's vote was one instruction for any warp, so the table charges
   neither. sm_90 inlines the vote but recomputes the ray's inverse direction inside
   the traversal loop (17 instructions per step, docs/kernels_ir.md); with its costs the
