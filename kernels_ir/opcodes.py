@@ -252,9 +252,10 @@ def fma32(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     The product of two float32 is exact in float64; the sum is rounded to odd in float64
     (53 >= 24 + 2 bits), which makes the final rounding to float32 correct.
     """
-    p = a.astype(np.float64) * b.astype(np.float64)
-    c64 = c.astype(np.float64)
+    # a register's bits may be a signalling NaN: widening it is exact all the same
     with np.errstate(invalid="ignore", over="ignore"):
+        p = a.astype(np.float64) * b.astype(np.float64)
+        c64 = c.astype(np.float64)
         s = p + c64
         bb = s - p
         err = (p - (s - bb)) + (c64 - bb)  # two-sum: s + err == p + c exactly
