@@ -427,7 +427,7 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   {packet_corrected} (the correction measured on windows of the protocol's rays, the
   ratios on all of them). The executor is our kernel as a GPU runs it: an H200's
   counters are within 0.6-1.0% of its count, and the SASS walk of the compiled kernel
-  within 0.7-1.3% (docs/gpu_results.md, docs/kernels_ir.md). What it leaves is the kernels'
+  within 0.0-0.4% (docs/gpu_results.md, docs/kernels_ir.md). What it leaves is the kernels'
   code: our packet `trav_step` is {packet_trav} instructions against while-while's
   {ww_trav} (its ballots' divergent-warp fallbacks never run, as every lane stays in the
   packet loop), and the paper's GT200 packet kernel (its own shared-stack code) may have
