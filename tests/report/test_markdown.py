@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import pandas as pd
 import pytest
 
 from simt_sim.errors import SimtSimError
-from simt_sim.report.markdown import splice
+from simt_sim.report.markdown import block_table, splice
 
 
 def test_splice_replaces_only_its_block() -> None:
@@ -23,3 +24,17 @@ def test_splice_refuses_a_page_without_its_markers() -> None:
     twice = "<!-- t:start --><!-- t:end --><!-- t:start --><!-- t:end -->"
     with pytest.raises(SimtSimError):
         splice(twice, "t", "x")
+
+
+def test_block_table_reads_back_what_an_experiment_wrote() -> None:
+    table = pd.DataFrame({"kernel": ["packet", "if_if"], "vs walk": ["+0.4%", "-0.1%"]})
+    page = splice(
+        "<!-- d:start -->\n<!-- d:end -->\nafter\n| not | this |\n",
+        "d",
+        "`a command` (13 s)\n\n" + table.to_markdown(index=False) + "\n\nprose",
+    )
+    assert block_table(page, "d").equals(table)
+    with pytest.raises(SimtSimError, match="holds no table"):
+        block_table(splice(page, "d", "no table"), "d")
+    with pytest.raises(SimtSimError, match="needs one"):
+        block_table(page, "e")
