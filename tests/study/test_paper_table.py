@@ -6,6 +6,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -106,3 +107,16 @@ def test_sampling_gap_compares_ratios_not_errors() -> None:
     full = errors.reset_index().rename(columns={"default": "rel_error"})
     full["rel_error"] = [0.21, -0.50]  # ours 1.21 x paper in the full run, 1.10 x sampled
     assert paper_table._sampling_gap(full, errors) == pytest.approx(1 - 1.10 / 1.21)
+
+
+def test_calibrated_costs_scale_what_the_gpu_runs(results) -> None:
+    """Scaled by 1, the calibrated profile costs each block what the GTX 285 runs: none of
+    sm_75's convergence spins, which GT200 did not need (they were once scaled in)."""
+    r = results[("persistent_speculative_while_while", "primary")]
+    ir = kernels_ir.load(r.model_card["ir_kernel"], r.model_card["ir_arch"])
+    assert sum(ir.spins["trav_step"].values()) > 0
+    same = paper_table.scaled_ir(ir, r.gpu, np.ones(3))
+    runs = executed_on(ir, r.gpu)
+    for block in ir.blocks:
+        assert same.cost(block) == runs.cost(block), block
+    assert r.recost(same).warp_instructions == r.warp_instructions
