@@ -550,22 +550,20 @@ def place_instructions(
     for i in kernel:
         if block[i] in SPIN_BLOCKS and i not in spins:
             block[i] = _block_before(owner, instructions[i].line) or UNATTRIBUTED
-    # a spin's branch back to its vote runs only when lanes arrive apart; the ideal
-    # schedule the replay models has them arrive together, so it runs once and leaves
-    for i in kernel:
-        ins = instructions[i]
-        if i in spins and base_opcode(ins.opcode) == "BRA" and not ins.guarded:
-            block[i] = UNATTRIBUTED
-    # ptxas ends a function with a branch to itself, which never runs; sm_75 to sm_89
-    # leave it without a line, sm_35 and sm_90 on give it the kernel's last one
-    for i in kernel:
-        ins = instructions[i]
-        if (
-            base_opcode(ins.opcode) == "BRA"
-            and not ins.guarded
-            and branch_target(ins) in ins.labels
-        ):
-            block[i] = UNATTRIBUTED
+    # branches that never run under the ideal schedule the replay models: a spin's
+    # branch back to its vote (lanes arrive together, so the spin runs once and leaves),
+    # and the branch to itself ptxas ends a function with (sm_75 to sm_89 leave it
+    # without a line, sm_35 and sm_90 on give it the kernel's last one)
+    never = {
+        i
+        for i in kernel
+        if base_opcode(instructions[i].opcode) == "BRA"
+        and not instructions[i].guarded
+        and (i in spins or branch_target(instructions[i]) in instructions[i].labels)
+    }
+    for i in never:
+        block[i] = UNATTRIBUTED
+    shared = {i: outcomes for i, outcomes in shared.items() if i not in never}
     for i, outcomes in shared.items():
         block[i] = outcomes[0]
     full_warp = frozenset(full_warp_only(instructions))
