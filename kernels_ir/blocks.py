@@ -521,7 +521,7 @@ def place_instructions(
         instructions[i].line if PurePath(instructions[i].file).name == want else None
         for i in kernel
     ]
-    cfg = build_cfg([instructions[i] for i in kernel])
+    cfg = build_cfg([instructions[i] for i in kernel], lines, loops)
     spare = [i in fallback_idx for i in kernel]
     by_loop = by_frequency(cfg, lines, owner, loops or {})
     placed = by_basic_block(cfg, by_loop, [instructions[i] for i in kernel], spare)

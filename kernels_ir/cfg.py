@@ -13,7 +13,7 @@ from its marker block's to the block that runs as often.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 from kernels_ir.errors import KernelIRError
@@ -92,8 +92,16 @@ def _is_branch(ins: SassInstruction) -> bool:
     return base_opcode(ins.opcode) in _BRANCHES or stack_pop(ins)
 
 
-def build_cfg(instructions: Sequence[SassInstruction]) -> ControlFlow:
+def build_cfg(
+    instructions: Sequence[SassInstruction],
+    lines: Sequence[int | None] | None = None,
+    source_loops: Mapping[int, int] | None = None,
+) -> ControlFlow:
     """The control flow of one function's instructions (in listing order).
+
+    ``lines`` (each instruction's kernel source line, ``None``: another file) and
+    ``source_loops`` (:func:`kernels_ir.blocks.parse_loops`) let two source loops that
+    nvcc gave one header be two loops (:func:`_loops`); without them they are one.
 
     Raises
     ------
@@ -123,9 +131,13 @@ def build_cfg(instructions: Sequence[SassInstruction]) -> ControlFlow:
     for b, s in enumerate(starts):
         end = starts[b + 1] if b + 1 < len(starts) else n
         block_of += [b] * (end - s)
+
+    def last_of(b: int) -> int:
+        return (starts[b + 1] if b + 1 < len(starts) else n) - 1
+
     successors: list[tuple[int, ...]] = []
     for b in range(len(starts)):
-        last = (starts[b + 1] if b + 1 < len(starts) else n) - 1
+        last = last_of(b)
         ins = instructions[last]
         op = base_opcode(ins.opcode)
         succ: list[int] = []
@@ -140,7 +152,13 @@ def build_cfg(instructions: Sequence[SassInstruction]) -> ControlFlow:
         successors.append(tuple(dict.fromkeys(succ)))
     reachable = _reachable(successors)
     dom = _dominators(successors, reachable)
-    loops = _loops(successors, reachable, dom)
+    scope = None
+    if lines is not None and source_loops:
+        scope = [
+            _source_scope([lines[i] for i in range(starts[b], last_of(b) + 1)], source_loops)
+            for b in range(len(starts))
+        ]
+    loops = _loops(successors, reachable, dom, scope)
     innermost: list[int | None] = [None] * len(starts)
     for key in sorted(loops, key=lambda k: loops[k].depth):
         for b in loops[key].body:
@@ -187,35 +205,81 @@ def _dominators(
     return dom
 
 
+def _source_scope(
+    lines: Sequence[int | None], source_loops: Mapping[int, int]
+) -> tuple[int, int] | None:
+    """The innermost source loop (its statement and closing lines) holding a basic block's
+    last kernel line: for a latch, its branch; for a header, the loop test's line."""
+    line = next((ln for ln in reversed(lines) if ln is not None), None)
+    if line is None:
+        return None
+    spans = [(s, e) for s, e in source_loops.items() if s <= line <= e]
+    return max(spans) if spans else None
+
+
+def _latch_levels(
+    header: int, latches: set[int], scope: Sequence[tuple[int, int] | None] | None
+) -> list[set[int]]:
+    """A header's latches split by loop, innermost first: the header's own source loop
+    (and any loop nested in it, a ``break`` then ``continue``) first, then each source
+    loop that strictly encloses it, whose body nvcc started with the inner loop's test."""
+    own = scope[header] if scope is not None else None
+    if own is None:
+        return [latches]
+    inner: set[int] = set()
+    outer: dict[tuple[int, int], set[int]] = {}
+    for t in latches:
+        s = scope[t] if scope is not None else None
+        if s is not None and s != own and s[0] <= own[0] and own[1] <= s[1]:
+            outer.setdefault(s, set()).add(t)
+        else:
+            inner.add(t)
+    if not inner or not outer:
+        return [latches]
+    return [inner] + [outer[s] for s in sorted(outer, key=lambda s: s[1] - s[0])]
+
+
 def _loops(
     successors: Sequence[tuple[int, ...]],
     reachable: frozenset[int],
     dom: dict[int, frozenset[int]],
+    scope: Sequence[tuple[int, int] | None] | None = None,
 ) -> dict[int, Loop]:
-    """Natural loops, keyed by an id (0, 1, ... in header order), nested.
+    """Natural loops, keyed by an id (0, 1, ... in header order, outermost first), nested.
 
-    All back edges to one header make one loop (a ``continue`` is a second latch). nvcc
-    gives an inner loop and the loop around it one header when the outer body starts with
-    the inner loop's test (speculative while-while's traversal loop): they are one loop
-    here, whose header code is charged per iteration of either.
+    All back edges to one header make one loop (a ``continue`` is a second latch), but
+    for one case: nvcc gives an inner loop and the loop around it one header when the
+    outer body starts with the inner loop's test (speculative while-while's traversal
+    loop, the outer ``do``'s latch jumping straight to it). Where ``scope`` (each basic
+    block's source loop, :func:`_source_scope`) shows a latch of a source loop enclosing
+    the header's own, that loop is a loop of its own around the inner one, with the same
+    header: the inner loop's test runs per iteration of the inner loop.
     """
     preds: dict[int, list[int]] = {b: [] for b in reachable}
     for b in reachable:
         for s in successors[b]:
             preds[s].append(b)
-    groups: dict[int, tuple[set[int], set[int]]] = {}  # header -> latches, body
+    latches_of: dict[int, set[int]] = {}
     for b in sorted(reachable):
         for s in successors[b]:
             if s in dom[b]:
-                latches, body = groups.setdefault(s, (set(), set()))
-                latches.add(b)
-                body |= _natural_body(s, b, preds)
-    headers = sorted(groups)
+                latches_of.setdefault(s, set()).add(b)
+    found: list[tuple[int, set[int], set[int]]] = []  # header, latches, body
+    for header in sorted(latches_of):
+        body: set[int] = set()
+        for level in _latch_levels(header, latches_of[header], scope):
+            size = len(body)
+            for t in level:
+                body |= _natural_body(header, t, preds)
+            if found and found[-1][0] == header and len(body) == size:
+                found[-1][1].update(level)  # no code of its own: the same loop
+            else:
+                found.append((header, set(level), set(body)))
+    found.sort(key=lambda f: (f[0], -len(f[2])))
     out: dict[int, Loop] = {}
-    for k, header in enumerate(headers):
-        tails, body = groups[header]
-        outer = [j for j, h in enumerate(headers) if h != header and body < groups[h][1]]
-        parent = min(outer, key=lambda j: len(groups[headers[j]][1])) if outer else None
+    for k, (header, tails, body) in enumerate(found):
+        outer = [j for j, f in enumerate(found) if j != k and body < f[2]]
+        parent = min(outer, key=lambda j: len(found[j][2])) if outer else None
         every = frozenset(b for b in body if all(b in dom[t] for t in tails))
         out[k] = Loop(header, frozenset(body), frozenset(tails), every, parent, len(outer) + 1)
     return out

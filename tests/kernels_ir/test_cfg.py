@@ -109,6 +109,47 @@ def test_cfg_nests_loops_and_keeps_a_continue_in_one_loop() -> None:
     assert cfg.block_of[9] not in outer.every_iteration
 
 
+#: an inner loop whose test heads the ``do`` loop around it: the ``do``'s latch (line 10)
+#: jumps straight back to the inner loop's test, so both loops have one SASS header
+SHARED_HEADER = [
+    (3, "MOV R4, RZ"),
+    ".L_x_0",
+    (5, "ISETP.GT.AND P0, PT, R2, RZ, PT"),
+    (5, "@!P0 BRA `(.L_x_1)"),
+    (6, "IADD3 R2, R2, -0x1, RZ"),
+    (7, "ISETP.NE.AND P1, PT, R3, RZ, PT"),
+    (7, "@P1 BRA `(.L_x_0)"),  # the inner loop goes round (else it breaks)
+    ".L_x_1",
+    (9, "IADD3 R4, R4, 0x1, RZ"),
+    (10, "ISETP.NE.AND P0, PT, R4, 0x8, PT"),
+    (10, "@P0 BRA `(.L_x_0)"),  # the do loop goes round
+    (11, "EXIT"),
+]
+#: do { while (x) { ... } ... } while (y): statement line -> closing line
+SHARED_HEADER_LOOPS = {4: 10, 5: 8}
+
+
+def test_cfg_splits_a_header_two_source_loops_share() -> None:
+    ins = parse_listing(_listing(SHARED_HEADER))
+    merged = build_cfg(ins)  # without the source: one loop, two latches
+    assert len(merged.loops) == 1 and len(merged.loops[0].latches) == 2
+    cfg = build_cfg(ins, [i.line for i in ins], SHARED_HEADER_LOOPS)
+    assert len(cfg.loops) == 2
+    outer, inner = cfg.loops[0], cfg.loops[1]
+    assert outer.header == inner.header == cfg.block_of[1]
+    assert inner.parent == 0 and (outer.depth, inner.depth) == (1, 2)
+    assert inner.latches == {cfg.block_of[4]} and outer.latches == {cfg.block_of[7]}
+    assert inner.body < outer.body and cfg.block_of[6] not in inner.body
+    # the inner loop's test runs on every inner iteration; the do loop's code after it
+    # is the do loop's, not the inner loop's
+    assert cfg.loop_of(1) == 1 and cfg.runs_every_iteration(1)
+    assert cfg.loop_of(6) == 0 and cfg.runs_every_iteration(6)
+    # a latch in a loop nested inside the header's own (a break, then a continue of the
+    # outer loop) stays a latch of the header's loop
+    nested = build_cfg(ins, [i.line for i in ins], {4: 10, 9: 10})
+    assert len(nested.loops) == 1
+
+
 def test_cfg_follows_keplers_stack_pops_as_branches() -> None:
     """sm_35 code has no BSSY/BSYNC: ``SSY``/``PBK`` push where lanes reconverge, and a
     ``.S`` instruction or ``BRK`` sends its lanes there (nvdisasm notes the target). A

@@ -66,6 +66,25 @@ def test_walk_meets_the_replay_where_the_replay_is_exact(kernel: str) -> None:
     assert abs(d.difference) < 0.005
 
 
+@pytest.mark.parametrize(
+    "kernel", ["persistent_speculative_while_while", "speculative_dynamic_fetch"]
+)
+def test_a_speculative_warp_that_stays_together_meets_the_replay(kernel: str) -> None:
+    """One warp of room's primary rays, whose lanes enter the leaf loop together: the
+    postpone test and the loop's entry test run on every step (sm_75 gives the traversal
+    loop and the ``do`` loop one header, which the CFG splits), so the walk's ``postpone``
+    is the replay's and the step is within an instruction per warp of it."""
+    d = dyncount(scheme_of_kernel(kernel), "room", "primary", warps=1)
+    assert d.hits_agree == 1.0
+    for block in ("postpone", "trav_one", "trav_both", "trav_none", "tri_test", "tri_u",
+                  "tri_v", "tri_hit"):  # fmt: skip
+        assert d.table.loc[block, "walk"] == d.table.loc[block, "replay"], block
+    step = d.table.loc["trav_step"]
+    assert abs(step["replay"] - step["walk"]) <= 0.01 * step["walk"]
+    # what remains: the last, empty fetch, the prologue and the loop's last spin
+    assert abs(d.difference) < 0.02
+
+
 @pytest.mark.parametrize("kernel", ["while_while", "if_if", "persistent_while_while"])
 def test_lanes_that_arrive_apart_issue_the_barriers_the_replay_charges(kernel: str) -> None:
     """On a GPU with independent thread scheduling each group of lanes that reaches a
