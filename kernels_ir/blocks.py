@@ -281,6 +281,9 @@ def by_frequency(
       test, hoisted address arithmetic, the reconvergence after the ``if``): to ``L``'s
       own block.
 
+    - ``L`` shares its header with the loop around it and the instruction is in a join
+      block both go round through (:attr:`kernels_ir.cfg.Loop.joins`): to ``L``'s own
+      block, as the header's test is.
     - ``L`` is the function and its own block is the instruction's, whose home is a loop
       (the set-up before a persistent kernel's fetch loop, marked as the fetch): to no
       block (``None``), since it runs once per thread and no block is charged so.
@@ -311,6 +314,12 @@ def by_frequency(
     claimed: set[int] = set()
     for key in sorted(cfg.loops, key=lambda k: -cfg.loops[k].depth) + [None]:
         statement = _source_loop(code.get(key, []), loops, claimed)
+        if key is not None and (parent := cfg.loops[key].parent) is not None:
+            head = lines[cfg.starts[cfg.loops[key].header]]
+            if cfg.loops[parent].header == cfg.loops[key].header and head is not None:
+                # the inner of two loops with one header (kernels_ir.cfg._loops): the
+                # source loop whose test the header is, whatever else the loop holds
+                statement = max((h for h, e in loops.items() if h <= head <= e), default=None)
         if statement is not None and len(set(code.get(key, []))) > 1:
             # a compiler spin loop (a vote's reconvergence, an atomic's retry) is all on
             # one source line and claims nothing: the source loop is its enclosing one's
@@ -342,6 +351,11 @@ def by_frequency(
             out[i] = None
             continue
         if loop not in own or own[loop] == block:
+            continue
+        if loop is not None and cfg.block_of[i] in cfg.loops[loop].joins:
+            # where an inner loop and the loop around it go round through one join (a
+            # barrier's wait, the branch back), it runs once per inner iteration
+            out[i] = own[loop]
             continue
         guard = (
             loop == home[block]
@@ -483,7 +497,8 @@ class Placement(NamedTuple):
     blocks whose code all runs in other blocks' basic blocks (:func:`by_basic_block`).
     ``shared``: the indices of code that two outcomes of a node step run in common
     (:func:`shared_outcomes`), each with every outcome it is charged to (``block`` is the
-    first).
+    first). ``rounds``: the blocks of loops that go round through a convergence barrier
+    the loop around them also closes at (:attr:`kernels_ir.kernel_ir.KernelIR.rounds`).
     """
 
     block: list[str]
@@ -492,6 +507,7 @@ class Placement(NamedTuple):
     full_warp: frozenset[int] = frozenset()
     run_elsewhere: frozenset[str] = frozenset()
     shared: Mapping[int, tuple[str, ...]] = MappingProxyType({})
+    rounds: frozenset[str] = frozenset()
 
     def blocks_of(self, i: int) -> tuple[str, ...]:
         """Every block instruction ``i`` is charged to, once each."""
@@ -567,9 +583,19 @@ def place_instructions(
     for i, outcomes in shared.items():
         block[i] = outcomes[0]
     full_warp = frozenset(full_warp_only(instructions))
-    return Placement(
-        block, frozenset(fallback_idx), callers, full_warp, run_elsewhere, MappingProxyType(shared)
+    rounds = frozenset(
+        block[kernel[cfg.starts[loop.header]]]
+        for loop in cfg.loops.values()
+        if any(
+            base_opcode(instructions[kernel[j]].opcode) == "BSYNC"
+            for b in loop.joins
+            for j in range(cfg.starts[b], cfg.last(b) + 1)
+        )
     )
+    return Placement(
+        block, frozenset(fallback_idx), callers, full_warp, run_elsewhere,
+        MappingProxyType(shared), rounds,
+    )  # fmt: skip
 
 
 def spins_in_blocks(

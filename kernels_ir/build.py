@@ -32,6 +32,7 @@ from kernels_ir.kernel_ir import (
     CLASSES,
     DEFAULT_TESTS,
     RECONVERGE,
+    ROUNDS,
     RUN_ELSEWHERE,
     SPIN_BLOCKS,
     TESTS,
@@ -294,6 +295,8 @@ def ir_document(
         counts.setdefault(block, dict.fromkeys(CLASSES, 0))
     if elsewhere:
         notes[RUN_ELSEWHERE] = ", ".join(sorted(elsewhere))
+    if placement.rounds:
+        notes[ROUNDS] = ", ".join(sorted(placement.rounds))
     missing = [
         b
         for b in sorted(set(owner.values()) - set(SPIN_BLOCKS) - elsewhere)

@@ -24,6 +24,9 @@ _ENDS = ("EXIT", "RET", "KILL")
 #: branch opcodes with a label target; BRX/JMX (indirect) are refused
 _BRANCHES = ("BRA", "JMP")
 _INDIRECT = ("BRX", "BRXU", "JMX", "JMXU")
+#: opcodes that only pass lanes on (a branch, a barrier's wait, a stack pop, a wait for
+#: loads): a basic block of nothing else computes nothing of its own (a *join* block)
+_JOIN = ("BRA", "BSYNC", "NOP", "TEXDEPBAR")
 
 
 @dataclass(frozen=True)
@@ -32,7 +35,10 @@ class Loop:
 
     ``every_iteration`` holds the basic blocks that run on every iteration that goes round
     again (they dominate every latch); the rest of the loop's own code is conditional.
-    ``depth`` is 1 for an outermost loop.
+    ``depth`` is 1 for an outermost loop. ``joins``: for an inner loop that shares its
+    header with the loop around it (:func:`_loops`), the join blocks (:data:`_JOIN`
+    code only) through which both go round; its ``latches`` are then the blocks that
+    branch there to go round.
     """
 
     header: int
@@ -41,6 +47,7 @@ class Loop:
     every_iteration: frozenset[int]
     parent: int | None
     depth: int
+    joins: frozenset[int] = frozenset()
 
 
 @dataclass(frozen=True)
@@ -90,6 +97,12 @@ class ControlFlow:
 
 def _is_branch(ins: SassInstruction) -> bool:
     return base_opcode(ins.opcode) in _BRANCHES or stack_pop(ins)
+
+
+def _passes_on(ins: SassInstruction) -> bool:
+    """Whether ``ins`` only passes every lane on (:data:`_JOIN`, unguarded)."""
+    op = base_opcode(ins.opcode)
+    return op in _JOIN and not ins.guarded and not (op in _BRANCHES and "," in ins.text)
 
 
 def build_cfg(
@@ -158,7 +171,11 @@ def build_cfg(
             _source_scope([lines[i] for i in range(starts[b], last_of(b) + 1)], source_loops)
             for b in range(len(starts))
         ]
-    loops = _loops(successors, reachable, dom, scope)
+    join = [
+        all(_passes_on(instructions[i]) for i in range(starts[b], last_of(b) + 1))
+        for b in range(len(starts))
+    ]
+    loops = _loops(successors, reachable, dom, scope, join)
     innermost: list[int | None] = [None] * len(starts)
     for key in sorted(loops, key=lambda k: loops[k].depth):
         for b in loops[key].body:
@@ -239,21 +256,41 @@ def _latch_levels(
     return [inner] + [outer[s] for s in sorted(outer, key=lambda s: s[1] - s[0])]
 
 
+def _sources(
+    latch: int, header: int, preds: dict[int, list[int]], join: Sequence[bool]
+) -> dict[int, set[int]]:
+    """The blocks that go round through ``latch``: ``latch`` itself, or where ``latch``
+    is a join block, the first blocks before it that are not (each with the join blocks
+    it passes on its way)."""
+    out: dict[int, set[int]] = {}
+    todo = [(latch, frozenset[int]())]
+    while todo:
+        b, passed = todo.pop()
+        if join[b] and b != header and b not in passed:
+            todo.extend((p, passed | {b}) for p in preds[b])
+        else:
+            out.setdefault(b, set()).update(passed)
+    return out
+
+
 def _loops(
     successors: Sequence[tuple[int, ...]],
     reachable: frozenset[int],
     dom: dict[int, frozenset[int]],
     scope: Sequence[tuple[int, int] | None] | None = None,
+    join: Sequence[bool] | None = None,
 ) -> dict[int, Loop]:
     """Natural loops, keyed by an id (0, 1, ... in header order, outermost first), nested.
 
     All back edges to one header make one loop (a ``continue`` is a second latch), but
     for one case: nvcc gives an inner loop and the loop around it one header when the
     outer body starts with the inner loop's test (speculative while-while's traversal
-    loop, the outer ``do``'s latch jumping straight to it). Where ``scope`` (each basic
-    block's source loop, :func:`_source_scope`) shows a latch of a source loop enclosing
-    the header's own, that loop is a loop of its own around the inner one, with the same
-    header: the inner loop's test runs per iteration of the inner loop.
+    loop, the outer ``do``'s latch jumping straight to it; from sm_80 on both go round
+    through one latch, a barrier's wait and a branch back, that neither computes in).
+    Where ``scope`` (each basic block's source loop, :func:`_source_scope`) shows that a
+    block going round (a latch, or the block before a join latch) is in a source loop
+    enclosing the header's own, that loop is a loop of its own around the inner one,
+    with the same header: the inner loop's test runs per iteration of the inner loop.
     """
     preds: dict[int, list[int]] = {b: [] for b in reachable}
     for b in reachable:
@@ -264,24 +301,38 @@ def _loops(
         for s in successors[b]:
             if s in dom[b]:
                 latches_of.setdefault(s, set()).add(b)
-    found: list[tuple[int, set[int], set[int]]] = []  # header, latches, body
-    for header in sorted(latches_of):
-        body: set[int] = set()
-        for level in _latch_levels(header, latches_of[header], scope):
+    # header, latches (or the blocks going round), body, every-iteration joins, joins
+    found: list[tuple[int, set[int], set[int], set[int], frozenset[int]]] = []
+    for header, latches in sorted(latches_of.items()):
+        ways = {t: _sources(t, header, preds, join or [False] * len(successors)) for t in latches}
+        rounds = {s: t for t, srcs in ways.items() for s in srcs}
+        levels = _latch_levels(header, set(rounds), scope)
+        if len(levels) == 1:  # one loop: its own latches
+            body = set().union(*(_natural_body(header, t, preds) for t in latches))
+            found.append((header, set(latches), body, set(), frozenset()))
+            continue
+        body = set()
+        for level in levels:
+            passed = {j for s in level for j in ways[rounds[s]][s]}
             size = len(body)
-            for t in level:
-                body |= _natural_body(header, t, preds)
+            for s in level:
+                body |= _natural_body(header, s, preds)
+            body |= passed
+            every = {j for j in passed if all(j in dom[rounds[s]] for s in level)}
             if found and found[-1][0] == header and len(body) == size:
                 found[-1][1].update(level)  # no code of its own: the same loop
             else:
-                found.append((header, set(level), set(body)))
+                found.append((header, set(level), set(body), every, frozenset(passed)))
     found.sort(key=lambda f: (f[0], -len(f[2])))
     out: dict[int, Loop] = {}
-    for k, (header, tails, body) in enumerate(found):
+    for k, (header, tails, body, joined, joins) in enumerate(found):
         outer = [j for j, f in enumerate(found) if j != k and body < f[2]]
         parent = min(outer, key=lambda j: len(found[j][2])) if outer else None
-        every = frozenset(b for b in body if all(b in dom[t] for t in tails))
-        out[k] = Loop(header, frozenset(body), frozenset(tails), every, parent, len(outer) + 1)
+        every = frozenset(b for b in body if all(b in dom[t] for t in tails)) | joined
+        inner = joins if outer and found[parent][0] == header else frozenset()
+        out[k] = Loop(
+            header, frozenset(body), frozenset(tails), every, parent, len(outer) + 1, inner
+        )
     return out
 
 

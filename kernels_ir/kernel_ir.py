@@ -119,6 +119,8 @@ DEFAULT_TESTS = "watertight"
 
 #: the notes entry naming the blocks :attr:`KernelIR.run_elsewhere` reads
 RUN_ELSEWHERE = "blocks_run_in_other_basic_blocks"
+#: the notes entry naming the loops :attr:`KernelIR.rounds` reads
+ROUNDS = "loops_closing_at_a_joint_barrier"
 
 
 @dataclass(frozen=True)
@@ -159,6 +161,15 @@ class KernelIR:
         """Marked blocks that cost nothing because all their code runs in other blocks'
         basic blocks (``kernels_ir.blocks.by_basic_block``; an if-converted ``if``)."""
         return frozenset(b for b in self.notes.get(RUN_ELSEWHERE, "").split(", ") if b)
+
+    @property
+    def rounds(self) -> frozenset[str]:
+        """The own blocks of loops that go round through a convergence barrier the loop
+        around them also closes at (``kernels_ir.cfg.Loop.joins`` holding a ``BSYNC``):
+        on a GPU with independent thread scheduling lanes that left such a loop rejoin
+        the others at its every iteration, so the warp runs it in rounds
+        (``trav_step``: sm_80 and later's persistent speculative while-while)."""
+        return frozenset(b for b in self.notes.get(ROUNDS, "").split(", ") if b)
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,9 @@ an interior node to step, a leaf to enter, a triangle to test, or nothing):
   processes each lane's postponed leaf and, like while-while, any leaves that follow
   (``leaf_entry``, lockstep ``tri_test``). Traversal uses the lane's *current* ``tmax``,
   so a lane may step nodes its recorded stream skipped, and an any-hit lane may traverse
-  past its terminating leaf.
+  past its terminating leaf. Where the IR's traversal loop goes round through a barrier
+  the leaf loop's lanes also reach (``KernelIR.rounds``) on a GPU with independent
+  thread scheduling, the same steps run in rounds, as the replay's ``spec_rounds``.
 - ``speculative_dynamic_fetch`` (the 2012 addendum's Kepler kernel): that speculative
   iteration on ``resident_warps`` warps sharing the batch's ray pool. The warp that has
   issued the fewest instructions so far runs its next iteration (ties: the lowest id),
@@ -582,11 +584,21 @@ def _speculative_iteration(li, lf, stack, lanes, alive, nodes, nodes_i, woop, wo
                 sel[m] = sel[k]
                 m += 1
         n = m
-    # Intersection loop: parked leaves first, then leaves the lanes stand at.
+    member = np.ones(lanes, np.bool_)
+    return cost + _spec_leaves(li, lf, stack, lanes, member, woop, woop_i, any_hit, ops, base,
+                               cnt, hist, costs, sel, tri_sel)  # fmt: skip
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _spec_leaves(li, lf, stack, lanes, member, woop, woop_i, any_hit, ops, base, cnt, hist, costs,
+                 sel, tri_sel):  # fmt: skip
+    """The speculative kernel's intersection loop for the lanes with ``member`` set: each
+    one's parked leaf first, then the leaves it stands at. Returns its cost."""
+    cost = np.int64(0)
     while True:
         n = 0
         for lane in range(lanes):
-            if li[lane, _PLEAF] != _NO_LEAF or _next(li, lane) == _K_LEAF:
+            if member[lane] and (li[lane, _PLEAF] != _NO_LEAF or _next(li, lane) == _K_LEAF):
                 sel[n] = lane
                 n += 1
         if n == 0:
@@ -616,12 +628,75 @@ def _speculative_iteration(li, lf, stack, lanes, alive, nodes, nodes_i, woop, wo
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _speculative_rounds(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, base,
+                        cnt, hist, costs, sel, tri_sel):  # fmt: skip
+    """The speculative kernel's outer loop in rounds (``ReplayParams.rounds``): each round
+    the lanes at interior nodes step once (parking the first leaf they meet), and the
+    other lanes with work run loop_control and their intersection loop; when no lane that
+    stepped is still searching (the vote), those lanes run theirs too, as a group of
+    their own. Returns the cost, or -1 on a stack overflow."""
+    cost = np.int64(0)
+    stepped = np.zeros(lanes, np.bool_)
+    out = np.zeros(lanes, np.bool_)
+    while True:
+        n = 0
+        m = 0
+        for lane in range(lanes):
+            k = _next(li, lane)
+            stepped[lane] = k == _K_TRAV
+            out[lane] = not stepped[lane] and (k != _K_NONE or li[lane, _PLEAF] != _NO_LEAF)
+            if stepped[lane]:
+                sel[n] = lane
+                n += 1
+            m += out[lane]
+        if n == 0 and m == 0:
+            return cost
+        voted = False
+        if n > 0:
+            c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base,
+                                     cnt, hist, costs)  # fmt: skip
+            if c < 0:
+                return np.int64(-1)
+            cost += c
+            if n < hist.shape[1] - 1:  # a diverged warp: the vote takes its fallback
+                cost += charge(cnt, hist, costs, TRAV_DIVERGED, n)
+            parked = 0
+            voted = True
+            for k in range(n):
+                lane = sel[k]
+                if li[lane, _STATE] == _AT_LEAF and li[lane, _PLEAF] == _NO_LEAF:
+                    li[lane, _PLEAF] = li[lane, _NODE]
+                    _pop(li, stack, lane)
+                    parked += 1
+                voted = voted and li[lane, _PLEAF] != _NO_LEAF
+            cost += charge(cnt, hist, costs, POSTPONE, parked)
+        for which in range(2):
+            group = out if which == 0 else stepped
+            if which == 1 and not voted:
+                continue
+            g = 0
+            for lane in range(lanes):
+                g += group[lane]
+            if g == 0:
+                continue
+            cost += charge(cnt, hist, costs, LOOP_CONTROL, g)
+            cost += _spec_leaves(li, lf, stack, lanes, group, woop, woop_i, any_hit, ops, base,
+                                 cnt, hist, costs, sel, tri_sel)  # fmt: skip
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _speculative(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, base,
-                 cnt, hist, costs):  # fmt: skip
-    """Aila & Laine's speculative while-while (see the module docstring)."""
+                 cnt, hist, costs, rounds):  # fmt: skip
+    """Aila & Laine's speculative while-while (see the module docstring); ``rounds``: its
+    outer loop in rounds (:func:`_speculative_rounds`)."""
     sel = np.empty(lanes, np.int64)
     tri_sel = np.empty(lanes, np.int64)
     cost = np.int64(0)
+    if rounds:
+        cost = _speculative_rounds(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,
+                                   ops, base, cnt, hist, costs, sel, tri_sel)  # fmt: skip
+        if cost < 0:
+            return cost
     while True:
         alive = _spec_alive(li, lanes)
         if alive == 0:
@@ -1164,7 +1239,7 @@ def _execute_cwbvh(nodes, woop, tri_index, origin, direction, tmin, tmax, any_hi
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, tmin, tmax, any_hit,
-             cap, warp_size, costs):  # fmt: skip
+             cap, warp_size, costs, rounds):  # fmt: skip
     """Run every warp (or fetched group) of the batch; parallel over independent units.
 
     Returns per-unit counters ``cnt`` (units, 2, N_BLOCKS), ``hist`` (units, N_BLOCKS,
@@ -1198,7 +1273,7 @@ def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, 
                           ops, base, c, h, costs)  # fmt: skip
         elif body == SPECULATIVE_BODY:
             rest = _speculative(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,
-                                ops, base, c, h, costs)  # fmt: skip
+                                ops, base, c, h, costs, rounds)  # fmt: skip
         else:
             rest = _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i,
                            any_hit, ops, base, c, h, costs)  # fmt: skip
@@ -1480,8 +1555,9 @@ def execute(
         )
         counts = Counts(cnt[0], cnt[1], hist, totals, int(span))
     else:
+        rounds = g.independent_thread_scheduling and "trav_step" in ir.rounds
         cnt, hist, unit_cost, tri, t, ops, overflow = _execute(
-            scheme.lockstep, persistent, *args, g.warp_size, costs
+            scheme.lockstep, persistent, *args, g.warp_size, costs, rounds
         )
         counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0)
     if overflow:

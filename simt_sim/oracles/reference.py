@@ -24,7 +24,8 @@ _OUTCOME_BLOCK = ("trav_none", "trav_one", "trav_both")
 
 @dataclass
 class RefCounts:
-    """Counters of a reference replay, by block name."""
+    """Counters of a reference replay, by block name; ``rounds``: the traversal loop runs
+    in rounds (``ReplayParams.rounds``)."""
 
     warp_size: int
     costs: dict[str, int]
@@ -33,6 +34,7 @@ class RefCounts:
     hist: dict[str, list[int]] = field(default_factory=dict)
     warp_totals: list[int] | None = None
     makespan: int = 0
+    rounds: bool = False
 
     def __post_init__(self) -> None:
         for b in BLOCKS:
@@ -233,6 +235,13 @@ def _spec_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
             parked[lane] = ops
         if all(lane in parked for lane in t):
             break
+    return issued + _spec_leaves(w, alive, parked, rec)
+
+
+def _spec_leaves(w: _Lanes, lanes: list[int], parked: dict[int, list[int]], rec: RefCounts) -> int:
+    """The postponed leaves ``parked`` (lane -> its LEAF and TRI ops), then leaf after leaf
+    for the ``lanes`` at a leaf."""
+    issued = 0
     if parked:
         held = sorted(parked)
         pw = _Lanes([parked[lane] for lane in held])
@@ -240,7 +249,45 @@ def _spec_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
         issued += rec.charge("leaf_entry", group)
         pw.advance(group)
         issued += _tri_loop(pw, group, rec, barriers=False)
-    return issued + _leaf_loop(w, alive, rec, barriers=False)
+    return issued + _leaf_loop(w, lanes, rec, barriers=False)
+
+
+def _spec_rounds(w: _Lanes, everyone: list[int], rec: RefCounts) -> int:
+    """The speculative kernel's outer loop in rounds: each round every lane at an interior
+    node steps (postponing its first leaf), and every other lane with work left runs
+    loop_control, its postponed leaf and the leaves after it; when the vote ends the
+    traversal loop (each lane that stepped holds a postponed leaf), the lanes that stepped
+    do so too, after the others."""
+    issued = 0
+    parked: dict[int, list[int]] = {}
+    while True:
+        alive = [lane for lane in everyone if w.next(lane) is not None or lane in parked]
+        if not alive:
+            return issued
+        t = [lane for lane in alive if _is_trav(w.next(lane))]
+        out = [lane for lane in alive if lane not in t]
+        voted: list[int] = []
+        if t:
+            issued += _trav_step(w, t, rec)
+            if len(t) < rec.warp_size:
+                issued += rec.charge("trav_diverged", t)
+            w.advance(t)
+            post = [lane for lane in t if w.next(lane) == LEAF and lane not in parked]
+            issued += rec.charge("postpone", post)
+            for lane in post:
+                ops = [LEAF]
+                w.advance([lane])
+                while _is_tri(w.next(lane)):
+                    ops.append(w.next(lane))
+                    w.advance([lane])
+                parked[lane] = ops
+            if all(lane in parked for lane in t):
+                voted = t
+        for group in (out, voted):
+            if group:
+                issued += rec.charge("loop_control", group)
+                mine = {lane: parked.pop(lane) for lane in group if lane in parked}
+                issued += _spec_leaves(w, group, mine, rec)
 
 
 def _idle_wait(n: int, rec: RefCounts) -> int:
@@ -254,6 +301,8 @@ def speculative_group(streams: list[list[int]], addrs: list[list[int]], rec: Ref
     everyone = list(range(len(streams)))
     issued = rec.charge("pool_fetch", everyone) + _idle_wait(len(everyone), rec)
     issued += rec.charge("ray_setup", everyone)
+    if rec.rounds:
+        issued += _spec_rounds(w, everyone, rec)
     while True:
         alive = [lane for lane in everyone if w.next(lane) is not None]
         if not alive:
@@ -450,18 +499,20 @@ def reference_replay(
     *,
     resident_warps: int = 1,
     launch_size: int | None = None,
+    rounds: bool = False,
     **params: Any,
 ) -> RefCounts:
     """Replay per-ray op lists (and their addresses) under trace scheme ``scheme``, slowly
     and plainly.
 
     ``launch_size`` splits the rays into launches for the persistent schemes (default:
-    all rays one launch); ``params`` are the scheme's own (``scheme.params``).
+    all rays one launch); ``rounds``: the traversal loop runs in rounds
+    (``ReplayParams.rounds``); ``params`` are the scheme's own (``scheme.params``).
     """
     if scheme.reference_warp is None and scheme.reference is None:
         raise SimtSimError(f"scheme {scheme.name!r} has no plain-Python reference replay")
     values = scheme.with_params(params)
-    rec = RefCounts(warp_size, dict(costs))
+    rec = RefCounts(warp_size, dict(costs), rounds=rounds)
     n = len(streams)
     if not scheme.persistent:
         for r0 in range(0, n, warp_size):

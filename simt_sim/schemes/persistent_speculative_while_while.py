@@ -19,9 +19,14 @@ group, the outer loop body mirrors the speculative kernel of Aila & Laine:
 One outer iteration is :func:`spec_outer_step`, shared with speculative dynamic fetch,
 which runs the same kernel body between refills.
 
-No ``reconverge`` is charged: on a GPU with independent thread scheduling this kernel's
-lanes leave the traversal loop for the leaf loop with no barrier between them, which the
-replay does not model (docs/gpu_results.md), so neither are the leaf loop's barriers.
+Where the compiled traversal loop goes round through a barrier that the lanes in the
+leaf loop also reach (sm_80 on: ``KernelIR.rounds``) and the GPU schedules threads
+independently, the lanes that left the loop wait there for the others' next step, and
+the warp runs in rounds instead (:func:`spec_rounds`; ``ReplayParams.rounds``).
+
+No ``reconverge`` is charged: sm_75's lanes leave the traversal loop for the leaf loop
+with no barrier between them, which the replay does not model (docs/gpu_results.md), so
+neither are the leaf loop's barriers.
 
 Approximation: each ray's ops are replayed from its recorded (non-speculative) stream, so
 op counts per ray are preserved; the real kernel may also visit nodes that a stale tmax
@@ -51,6 +56,7 @@ from simt_sim.simt.engine import (
     LOOP_CONTROL,
     N_BLOCKS,
     N_CHUNKS,
+    NO_OP,
     POOL_FETCH,
     POSTPONE,
     RAY_SETUP,
@@ -182,12 +188,24 @@ def spec_outer_step(op, cur, end, trav, leaf, scratch, acc, post, costs, cnt, hi
     first; ``acc`` and ``post`` are the traversal loop's window counters (zero on entry and
     on return).
     """
-    park, park_end, pcur, first = scratch[0], scratch[1], scratch[2], scratch[3]
+    park, park_end, first = scratch[0], scratch[1], scratch[3]
     issued = charge(cnt, hist, costs, LOOP_CONTROL, popcount(trav | leaf))
     t_issued, parked, t_leaf, trav = _spec_trav_loop(
         op, cur, end, park, park_end, trav, acc, post, first, costs, cnt, hist
     )
-    issued += t_issued
+    l_issued, l_trav = _leaves(op, cur, end, parked, leaf | t_leaf, scratch, acc, costs, cnt,
+                               hist)  # fmt: skip
+    return issued + t_issued + l_issued, trav | l_trav
+
+
+@njit(cache=True, nogil=True)
+def _leaves(op, cur, end, parked, leaf, scratch, acc, costs, cnt, hist):
+    """The intersection loop: the postponed leaves of the lanes in mask ``parked``
+    (``leaf_entry``, then their triangles in lockstep), then, as while-while's, leaf after
+    leaf for the lanes at a LEAF (mask ``leaf``). Returns the instructions issued and the
+    mask of lanes that stopped at a TRAV."""
+    park, park_end, pcur = scratch[0], scratch[1], scratch[2]
+    issued = np.int64(0)
     if parked:
         issued += charge(cnt, hist, costs, LEAF_ENTRY, popcount(parked))
         tri = np.int64(0)
@@ -198,12 +216,85 @@ def spec_outer_step(op, cur, end, trav, leaf, scratch, acc, post, costs, cnt, hi
             pcur[lane] = park[lane] + 1
             tri |= np.int64(pcur[lane] < park_end[lane]) << lane
         issued += tri_loop(op, pcur, park_end, tri, acc, costs, cnt, hist)[0]
-    i_issued, i_trav = isect_loop(op, cur, end, leaf | t_leaf, acc, costs, cnt, hist)[:2]
-    return issued + i_issued, trav | i_trav
+    i_issued, i_trav = isect_loop(op, cur, end, leaf, acc, costs, cnt, hist)[:2]
+    return issued + i_issued, i_trav
 
 
 @njit(cache=True, nogil=True)
-def _group(offsets, op, r0, n, cur, end, scratch, acc, post, costs, cnt, hist):
+def spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist):
+    """The outer loop of the lanes at a TRAV (mask ``trav``) or a LEAF (``leaf``) where the
+    traversal loop's iteration closes at a convergence barrier that the lanes in the
+    intersection loop also reach (``ReplayParams.rounds``). Returns the instructions
+    issued.
+
+    Each round every lane at a TRAV takes one step (postponing as in
+    :func:`_spec_trav_loop`), and every other lane with work left runs the rest of an
+    outer iteration: ``loop_control``, its postponed leaf and the leaves after it. If
+    every lane that stepped now holds a postponed leaf (the vote), those lanes do so too,
+    as a group of their own: they leave the step's vote where the others left the loop's
+    test. All meet at the barrier before the next round.
+    """
+    park, park_end = scratch[0], scratch[1]
+    warp_size = cur.shape[0]
+    issued = np.int64(0)
+    parked = np.int64(0)
+    alive = trav | leaf
+    while alive:
+        out = alive & ~trav
+        voted = np.int64(0)
+        if trav:
+            a = np.int64(0)
+            post = np.int64(0)
+            m = trav
+            while m:
+                lane = lowest_lane(m)
+                m &= m - 1
+                a += trav_pack(op[np.uint64(cur[lane])])
+                c = cur[lane] + 1
+                e = end[lane]
+                if op_at(op, c, e) == LEAF and not (parked >> lane) & 1:
+                    park[lane] = c
+                    c += 1
+                    while c < e and op[np.uint64(c)] > LEAF:
+                        c += 1
+                    park_end[lane] = c
+                    parked |= np.int64(1) << lane
+                    post += 1
+                cur[lane] = c
+            issued += charge_trav(cnt, hist, costs, a)
+            k = trav_lanes(a)
+            if k < warp_size:  # some threads are elsewhere: the vote takes its fallback
+                issued += charge(cnt, hist, costs, TRAV_DIVERGED, k)
+            issued += charge(cnt, hist, costs, POSTPONE, post)
+            if trav & ~parked == 0:
+                voted = trav
+        for group in (out, voted):
+            if group:
+                issued += charge(cnt, hist, costs, LOOP_CONTROL, popcount(group))
+                at_leaf = np.int64(0)
+                m = group
+                while m:
+                    lane = lowest_lane(m)
+                    m &= m - 1
+                    at_leaf |= is_leaf(op_at(op, cur[lane], end[lane])) << lane
+                issued += _leaves(op, cur, end, group & parked, at_leaf, scratch, acc, costs,
+                                  cnt, hist)[0]  # fmt: skip
+                parked &= ~group
+        trav = np.int64(0)
+        still = np.int64(0)
+        m = alive
+        while m:
+            lane = lowest_lane(m)
+            m &= m - 1
+            o = op_at(op, cur[lane], end[lane])
+            trav |= is_trav(o) << lane
+            still |= np.int64(o != NO_OP or (parked >> lane) & 1) << lane
+        alive = still
+    return issued
+
+
+@njit(cache=True, nogil=True)
+def _group(offsets, op, r0, n, cur, end, scratch, acc, post, costs, cnt, hist, rounds):
     trav = np.int64(0)
     leaf = np.int64(0)
     for lane in range(n):
@@ -213,6 +304,9 @@ def _group(offsets, op, r0, n, cur, end, scratch, acc, post, costs, cnt, hist):
     issued = charge(cnt, hist, costs, POOL_FETCH, n)
     issued += charge(cnt, hist, costs, IDLE_WAIT, cur.shape[0] - n)
     issued += charge(cnt, hist, costs, RAY_SETUP, n)
+    if rounds:
+        issued += spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist)
+        trav = leaf = np.int64(0)
     while trav | leaf:
         o_issued, trav = spec_outer_step(op, cur, end, trav, leaf, scratch, acc, post, costs,
                                          cnt, hist)  # fmt: skip
@@ -223,8 +317,9 @@ def _group(offsets, op, r0, n, cur, end, scratch, acc, post, costs, cnt, hist):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _replay(offsets, op, costs, warp_size, per_warp):
-    """Groups in parallel chunks; each group's totals go to ``per_warp`` if it has rows."""
+def _replay(offsets, op, costs, warp_size, per_warp, rounds):
+    """Groups in parallel chunks; each group's totals go to ``per_warp`` if it has rows;
+    ``rounds``: the traversal loop runs in rounds (:func:`spec_rounds`)."""
     n_rays = offsets.shape[0] - 1
     n_groups = (n_rays + warp_size - 1) // warp_size
     nc = min(N_CHUNKS, max(n_groups, 1))
@@ -243,7 +338,7 @@ def _replay(offsets, op, costs, warp_size, per_warp):
             n = min(warp_size, n_rays - r0)
             before = lanes_so_far(per_warp, cnt[c], costs)
             group_cost[g] = _group(
-                offsets, op, r0, n, cur, end, scratch, acc, post, costs, cnt[c], hist[c]
+                offsets, op, r0, n, cur, end, scratch, acc, post, costs, cnt[c], hist[c], rounds
             )
             record_warp(per_warp, g, group_cost[g], before, cnt[c], costs)
     return cnt, hist, group_cost
@@ -254,7 +349,7 @@ def replay(
 ) -> Counts:
     """Replay one launch: groups in parallel, then ideal assignment to resident warps."""
     return persistent_counts(
-        *_replay(offsets, op, costs, p.warp_size, no_per_warp()), p.resident_warps
+        *_replay(offsets, op, costs, p.warp_size, no_per_warp(), p.rounds), p.resident_warps
     )
 
 
@@ -262,9 +357,10 @@ def warp_counts(
     offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, warp_size: int
 ) -> np.ndarray:
     """Warp and lane instructions of each fetched group of ``warp_size`` consecutive rays
-    (int64 (n_groups, 2)), as ``replay`` counts them (the scheduling aside)."""
+    (int64 (n_groups, 2)), as ``replay`` counts them (the scheduling aside) with the warp's
+    lanes together, not in rounds (those depend on the GPU, which this is not given)."""
     per_warp = per_warp_table(offsets, warp_size)
-    _replay(offsets, op, costs, warp_size, per_warp)
+    _replay(offsets, op, costs, warp_size, per_warp, False)
     return per_warp
 
 

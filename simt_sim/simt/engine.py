@@ -550,11 +550,16 @@ class ReplayParams:
         Persistent schemes: warps kept resident (SMs x resident warps per SM).
     scheme : mapping
         The scheme's own parameters (``SchemeInfo.params`` with the caller's values).
+    rounds : bool
+        The traversal loop goes round through a convergence barrier the lanes outside it
+        also reach, so the warp runs it in rounds (``KernelIR.rounds`` holds
+        ``trav_step``, on a GPU with independent thread scheduling).
     """
 
     warp_size: int
     resident_warps: int
     scheme: Mapping[str, Any] = field(default_factory=dict)
+    rounds: bool = False
 
 
 def kernel_outcomes(op: np.ndarray) -> np.ndarray:

@@ -139,7 +139,8 @@ def simulate_traces(
         raise SimtSimError(
             f"launch_size must be a positive multiple of the warp size {w}, got {launch_size}"
         )
-    replay_params = ReplayParams(w, r, values)
+    rounds = gpu.independent_thread_scheduling and "trav_step" in ir.rounds
+    replay_params = ReplayParams(w, r, values, rounds)
     costs = cost_vector(ir)
     totals = np.zeros(3, np.int64)
     state: dict[str, Any] = {"rays": 0, "ray_type": None, "short": None}
@@ -197,6 +198,8 @@ def simulate_traces(
             launch_size=launch_size if launch_size is not None else "one launch per batch",
             launches=launches,
         )
+    if rounds:
+        extra["traversal_rounds"] = True
     card = model_card(
         scheme.name,
         [ir],

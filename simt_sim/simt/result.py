@@ -280,7 +280,8 @@ class SimResult:
         """The same counts costed with another KernelIR of the same kernel, without replaying.
 
         Valid for every result whose card says ``recostable`` (all schemes but dynamic
-        fetch, whose pool order follows the costs). The IR must have the blocks the card's
+        fetch, whose pool order follows the costs) and an IR whose traversal loop runs on
+        this GPU as the result's did (``KernelIR.rounds``). The IR must have the blocks the card's
         ``ir_blocks`` name; a block it lacks otherwise costs nothing (as ``trav_diverged``
         on a GPU without a divergent-warp fallback). The per-warp totals of persistent
         schemes follow the costs too, so they are dropped.
@@ -294,6 +295,14 @@ class SimResult:
             ir, self.model_card.get("ir_kernel", self.scheme), self.model_card.get("ir_blocks", ())
         )
         ir = executed_on(ir, self.gpu)
+        rounds = self.gpu.independent_thread_scheduling and "trav_step" in ir.rounds
+        if rounds != self.model_card.get("traversal_rounds", False):
+            raise SimtSimError(
+                f"{self.scheme} on {self.gpu.id} runs its traversal loop "
+                f"{'in rounds' if rounds else 'with the lanes together'} with {ir.arch}'s "
+                "code and not with this result's (KernelIR.rounds): replay it again with the "
+                "new KernelIR"
+            )
         c = self.counts
         counts = Counts(c.executions, c.active, c.hist, None, 0)
         card = dict(self.model_card)

@@ -150,6 +150,50 @@ def test_cfg_splits_a_header_two_source_loops_share() -> None:
     assert len(nested.loops) == 1
 
 
+def test_cfg_splits_a_header_two_loops_share_with_their_latch() -> None:
+    """From sm_80 on the traversal loop goes round by branching to the ``do`` loop's
+    barrier wait and branch back: one latch, which passes lanes on and computes nothing.
+    The blocks that branch there decide which loop goes round."""
+    source = "\n".join(
+        ["// @block ray_setup", "a;", "// @block loop_control", "do {", "// @block trav_step",
+         "while (x) {", "s;", "v;", "}", "// @block loop_control", "e;", "} while (y);", "f;"]
+    )  # fmt: skip
+    rows = [
+        (2, "MOV R4, RZ"),
+        ".L_x_0",
+        (6, "ISETP.GT.AND P0, PT, R2, RZ, PT"),
+        (6, "BSSY B0, `(.L_x_3)"),
+        (6, "@!P0 BRA `(.L_x_1)"),
+        (7, "IADD3 R2, R2, -0x1, RZ"),
+        (8, "ISETP.NE.AND P1, PT, R3, RZ, PT"),
+        (8, "@P1 BRA `(.L_x_2)"),  # the inner loop goes round (else it breaks)
+        ".L_x_1",
+        (11, "IADD3 R4, R4, 0x1, RZ"),
+        (12, "ISETP.NE.AND P0, PT, R4, 0x8, PT"),
+        (12, "@!P0 BRA `(.L_x_4)"),  # the do loop ends
+        ".L_x_2",
+        (12, "BSYNC B0"),
+        ".L_x_3",
+        (12, "BRA `(.L_x_0)"),  # both go round here
+        ".L_x_4",
+        (13, "EXIT"),
+    ]
+    ins = parse_listing(_listing(rows))
+    assert len(build_cfg(ins).loops) == 1
+    loops = parse_loops(source)
+    cfg = build_cfg(ins, [i.line for i in ins], loops)
+    outer, inner = cfg.loops[0], cfg.loops[1]
+    assert outer.header == inner.header and inner.parent == 0
+    assert inner.latches == {cfg.block_of[6]} and outer.latches == {cfg.block_of[9]}
+    assert inner.joins == {cfg.block_of[10], cfg.block_of[11]} and not outer.joins
+    assert cfg.loop_of(10) == cfg.loop_of(11) == 1 and cfg.runs_every_iteration(10)
+    assert cfg.loop_of(7) == 0  # the do loop's own code
+    placed = place_instructions(ins, parse_markers(source, "k.cu"), "k.cu", loops)
+    # the inner loop's test and the joint latch run on every step: the step's block
+    assert [placed.block[i] for i in (1, 2, 3, 10, 11)] == ["trav_step"] * 5
+    assert [placed.block[i] for i in (7, 8, 9)] == ["loop_control"] * 3
+
+
 def test_cfg_follows_keplers_stack_pops_as_branches() -> None:
     """sm_35 code has no BSSY/BSYNC: ``SSY``/``PBK`` push where lanes reconverge, and a
     ``.S`` instruction or ``BRK`` sends its lanes there (nvdisasm notes the target). A
@@ -396,3 +440,16 @@ def test_a_basic_block_two_outcomes_share_is_charged_to_each() -> None:
     counts = map_blocks(ins, owner, "k.cu").counts
     totals = {block: sum(row.values()) for block, row in counts.items()}
     assert totals == {"trav_step": 3, "trav_both": 2, "trav_one": 4, "trav_none": 4}
+
+
+def test_only_the_persistent_speculative_kernel_from_sm_80_runs_in_rounds() -> None:
+    """Its traversal loop goes round through the `do` loop's barrier wait from sm_80 on
+    (sm_75 has a latch for each loop, sm_35 no BSYNC); no other kernel shares a latch."""
+    from kernels_ir.build import ARCHS, KERNELS
+
+    for kernel in KERNELS:
+        for arch in ARCHS:
+            rounds = load(kernel, arch).rounds
+            expected = kernel == "persistent_speculative_while_while" and arch != "sm_75"
+            assert rounds == ({"trav_step"} if expected else set()), (kernel, arch)
+    assert not load("persistent_speculative_while_while", "sm_35").rounds

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 import kernels_ir
-from kernels_ir.kernel_ir import BLOCKS, SPIN_BLOCKS, KernelIR, kernel_layout
+from kernels_ir.kernel_ir import BLOCKS, ROUNDS, SPIN_BLOCKS, KernelIR, kernel_layout
 from simt_sim import schemes
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.reference import reference_replay
@@ -215,6 +216,68 @@ def test_by_hand(scheme, ops, addrs, warp_size, resident, params, table) -> None
         assert r.makespan == r.warp_instructions
 
 
+# ---- rounds: the speculative traversal loop closing at the leaf loop's barrier (sm_80 on) ----
+SPECULATIVE = "persistent_speculative_while_while"
+
+
+def rounds_ir(scheme: str) -> KernelIR:
+    """:func:`ir_for` of code whose traversal loop goes round through a barrier the leaf
+    loop's lanes also reach (``KernelIR.rounds``)."""
+    return KernelIR(
+        scheme, "sm_90", {b: {"int": c} for b, c in COSTS.items()}, notes={ROUNDS: "trav_step"}
+    )
+
+
+#: CASE_SPECULATIVE in rounds. 1: both step, lane 0 postpones. 2: both step, lane 0 meets
+#: its second leaf. 3: lane 0 runs loop_control and both its leaves while lane 1 steps
+#: alone (diverged), postpones and, the vote ending the loop, intersects its leaf as a
+#: group of its own.
+ROUNDS_TABLE = {
+    "pool_fetch": (1, 2), "ray_setup": (1, 2), "loop_control": (2, 2), "trav_step": (3, 5),
+    "trav_one": (3, 4), "trav_both": (1, 1), "trav_diverged": (1, 1), "postpone": (2, 2),
+    "leaf_entry": (3, 3), "tri_test": (3, 3), "tri_u": (2, 2), "tri_v": (1, 1),
+    "tri_hit": (1, 1), "finish": (1, 2),
+}  # fmt: skip
+
+
+def test_speculative_rounds_by_hand() -> None:
+    trace = trace_from_lists(CASE_SPECULATIVE)
+    scheme = get_scheme(SPECULATIVE)
+    r = simulate_traces([trace], scheme, rounds_ir(SPECULATIVE), gpu_for(2))
+    expect(r, ROUNDS_TABLE)
+    addrs = [list(range(len(o))) for o in CASE_SPECULATIVE]
+    ref = reference_replay(CASE_SPECULATIVE, addrs, scheme, COSTS, 2, resident_warps=4,
+                           rounds=True)  # fmt: skip
+    assert {b: (ref.executions[b], ref.active[b]) for b in BLOCKS if ref.executions[b]} == (
+        ROUNDS_TABLE
+    )
+    # a GPU that reconverges on a stack runs the same code in phases
+    pre_volta = replace(gpu_for(2), arch="sm_13")
+    phases = simulate_traces([trace], scheme, rounds_ir(SPECULATIVE), pre_volta)
+    assert phases.executions["loop_control"] == 1 and phases.executions["leaf_entry"] == 2
+
+
+@pytest.mark.parametrize(("warp_size", "any_hit"), [(32, False), (4, True)])
+def test_speculative_rounds_match_reference(warp_size: int, any_hit: bool) -> None:
+    rng = np.random.default_rng(11 + warp_size)
+    ops, addrs = random_streams(rng, 200 * warp_size + 5, any_hit)
+    launch = 64 * warp_size
+    trace = trace_from_lists(ops, addrs)
+    scheme = get_scheme(SPECULATIVE)
+    r = simulate_traces([trace], scheme, rounds_ir(SPECULATIVE), gpu_for(warp_size),
+                        launch_size=launch)  # fmt: skip
+    ref = reference_replay(ops, addrs, scheme, COSTS, warp_size, resident_warps=4,
+                           launch_size=launch, rounds=True)  # fmt: skip
+    assert counters(r) == {b: (ref.executions[b], ref.active[b], ref.hist[b]) for b in BLOCKS}
+    assert r.warp_totals.tolist() == ref.warp_totals and r.makespan == ref.makespan
+    # the schedule moves instructions, not work: the same steps, leaves and triangles
+    phases = run(trace, SPECULATIVE, warp_size, launch_size=launch)
+    assert r.warp_instructions != phases.warp_instructions
+    work = ("trav_step", "trav_none", "trav_one", "trav_both", "leaf_entry", "tri_test",
+            "tri_u", "tri_v", "tri_hit")  # fmt: skip
+    assert [r.active_sum[b] for b in work] == [phases.active_sum[b] for b in work]
+
+
 # ---- the numba replay against the plain reference ----------------------------------------
 @pytest.mark.parametrize("scheme", TRACE_SCHEMES)
 @pytest.mark.parametrize(("warp_size", "any_hit"), [(32, False), (4, True)])
@@ -375,8 +438,21 @@ def test_a_toy_scheme_added_through_the_registry_alone() -> None:
 def test_each_lane_work_is_conserved(scheme: str) -> None:
     rng = np.random.default_rng(3)
     ops, addrs = random_streams(rng, 32 * 50 + 9, any_hit=False)
-    trace = trace_from_lists(ops, addrs)
-    r = run(trace, scheme, 32)
+    assert_conserved(run(trace_from_lists(ops, addrs), scheme, 32), ops, scheme)
+
+
+def test_each_lane_work_is_conserved_in_rounds() -> None:
+    rng = np.random.default_rng(3)
+    ops, addrs = random_streams(rng, 32 * 50 + 9, any_hit=False)
+    r = simulate_traces(
+        [trace_from_lists(ops, addrs)], get_scheme(SPECULATIVE), rounds_ir(SPECULATIVE),
+        gpu_for(32),
+    )  # fmt: skip
+    assert_conserved(r, ops, SPECULATIVE)
+
+
+def assert_conserved(r: SimResult, ops: list[list[int]], scheme: str) -> None:
+    """Every op of every lane is charged once, with its lane, in its block."""
     flat = np.concatenate([np.asarray(o, np.int64) for o in ops])
     by_code = np.bincount(flat, minlength=TRI_MISS_U + 1)
     a = r.active_sum

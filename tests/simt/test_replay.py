@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import kernels_ir
-from kernels_ir.kernel_ir import BLOCKS, KernelIR
+from kernels_ir.kernel_ir import BLOCKS, ROUNDS, KernelIR
 from simt_sim.errors import SimtSimError
 from simt_sim.schemes import get_scheme, names
 from simt_sim.simt.engine import Counts, scan_trace
@@ -256,6 +256,11 @@ def test_recost_to_a_target_without_the_divergent_fallback() -> None:
     assert sm75.cost("trav_diverged") > 0 and "trav_diverged" not in sm90.blocks
     old = simulate_traces([trace], spec, sm75, gpu_for())
     assert old.executions["trav_diverged"] > 0
+    # sm_90's traversal loop runs in rounds on this GPU (KernelIR.rounds), sm_75's not:
+    # the schedule is another, so re-costing is refused
+    with pytest.raises(SimtSimError, match="replay it again"):
+        old.recost(sm90)
+    sm90 = dataclasses.replace(sm90, notes={k: v for k, v in sm90.notes.items() if k != ROUNDS})
     recosted = old.recost(sm90)
     direct = simulate_traces([trace], spec, sm90, gpu_for())
     assert recosted.warp_instructions == direct.warp_instructions

@@ -67,14 +67,20 @@ def test_walk_meets_the_replay_where_the_replay_is_exact(kernel: str) -> None:
 
 
 @pytest.mark.parametrize(
-    "kernel", ["persistent_speculative_while_while", "speculative_dynamic_fetch"]
+    ("kernel", "gpu"),
+    [
+        ("persistent_speculative_while_while", "rtx2080ti"),
+        ("speculative_dynamic_fetch", "rtx2080ti"),
+        ("persistent_speculative_while_while", "a100"),
+    ],
 )
-def test_a_speculative_warp_that_stays_together_meets_the_replay(kernel: str) -> None:
+def test_a_speculative_warp_that_stays_together_meets_the_replay(kernel: str, gpu: str) -> None:
     """One warp of room's primary rays, whose lanes enter the leaf loop together: the
-    postpone test and the loop's entry test run on every step (sm_75 gives the traversal
-    loop and the ``do`` loop one header, which the CFG splits), so the walk's ``postpone``
-    is the replay's and the step is within an instruction per warp of it."""
-    d = dyncount(scheme_of_kernel(kernel), "room", "primary", warps=1)
+    postpone test and the loop's entry test run on every step (the traversal loop and the
+    ``do`` loop share one SASS header, with a latch each on sm_75 and one joint latch on
+    sm_80, which the CFG splits), so the walk's ``postpone`` is the replay's and the step
+    is within 1% of it."""
+    d = dyncount(scheme_of_kernel(kernel), "room", "primary", warps=1, gpu_id=gpu)
     assert d.hits_agree == 1.0
     for block in ("postpone", "trav_one", "trav_both", "trav_none", "tri_test", "tri_u",
                   "tri_v", "tri_hit"):  # fmt: skip
@@ -82,7 +88,7 @@ def test_a_speculative_warp_that_stays_together_meets_the_replay(kernel: str) ->
     step = d.table.loc["trav_step"]
     assert abs(step["replay"] - step["walk"]) <= 0.01 * step["walk"]
     # what remains: the last, empty fetch, the prologue and the loop's last spin
-    assert abs(d.difference) < 0.02
+    assert abs(d.difference) < 0.025
 
 
 @pytest.mark.parametrize("kernel", ["while_while", "if_if", "persistent_while_while"])
