@@ -10,10 +10,11 @@ Three traces:
   ray taking 20% of its decisions alone; ~60 ops per ray), costed with a KernelIR of small
   distinct block costs;
 - ``recorded``: the real target, diffuse rays of ``--scene`` (camera 0) recorded with
-  ``record_all`` and costed with each scheme's committed sm_75 KernelIR;
+  ``record_all`` and costed with each scheme's committed KernelIR for ``--gpu`` (sm_75
+  for the default GTX 285; an H200's sm_90 runs persistent speculative in rounds);
 - ``paths``: one diffuse path per pixel of ``--scene`` (camera 0, up to 8 bounces, as
   ``simt-sim table --rays path``), replayed by the path schemes ``megakernel`` (the
-  kernel's ray order) and ``wavefront`` with their sm_75 KernelIRs; rays per second
+  kernel's ray order) and ``wavefront`` with their KernelIRs for ``--gpu``; rays per second
   count every extend and shadow ray.
 
 For each trace, thread count and scheme: one replay to warm up (numba compile / cache
@@ -60,7 +61,7 @@ def _synthetic_ir(scheme: SchemeInfo, gpu: GpuConfig) -> KernelIR:
 
 
 def _recorded_ir(scheme: SchemeInfo, gpu: GpuConfig) -> KernelIR:
-    return kernels_ir.load(scheme.kernel, "sm_75")
+    return kernels_ir.load(scheme.kernel, gpu.ir_arch)
 
 
 def _recorded_trace(scene: str, resolution: tuple[int, int], spp: int, layout: str) -> OpTrace:
@@ -106,7 +107,7 @@ def _path_replays(pt: PathTrace, gpu: GpuConfig, schemes) -> dict[str, Callable[
     for s in schemes:
         scheme = SCHEMES[s]
         if scheme.kind == PATH:  # each with its own parameters (the megakernel's ray order)
-            irs = {k: kernels_ir.load(k, "sm_75") for k in scheme.kernels}
+            irs = {k: kernels_ir.load(k, gpu.ir_arch) for k in scheme.kernels}
             out[s] = functools.partial(simulate_paths, pt, scheme, irs, gpu)
     return out
 

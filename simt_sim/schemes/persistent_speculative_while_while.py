@@ -56,7 +56,6 @@ from simt_sim.simt.engine import (
     LOOP_CONTROL,
     N_BLOCKS,
     N_CHUNKS,
-    NO_OP,
     POOL_FETCH,
     POSTPONE,
     RAY_SETUP,
@@ -238,10 +237,11 @@ def spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist):
     warp_size = cur.shape[0]
     issued = np.int64(0)
     parked = np.int64(0)
-    alive = trav | leaf
-    while alive:
-        out = alive & ~trav
+    while trav | leaf | parked:
+        out = (leaf | parked) & ~trav  # at a leaf, or out of nodes with one postponed
         voted = np.int64(0)
+        at_trav = np.int64(0)  # where the lanes that stepped stand
+        at_leaf = np.int64(0)
         if trav:
             a = np.int64(0)
             post = np.int64(0)
@@ -252,7 +252,8 @@ def spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist):
                 a += trav_pack(op[np.uint64(cur[lane])])
                 c = cur[lane] + 1
                 e = end[lane]
-                if op_at(op, c, e) == LEAF and not (parked >> lane) & 1:
+                o = op_at(op, c, e)
+                if o == LEAF and not (parked >> lane) & 1:
                     park[lane] = c
                     c += 1
                     while c < e and op[np.uint64(c)] > LEAF:
@@ -260,7 +261,10 @@ def spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist):
                     park_end[lane] = c
                     parked |= np.int64(1) << lane
                     post += 1
+                    o = op_at(op, c, e)
                 cur[lane] = c
+                at_trav |= is_trav(o) << lane
+                at_leaf |= is_leaf(o) << lane
             issued += charge_trav(cnt, hist, costs, a)
             k = trav_lanes(a)
             if k < warp_size:  # some threads are elsewhere: the vote takes its fallback
@@ -268,28 +272,16 @@ def spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist):
             issued += charge(cnt, hist, costs, POSTPONE, post)
             if trav & ~parked == 0:
                 voted = trav
-        for group in (out, voted):
+        trav = at_trav
+        for group, leaves in ((out, out & leaf), (voted, voted & at_leaf)):
             if group:
                 issued += charge(cnt, hist, costs, LOOP_CONTROL, popcount(group))
-                at_leaf = np.int64(0)
-                m = group
-                while m:
-                    lane = lowest_lane(m)
-                    m &= m - 1
-                    at_leaf |= is_leaf(op_at(op, cur[lane], end[lane])) << lane
-                issued += _leaves(op, cur, end, group & parked, at_leaf, scratch, acc, costs,
-                                  cnt, hist)[0]  # fmt: skip
+                l_issued, l_trav = _leaves(op, cur, end, group & parked, leaves, scratch, acc,
+                                           costs, cnt, hist)  # fmt: skip
+                issued += l_issued
+                trav |= l_trav
                 parked &= ~group
-        trav = np.int64(0)
-        still = np.int64(0)
-        m = alive
-        while m:
-            lane = lowest_lane(m)
-            m &= m - 1
-            o = op_at(op, cur[lane], end[lane])
-            trav |= is_trav(o) << lane
-            still |= np.int64(o != NO_OP or (parked >> lane) & 1) << lane
-        alive = still
+        leaf = at_leaf & ~voted
     return issued
 
 
