@@ -187,8 +187,8 @@ MAX_WARP = 64
 
 # Lane integer state, one row per lane: position, triangle cursor, stack, hit, parked leaf,
 # and the node columns of the ray's near slab planes (``geometry.near_columns``).
-_STATE, _NODE, _J, _SP, _HIT, _PLEAF, _SEARCH, _NX, _NY, _NZ = range(10)
-_N_INT = 10
+_STATE, _NODE, _J, _SP, _HIT, _PLEAF, _NX, _NY, _NZ = range(9)
+_N_INT = 9
 # Lane float32 state: origin, direction, inverse direction, tmin and the current tmax.
 _OX, _OY, _OZ, _DX, _DY, _DZ, _IX, _IY, _IZ, _TMIN, _TMAX = range(11)
 _N_FLOAT = 11
@@ -267,7 +267,6 @@ def _init_lane(li, lf, lane, r, origin, direction, tmin, tmax, root):
     li[lane, _J] = -1
     li[lane, _HIT] = -1
     li[lane, _PLEAF] = _NO_LEAF
-    li[lane, _SEARCH] = 0
     _goto(li, lane, root)
 
 
@@ -544,6 +543,30 @@ def _spec_alive(li, lanes):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs):
+    """One speculative traversal step of the ``n`` lanes in ``sel`` (the vote's fallback
+    when some lanes are elsewhere); a lane that lands on a leaf while holding none parks
+    it and pops the next node (``postpone``). Returns the cost (-1 on a stack overflow)
+    and whether every lane that stepped now holds a parked leaf (the vote ends the
+    loop)."""
+    c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs)
+    if c < 0:
+        return np.int64(-1), False
+    if n < hist.shape[1] - 1:  # a diverged warp: the vote takes its fallback
+        c += charge(cnt, hist, costs, TRAV_DIVERGED, n)
+    parked = 0
+    held = True
+    for k in range(n):
+        lane = sel[k]
+        if li[lane, _STATE] == _AT_LEAF and li[lane, _PLEAF] == _NO_LEAF:
+            li[lane, _PLEAF] = li[lane, _NODE]
+            _pop(li, stack, lane)
+            parked += 1
+        held = held and li[lane, _PLEAF] != _NO_LEAF
+    return c + charge(cnt, hist, costs, POSTPONE, parked), held
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _speculative_iteration(li, lf, stack, lanes, alive, nodes, nodes_i, woop, woop_i, any_hit,
                            ops, base, cnt, hist, costs, sel, tri_sel):  # fmt: skip
     """One outer iteration of the speculative kernel with ``alive`` lanes that have work:
@@ -551,32 +574,15 @@ def _speculative_iteration(li, lf, stack, lanes, alive, nodes, nodes_i, woop, wo
     stack overflow; afterwards no lane holds a parked leaf. ``sel`` and ``tri_sel`` are
     scratch of ``lanes`` entries."""
     cost = charge(cnt, hist, costs, LOOP_CONTROL, alive)
-    for lane in range(lanes):
-        li[lane, _SEARCH] = 1
     # Traversal loop: lanes at interior nodes step; the first leaf a lane meets is
-    # parked; break once no lane that stepped is still searching.
+    # parked; break once every lane that stepped holds one.
     n = _lanes_with(li, lanes, _K_TRAV, sel)
     while n > 0:
-        c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base,
-                                 cnt, hist, costs)  # fmt: skip
+        c, held = _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs)
         if c < 0:
             return np.int64(-1)
         cost += c
-        if n < hist.shape[1] - 1:  # a diverged warp: the vote takes its fallback
-            cost += charge(cnt, hist, costs, TRAV_DIVERGED, n)
-        parked = 0
-        searching = False
-        for k in range(n):
-            lane = sel[k]
-            if li[lane, _STATE] == _AT_LEAF and li[lane, _PLEAF] == _NO_LEAF:
-                li[lane, _PLEAF] = li[lane, _NODE]
-                li[lane, _SEARCH] = 0
-                _pop(li, stack, lane)
-                parked += 1
-            if li[lane, _SEARCH] == 1:
-                searching = True
-        cost += charge(cnt, hist, costs, POSTPONE, parked)
-        if not searching:
+        if held:
             break
         m = 0
         for k in range(n):
@@ -653,23 +659,11 @@ def _speculative_rounds(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_
             return cost
         voted = False
         if n > 0:
-            c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base,
-                                     cnt, hist, costs)  # fmt: skip
+            c, voted = _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist,
+                                  costs)  # fmt: skip
             if c < 0:
                 return np.int64(-1)
             cost += c
-            if n < hist.shape[1] - 1:  # a diverged warp: the vote takes its fallback
-                cost += charge(cnt, hist, costs, TRAV_DIVERGED, n)
-            parked = 0
-            voted = True
-            for k in range(n):
-                lane = sel[k]
-                if li[lane, _STATE] == _AT_LEAF and li[lane, _PLEAF] == _NO_LEAF:
-                    li[lane, _PLEAF] = li[lane, _NODE]
-                    _pop(li, stack, lane)
-                    parked += 1
-                voted = voted and li[lane, _PLEAF] != _NO_LEAF
-            cost += charge(cnt, hist, costs, POSTPONE, parked)
         for which in range(2):
             group = out if which == 0 else stepped
             if which == 1 and not voted:

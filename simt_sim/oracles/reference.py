@@ -220,22 +220,34 @@ def _spec_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
         t = [lane for lane in alive if _is_trav(w.next(lane))]
         if not t:
             break
-        issued += _trav_step(w, t, rec)
-        if len(t) < rec.warp_size:
-            issued += rec.charge("trav_diverged", t)
-        w.advance(t)
-        post = [lane for lane in t if w.next(lane) == LEAF and lane not in parked]
-        issued += rec.charge("postpone", post)
-        for lane in post:
-            ops = [LEAF]
-            w.advance([lane])
-            while _is_tri(w.next(lane)):
-                ops.append(w.next(lane))
-                w.advance([lane])
-            parked[lane] = ops
-        if all(lane in parked for lane in t):
+        step, held = _spec_step(w, t, parked, rec)
+        issued += step
+        if held:
             break
     return issued + _spec_leaves(w, alive, parked, rec)
+
+
+def _spec_step(
+    w: _Lanes, t: list[int], parked: dict[int, list[int]], rec: RefCounts
+) -> tuple[int, bool]:
+    """One speculative step of the lanes ``t`` (the vote's fallback when the warp is
+    diverged); a lane that lands on a leaf while holding none parks it (its LEAF and TRI
+    ops into ``parked``). Returns the instructions and whether every lane of ``t`` now
+    holds a parked leaf (the vote ends the traversal loop)."""
+    issued = _trav_step(w, t, rec)
+    if len(t) < rec.warp_size:
+        issued += rec.charge("trav_diverged", t)
+    w.advance(t)
+    post = [lane for lane in t if w.next(lane) == LEAF and lane not in parked]
+    issued += rec.charge("postpone", post)
+    for lane in post:
+        ops = [LEAF]
+        w.advance([lane])
+        while _is_tri(w.next(lane)):
+            ops.append(w.next(lane))
+            w.advance([lane])
+        parked[lane] = ops
+    return issued, all(lane in parked for lane in t)
 
 
 def _spec_leaves(w: _Lanes, lanes: list[int], parked: dict[int, list[int]], rec: RefCounts) -> int:
@@ -268,21 +280,9 @@ def _spec_rounds(w: _Lanes, everyone: list[int], rec: RefCounts) -> int:
         out = [lane for lane in alive if lane not in t]
         voted: list[int] = []
         if t:
-            issued += _trav_step(w, t, rec)
-            if len(t) < rec.warp_size:
-                issued += rec.charge("trav_diverged", t)
-            w.advance(t)
-            post = [lane for lane in t if w.next(lane) == LEAF and lane not in parked]
-            issued += rec.charge("postpone", post)
-            for lane in post:
-                ops = [LEAF]
-                w.advance([lane])
-                while _is_tri(w.next(lane)):
-                    ops.append(w.next(lane))
-                    w.advance([lane])
-                parked[lane] = ops
-            if all(lane in parked for lane in t):
-                voted = t
+            step, held = _spec_step(w, t, parked, rec)
+            issued += step
+            voted = t if held else []
         for group in (out, voted):
             if group:
                 issued += rec.charge("loop_control", group)
