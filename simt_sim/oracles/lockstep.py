@@ -165,7 +165,7 @@ from simt_sim.simt.engine import (
     tri_groups,
     tri_pack,
 )
-from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, executed_on, get_gpu
+from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, executed_on, get_gpu, runs_in_rounds
 from simt_sim.simt.occupancy import kernel_occupancy
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult, check_ir
@@ -1549,7 +1549,7 @@ def execute(
         )
         counts = Counts(cnt[0], cnt[1], hist, totals, int(span))
     else:
-        rounds = g.independent_thread_scheduling and "trav_step" in ir.rounds
+        rounds = runs_in_rounds(ir, g)
         cnt, hist, unit_cost, tri, t, ops, overflow = _execute(
             scheme.lockstep, persistent, *args, g.warp_size, costs, rounds
         )

@@ -303,7 +303,7 @@ def speculative_group(streams: list[list[int]], addrs: list[list[int]], rec: Ref
     issued += rec.charge("ray_setup", everyone)
     if rec.rounds:
         issued += _spec_rounds(w, everyone, rec)
-    while True:
+    while not rec.rounds:
         alive = [lane for lane in everyone if w.next(lane) is not None]
         if not alive:
             break

@@ -82,6 +82,18 @@ from simt_sim.types.optrace import LEAF, TRAV_BOTH
 SCRATCH_ROWS = 4
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _park(op, c, e, lane, park, park_end):
+    """Park the LEAF op at cursor ``c`` of ``lane``'s stream (ending at ``e``) with its TRI
+    ops: returns the cursor past them."""
+    park[lane] = c
+    c += 1
+    while c < e and op[np.uint64(c)] > LEAF:
+        c += 1
+    park_end[lane] = c
+    return c
+
+
 @njit(cache=True, nogil=True)
 def _spec_trav_loop(op, cur, end, park, park_end, trav, acc, post, first, costs, cnt, hist):
     """Speculative traversal loop of the lanes in mask ``trav`` (all at a TRAV op).
@@ -123,11 +135,7 @@ def _spec_trav_loop(op, cur, end, park, park_end, trav, acc, post, first, costs,
                 o = op_at(op, c, e)
                 j += 1
                 if o == LEAF:  # postpone: park the leaf and its triangles, go on
-                    park[lane] = c
-                    c += 1
-                    while c < e and op[np.uint64(c)] > LEAF:
-                        c += 1
-                    park_end[lane] = c
+                    c = _park(op, c, e, lane, park, park_end)
                     parked |= bit
                     post[j - 1] += 1
                     last = max(last, j - 1)
@@ -254,11 +262,7 @@ def spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist):
                 e = end[lane]
                 o = op_at(op, c, e)
                 if o == LEAF and not (parked >> lane) & 1:
-                    park[lane] = c
-                    c += 1
-                    while c < e and op[np.uint64(c)] > LEAF:
-                        c += 1
-                    park_end[lane] = c
+                    c = _park(op, c, e, lane, park, park_end)
                     parked |= np.int64(1) << lane
                     post += 1
                     o = op_at(op, c, e)
@@ -298,8 +302,7 @@ def _group(offsets, op, r0, n, cur, end, scratch, acc, post, costs, cnt, hist, r
     issued += charge(cnt, hist, costs, RAY_SETUP, n)
     if rounds:
         issued += spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist)
-        trav = leaf = np.int64(0)
-    while trav | leaf:
+    while not rounds and trav | leaf:
         o_issued, trav = spec_outer_step(op, cur, end, trav, leaf, scratch, acc, post, costs,
                                          cnt, hist)  # fmt: skip
         issued += o_issued

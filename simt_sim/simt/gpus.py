@@ -238,6 +238,14 @@ def executed_on(ir: KernelIR, gpu: GpuConfig) -> KernelIR:
     return ir if blocks == ir.blocks else replace(ir, blocks=blocks, bytes=moved)
 
 
+def runs_in_rounds(ir: KernelIR, gpu: GpuConfig) -> bool:
+    """Whether ``gpu`` runs ``ir``'s traversal loop in rounds: its code closes each
+    iteration at a convergence barrier the lanes outside the loop also reach
+    (``KernelIR.rounds``), and the GPU schedules threads independently, so lanes wait
+    there (a GPU that reconverges on a stack has no such barrier)."""
+    return gpu.independent_thread_scheduling and "trav_step" in ir.rounds
+
+
 def _lanes(value: dict, label: str) -> tuple[tuple[str, int], ...]:
     unknown = sorted(set(value) - set(PIPES))
     if unknown:

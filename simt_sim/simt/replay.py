@@ -35,7 +35,7 @@ from simt_sim.simt.engine import (
     replay_arrays,
     scan_trace,
 )
-from simt_sim.simt.gpus import GpuConfig, executed_on
+from simt_sim.simt.gpus import GpuConfig, executed_on, runs_in_rounds
 from simt_sim.simt.occupancy import kernel_occupancy
 from simt_sim.simt.result import SimResult, check_ir, merge
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
@@ -139,7 +139,7 @@ def simulate_traces(
         raise SimtSimError(
             f"launch_size must be a positive multiple of the warp size {w}, got {launch_size}"
         )
-    rounds = gpu.independent_thread_scheduling and "trav_step" in ir.rounds
+    rounds = runs_in_rounds(ir, gpu)
     replay_params = ReplayParams(w, r, values, rounds)
     costs = cost_vector(ir)
     totals = np.zeros(3, np.int64)

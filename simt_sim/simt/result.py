@@ -23,7 +23,7 @@ from kernels_ir.pairing import UNMAPPED_SHARE, block_pair_counts
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.bounds import dual_issue_bound, issue_bound, pipe_bound, roofline
 from simt_sim.simt.engine import Counts, class_mix, cost_vector, lane_traffic
-from simt_sim.simt.gpus import GpuConfig, executed_on
+from simt_sim.simt.gpus import GpuConfig, executed_on, runs_in_rounds
 
 TRAVERSAL_BLOCKS = ("trav_step", "trav_none", "trav_one", "trav_both", "trav_diverged")
 INTERSECTION_BLOCKS = ("leaf_entry", "tri_test", "tri_u", "tri_v", "tri_hit")
@@ -295,7 +295,7 @@ class SimResult:
             ir, self.model_card.get("ir_kernel", self.scheme), self.model_card.get("ir_blocks", ())
         )
         ir = executed_on(ir, self.gpu)
-        rounds = self.gpu.independent_thread_scheduling and "trav_step" in ir.rounds
+        rounds = runs_in_rounds(ir, self.gpu)
         if rounds != self.model_card.get("traversal_rounds", False):
             raise SimtSimError(
                 f"{self.scheme} on {self.gpu.id} runs its traversal loop "
