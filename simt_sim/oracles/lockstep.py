@@ -543,13 +543,15 @@ def _spec_alive(li, lanes):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs):
+def _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs, barriers):
     """One speculative traversal step of the ``n`` lanes in ``sel`` (the vote's fallback
     when some lanes are elsewhere); a lane that lands on a leaf while holding none parks
-    it and pops the next node (``postpone``). Returns the cost (-1 on a stack overflow)
-    and whether every lane that stepped now holds a parked leaf (the vote ends the
-    loop)."""
-    c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs)
+    it and pops the next node (``postpone``). ``barriers``: the step's outcomes and the
+    lanes that postpone and those that do not reach their barriers apart. Returns the
+    cost (-1 on a stack overflow) and whether every lane that stepped now holds a parked
+    leaf (the vote ends the loop)."""
+    c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs,
+                             barriers)  # fmt: skip
     if c < 0:
         return np.int64(-1), False
     if n < hist.shape[1] - 1:  # a diverged warp: the vote takes its fallback
@@ -563,6 +565,8 @@ def _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, cost
             _pop(li, stack, lane)
             parked += 1
         held = held and li[lane, _PLEAF] != _NO_LEAF
+    if barriers:
+        c += charge_apart(cnt, hist, costs, np.int64(parked > 0 and parked < n))
     return c + charge(cnt, hist, costs, POSTPONE, parked), held
 
 
@@ -578,7 +582,8 @@ def _speculative_iteration(li, lf, stack, lanes, alive, nodes, nodes_i, woop, wo
     # parked; break once every lane that stepped holds one.
     n = _lanes_with(li, lanes, _K_TRAV, sel)
     while n > 0:
-        c, held = _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs)
+        c, held = _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs,
+                             False)  # fmt: skip
         if c < 0:
             return np.int64(-1)
         cost += c
@@ -592,23 +597,37 @@ def _speculative_iteration(li, lf, stack, lanes, alive, nodes, nodes_i, woop, wo
         n = m
     member = np.ones(lanes, np.bool_)
     return cost + _spec_leaves(li, lf, stack, lanes, member, woop, woop_i, any_hit, ops, base,
-                               cnt, hist, costs, sel, tri_sel)  # fmt: skip
+                               cnt, hist, costs, sel, tri_sel, False)  # fmt: skip
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _spec_leaves(li, lf, stack, lanes, member, woop, woop_i, any_hit, ops, base, cnt, hist, costs,
-                 sel, tri_sel):  # fmt: skip
+                 sel, tri_sel, barriers):  # fmt: skip
     """The speculative kernel's intersection loop for the lanes with ``member`` set: each
-    one's parked leaf first, then the leaves it stands at. Returns its cost."""
+    one's parked leaf first, then the leaves it stands at. ``barriers``: a triangle test's
+    outcomes, the lanes that leave the triangle loop apart, the ``if`` that pops the leaf
+    a lane stands at (lanes that pop and those that do not) and the loop's exit (lanes
+    that leave after different leaves, lanes that skip it) are reached apart. Returns its
+    cost."""
     cost = np.int64(0)
+    before = 0  # the lanes of the group, then of the last iteration
+    for lane in range(lanes):
+        before += member[lane]
+    exits = np.int64(0)
+    first = True
     while True:
         n = 0
         for lane in range(lanes):
             if member[lane] and (li[lane, _PLEAF] != _NO_LEAF or _next(li, lane) == _K_LEAF):
                 sel[n] = lane
                 n += 1
+        exits += np.int64(n < before)  # the first time: lanes that skip the loop
+        if barriers and not first and 0 < n < before:  # lanes that pop a leaf, and others
+            cost += charge_apart(cnt, hist, costs, np.int64(1))
         if n == 0:
             break
+        first = False
+        before = n
         cost += charge(cnt, hist, costs, LEAF_ENTRY, n)
         for k in range(n):
             lane = sel[k]
@@ -620,16 +639,24 @@ def _spec_leaves(li, lf, stack, lanes, member, woop, woop_i, any_hit, ops, base,
                 leaf = li[lane, _NODE]
                 _pop(li, stack, lane)
             _open_leaf(li, lane, leaf, woop_i)
+        tri_exits = np.int64(0)
+        entered = n
         while True:
             m = 0
             for k in range(n):
                 if _next(li, sel[k]) == _K_TRI:
                     tri_sel[m] = sel[k]
                     m += 1
+            tri_exits += np.int64(m < entered)
             if m == 0:
                 break
+            entered = m
             cost += _tri_iteration(li, lf, tri_sel, m, woop, woop_i, any_hit, ops, base,
-                                   cnt, hist, costs)  # fmt: skip
+                                   cnt, hist, costs, barriers)  # fmt: skip
+        if barriers:
+            cost += charge_apart(cnt, hist, costs, apart(tri_exits))
+    if barriers:
+        cost += charge_apart(cnt, hist, costs, apart(exits))
     return cost
 
 
@@ -640,30 +667,44 @@ def _speculative_rounds(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_
     the lanes at interior nodes step once (parking the first leaf they meet), and the
     other lanes with work run loop_control and their intersection loop; when no lane that
     stepped is still searching (the vote), those lanes run theirs too, as a group of
-    their own. Returns the cost, or -1 on a stack overflow."""
+    their own. A lane whose stack ran out in a step, holding no leaf, runs loop_control
+    with the next round's others before it finishes. Every convergence barrier is reached
+    apart by each group: a step's, the intersection loop's, the round's (the lanes that
+    step on, each group with work left) and the outer loop's exit (each group in which
+    lanes finish). Returns the cost, or -1 on a stack overflow."""
     cost = np.int64(0)
+    finishing = np.int64(0)
     stepped = np.zeros(lanes, np.bool_)
     out = np.zeros(lanes, np.bool_)
+    spent = np.zeros(lanes, np.bool_)
     while True:
         n = 0
         m = 0
         for lane in range(lanes):
             k = _next(li, lane)
             stepped[lane] = k == _K_TRAV
-            out[lane] = not stepped[lane] and (k != _K_NONE or li[lane, _PLEAF] != _NO_LEAF)
+            out[lane] = not stepped[lane] and (
+                k != _K_NONE or li[lane, _PLEAF] != _NO_LEAF or spent[lane]
+            )
             if stepped[lane]:
                 sel[n] = lane
                 n += 1
             m += out[lane]
         if n == 0 and m == 0:
-            return cost
+            return cost + charge_apart(cnt, hist, costs, apart(finishing))
         voted = False
+        waiting = np.int64(0)
         if n > 0:
             c, voted = _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist,
-                                  costs)  # fmt: skip
+                                  costs, True)  # fmt: skip
             if c < 0:
                 return np.int64(-1)
             cost += c
+            waiting += np.int64(not voted)
+        for lane in range(lanes):
+            spent[lane] = (
+                stepped[lane] and _next(li, lane) == _K_NONE and li[lane, _PLEAF] == _NO_LEAF
+            )
         for which in range(2):
             group = out if which == 0 else stepped
             if which == 1 and not voted:
@@ -675,7 +716,13 @@ def _speculative_rounds(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_
                 continue
             cost += charge(cnt, hist, costs, LOOP_CONTROL, g)
             cost += _spec_leaves(li, lf, stack, lanes, group, woop, woop_i, any_hit, ops, base,
-                                 cnt, hist, costs, sel, tri_sel)  # fmt: skip
+                                 cnt, hist, costs, sel, tri_sel, True)  # fmt: skip
+            left = 0
+            for lane in range(lanes):
+                left += group[lane] and _next(li, lane) != _K_NONE
+            waiting += np.int64(left > 0)
+            finishing += np.int64(left < g)
+        cost += charge_apart(cnt, hist, costs, apart(waiting))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

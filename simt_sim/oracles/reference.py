@@ -220,20 +220,20 @@ def _spec_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
         t = [lane for lane in alive if _is_trav(w.next(lane))]
         if not t:
             break
-        step, held = _spec_step(w, t, parked, rec)
+        step, held, _ = _spec_step(w, t, parked, rec)
         issued += step
         if held:
             break
-    return issued + _spec_leaves(w, alive, parked, rec)
+    return issued + _spec_leaves(w, alive, parked, rec, barriers=False)
 
 
 def _spec_step(
     w: _Lanes, t: list[int], parked: dict[int, list[int]], rec: RefCounts
-) -> tuple[int, bool]:
+) -> tuple[int, bool, int]:
     """One speculative step of the lanes ``t`` (the vote's fallback when the warp is
     diverged); a lane that lands on a leaf while holding none parks it (its LEAF and TRI
-    ops into ``parked``). Returns the instructions and whether every lane of ``t`` now
-    holds a parked leaf (the vote ends the traversal loop)."""
+    ops into ``parked``). Returns the instructions, whether every lane of ``t`` now holds
+    a parked leaf (the vote ends the traversal loop) and how many lanes postponed."""
     issued = _trav_step(w, t, rec)
     if len(t) < rec.warp_size:
         issued += rec.charge("trav_diverged", t)
@@ -247,21 +247,40 @@ def _spec_step(
             ops.append(w.next(lane))
             w.advance([lane])
         parked[lane] = ops
-    return issued, all(lane in parked for lane in t)
+    return issued, all(lane in parked for lane in t), len(post)
 
 
-def _spec_leaves(w: _Lanes, lanes: list[int], parked: dict[int, list[int]], rec: RefCounts) -> int:
+def _spec_leaves(
+    w: _Lanes, lanes: list[int], parked: dict[int, list[int]], rec: RefCounts, barriers: bool
+) -> int:
     """The postponed leaves ``parked`` (lane -> its LEAF and TRI ops), then leaf after leaf
-    for the ``lanes`` at a leaf."""
+    for the ``lanes`` at a leaf. ``barriers``: the triangle loop's, the ``if`` that pops a
+    leaf a lane stands on (lanes that pop and lanes that do not), and the loop's exit
+    (lanes that leave after different leaves, lanes that skip it) are reached apart."""
     issued = 0
+    leaf = [lane for lane in lanes if w.next(lane) == LEAF]
+    exits = int(any(lane not in parked and lane not in leaf for lane in lanes))
     if parked:
         held = sorted(parked)
         pw = _Lanes([parked[lane] for lane in held])
         group = list(range(len(held)))
         issued += rec.charge("leaf_entry", group)
         pw.advance(group)
-        issued += _tri_loop(pw, group, rec, barriers=False)
-    return issued + _leaf_loop(w, lanes, rec, barriers=False)
+        issued += _tri_loop(pw, group, rec, barriers)
+        stay = [lane for lane in held if lane in leaf]
+        exits += len(stay) < len(held)
+        if barriers:
+            issued += rec.apart((len(stay) > 0) + (len(stay) < len(held)))
+    while leaf:
+        issued += rec.charge("leaf_entry", leaf)
+        w.advance(leaf)
+        issued += _tri_loop(w, leaf, rec, barriers)
+        still = [lane for lane in leaf if w.next(lane) == LEAF]
+        exits += len(still) < len(leaf)
+        if barriers:
+            issued += rec.apart((len(still) > 0) + (len(still) < len(leaf)))
+        leaf = still
+    return issued + (rec.apart(exits) if barriers else 0)
 
 
 def _spec_rounds(w: _Lanes, everyone: list[int], rec: RefCounts) -> int:
@@ -269,25 +288,41 @@ def _spec_rounds(w: _Lanes, everyone: list[int], rec: RefCounts) -> int:
     node steps (postponing its first leaf), and every other lane with work left runs
     loop_control, its postponed leaf and the leaves after it; when the vote ends the
     traversal loop (each lane that stepped holds a postponed leaf), the lanes that stepped
-    do so too, after the others."""
+    do so too, after the others. A lane that stepped to its last op holding no leaf runs
+    loop_control in the next round before it finishes. Every convergence barrier is
+    reached apart by each group: a step's outcomes, the lanes that postpone and the
+    others, the intersection loop's, the round's (the lanes that step on, each group with
+    work left) and the outer loop's exit (each group in which lanes finish)."""
     issued = 0
+    finishing = 0
     parked: dict[int, list[int]] = {}
+    spent: list[int] = []
     while True:
-        alive = [lane for lane in everyone if w.next(lane) is not None or lane in parked]
+        alive = [lane for lane in everyone
+                 if w.next(lane) is not None or lane in parked or lane in spent]  # fmt: skip
         if not alive:
-            return issued
+            return issued + rec.apart(finishing)
         t = [lane for lane in alive if _is_trav(w.next(lane))]
         out = [lane for lane in alive if lane not in t]
         voted: list[int] = []
+        waiting = 0
+        spent = []
         if t:
-            step, held = _spec_step(w, t, parked, rec)
-            issued += step
+            issued += rec.apart(len({w.next(lane) for lane in t}))
+            step, held, post = _spec_step(w, t, parked, rec)
+            issued += step + rec.apart((post > 0) + (post < len(t)))
+            spent = [lane for lane in t if w.next(lane) is None and lane not in parked]
             voted = t if held else []
+            waiting = int(not held)
         for group in (out, voted):
             if group:
                 issued += rec.charge("loop_control", group)
                 mine = {lane: parked.pop(lane) for lane in group if lane in parked}
-                issued += _spec_leaves(w, group, mine, rec)
+                issued += _spec_leaves(w, group, mine, rec, barriers=True)
+                left = [lane for lane in group if w.next(lane) is not None]
+                waiting += len(left) > 0
+                finishing += len(left) < len(group)
+        issued += rec.apart(waiting)
 
 
 def _idle_wait(n: int, rec: RefCounts) -> int:

@@ -24,9 +24,10 @@ leaf loop also reach (sm_80 on: ``KernelIR.rounds``) and the GPU schedules threa
 independently, the lanes that left the loop wait there for the others' next step, and
 the warp runs in rounds instead (:func:`spec_rounds`; ``ReplayParams.rounds``).
 
-No ``reconverge`` is charged: sm_75's lanes leave the traversal loop for the leaf loop
-with no barrier between them, which the replay does not model (docs/gpu_results.md), so
-neither are the leaf loop's barriers.
+No ``reconverge`` is charged in phases: sm_75's lanes leave the traversal loop for the
+leaf loop with no barrier between them, which the replay does not model
+(docs/gpu_results.md), so neither are the leaf loop's barriers. In rounds every barrier
+is charged (:func:`spec_rounds`).
 
 Approximation: each ray's ops are replayed from its recorded (non-speculative) stream, so
 op counts per ray are preserved; the real kernel may also visit nodes that a stale tmax
@@ -45,6 +46,7 @@ from simt_sim.schemes.while_while import (
     charge_trav,
     classify,
     isect_loop,
+    trav_groups,
     trav_lanes,
     trav_pack,
     tri_loop,
@@ -62,7 +64,9 @@ from simt_sim.simt.engine import (
     TRAV_DIVERGED,
     Counts,
     ReplayParams,
+    apart,
     charge,
+    charge_apart,
     chunk_bounds,
     is_leaf,
     is_trav,
@@ -196,23 +200,32 @@ def spec_outer_step(op, cur, end, trav, leaf, scratch, acc, post, costs, cnt, hi
     on return).
     """
     park, park_end, first = scratch[0], scratch[1], scratch[3]
-    issued = charge(cnt, hist, costs, LOOP_CONTROL, popcount(trav | leaf))
+    alive = trav | leaf
+    issued = charge(cnt, hist, costs, LOOP_CONTROL, popcount(alive))
     t_issued, parked, t_leaf, trav = _spec_trav_loop(
         op, cur, end, park, park_end, trav, acc, post, first, costs, cnt, hist
     )
-    l_issued, l_trav = _leaves(op, cur, end, parked, leaf | t_leaf, scratch, acc, costs, cnt,
-                               hist)  # fmt: skip
+    l_issued, l_trav, _ = _leaves(op, cur, end, alive, parked, leaf | t_leaf, scratch, acc,
+                                  costs, cnt, hist)  # fmt: skip
     return issued + t_issued + l_issued, trav | l_trav
 
 
 @njit(cache=True, nogil=True)
-def _leaves(op, cur, end, parked, leaf, scratch, acc, costs, cnt, hist):
-    """The intersection loop: the postponed leaves of the lanes in mask ``parked``
-    (``leaf_entry``, then their triangles in lockstep), then, as while-while's, leaf after
-    leaf for the lanes at a LEAF (mask ``leaf``). Returns the instructions issued and the
-    mask of lanes that stopped at a TRAV."""
+def _leaves(op, cur, end, group, parked, leaf, scratch, acc, costs, cnt, hist):
+    """The intersection loop of the lanes in mask ``group``: the postponed leaves of those
+    in ``parked`` (``leaf_entry``, then their triangles in lockstep), then, as
+    while-while's, leaf after leaf for those at a LEAF (mask ``leaf``). Returns the
+    instructions issued, the mask of lanes that stopped at a TRAV, and the issues of its
+    convergence barriers by groups of lanes that reach them apart (beyond the first; the
+    caller charges them where the GPU has such barriers): a triangle test's outcomes and
+    the triangle loop's exits as while-while's, the ``if`` that pops a leaf the lane
+    stands on (lanes that pop and lanes that do not, in every iteration but the last),
+    and the loop's exit (lanes that leave after different leaves, and lanes that skip
+    it, holding no leaf)."""
     park, park_end, pcur = scratch[0], scratch[1], scratch[2]
     issued = np.int64(0)
+    extra = np.int64(0)
+    exits = np.int64(0)
     if parked:
         issued += charge(cnt, hist, costs, LEAF_ENTRY, popcount(parked))
         tri = np.int64(0)
@@ -222,9 +235,17 @@ def _leaves(op, cur, end, parked, leaf, scratch, acc, costs, cnt, hist):
             m &= m - 1
             pcur[lane] = park[lane] + 1
             tri |= np.int64(pcur[lane] < park_end[lane]) << lane
-        issued += tri_loop(op, pcur, park_end, tri, acc, costs, cnt, hist)[0]
-    i_issued, i_trav = isect_loop(op, cur, end, leaf, acc, costs, cnt, hist)[:2]
-    return issued + i_issued, i_trav
+        t_issued, _, _, t_extra, t_exits = tri_loop(op, pcur, park_end, tri, acc, costs, cnt,
+                                                    hist)  # fmt: skip
+        issued += t_issued
+        gone = parked & ~leaf  # no leaf to pop: they leave after their postponed one
+        extra += t_extra + apart(t_exits + np.int64((parked & ~tri) != 0))
+        extra += np.int64(gone != 0 and gone != parked)
+        exits += np.int64(gone != 0)
+    i_issued, i_trav, i_extra, i_exits = isect_loop(op, cur, end, leaf, acc, costs, cnt, hist)
+    extra += i_extra + apart(i_exits)  # the pop's two groups, in each but the last leaf
+    extra += apart(exits + i_exits + np.int64((group & ~parked & ~leaf) != 0))
+    return issued + i_issued, i_trav, extra
 
 
 @njit(cache=True, nogil=True)
@@ -239,17 +260,29 @@ def spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist):
     outer iteration: ``loop_control``, its postponed leaf and the leaves after it. If
     every lane that stepped now holds a postponed leaf (the vote), those lanes do so too,
     as a group of their own: they leave the step's vote where the others left the loop's
-    test. All meet at the barrier before the next round.
+    test. A lane whose last op was a step and that holds no leaf (its stack ran out) runs
+    the rest of an outer iteration with the next round's others before it finishes. All
+    meet at the barrier before the next round.
+
+    Every group of lanes that reaches a convergence barrier apart issues it
+    (``reconverge``): a step's outcomes, the lanes that postpone and those that do not,
+    the intersection loop's barriers (:func:`_leaves`), the round's barrier (the lanes
+    that step on, and each group that ran the intersection loop and has work left), and
+    the outer loop's exit (each group in which lanes finish).
     """
     park, park_end = scratch[0], scratch[1]
     warp_size = cur.shape[0]
     issued = np.int64(0)
+    extra = np.int64(0)
+    finishing = np.int64(0)  # groups in which lanes finish
     parked = np.int64(0)
-    while trav | leaf | parked:
-        out = (leaf | parked) & ~trav  # at a leaf, or out of nodes with one postponed
+    spent = np.int64(0)  # lanes out of ops that hold no leaf: they finish next round
+    while trav | leaf | parked | spent:
+        out = (leaf | parked | spent) & ~trav  # at a leaf, or out of nodes
         voted = np.int64(0)
         at_trav = np.int64(0)  # where the lanes that stepped stand
         at_leaf = np.int64(0)
+        spent = np.int64(0)
         if trav:
             a = np.int64(0)
             post = np.int64(0)
@@ -257,36 +290,44 @@ def spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist):
             while m:
                 lane = lowest_lane(m)
                 m &= m - 1
+                bit = np.int64(1) << lane
                 a += trav_pack(op[np.uint64(cur[lane])])
                 c = cur[lane] + 1
                 e = end[lane]
                 o = op_at(op, c, e)
-                if o == LEAF and not (parked >> lane) & 1:
+                if o == LEAF and not parked & bit:
                     c = _park(op, c, e, lane, park, park_end)
-                    parked |= np.int64(1) << lane
+                    parked |= bit
                     post += 1
                     o = op_at(op, c, e)
                 cur[lane] = c
                 at_trav |= is_trav(o) << lane
                 at_leaf |= is_leaf(o) << lane
+                spent |= np.int64(c == e and not parked & bit) << lane
             issued += charge_trav(cnt, hist, costs, a)
             k = trav_lanes(a)
             if k < warp_size:  # some threads are elsewhere: the vote takes its fallback
                 issued += charge(cnt, hist, costs, TRAV_DIVERGED, k)
             issued += charge(cnt, hist, costs, POSTPONE, post)
+            extra += apart(trav_groups(a)) + np.int64(post > 0 and post < k)
             if trav & ~parked == 0:
                 voted = trav
+        waiting = np.int64(trav != 0 and voted == 0)  # groups at the round's barrier
         trav = at_trav
         for group, leaves in ((out, out & leaf), (voted, voted & at_leaf)):
             if group:
                 issued += charge(cnt, hist, costs, LOOP_CONTROL, popcount(group))
-                l_issued, l_trav = _leaves(op, cur, end, group & parked, leaves, scratch, acc,
-                                           costs, cnt, hist)  # fmt: skip
+                l_issued, l_trav, l_extra = _leaves(op, cur, end, group, group & parked, leaves,
+                                                    scratch, acc, costs, cnt, hist)  # fmt: skip
                 issued += l_issued
+                extra += l_extra
                 trav |= l_trav
                 parked &= ~group
+                waiting += np.int64(group & trav != 0)
+                finishing += np.int64(group & ~trav != 0)
+        extra += apart(waiting)
         leaf = at_leaf & ~voted
-    return issued
+    return issued + charge_apart(cnt, hist, costs, extra + apart(finishing))
 
 
 @njit(cache=True, nogil=True)

@@ -228,33 +228,45 @@ def rounds_ir(scheme: str) -> KernelIR:
     )
 
 
-#: CASE_SPECULATIVE in rounds. 1: both step, lane 0 postpones. 2: both step, lane 0 meets
-#: its second leaf. 3: lane 0 runs loop_control and both its leaves while lane 1 steps
-#: alone (diverged), postpones and, the vote ending the loop, intersects its leaf as a
-#: group of its own.
-ROUNDS_TABLE = {
-    "pool_fetch": (1, 2), "ray_setup": (1, 2), "loop_control": (2, 2), "trav_step": (3, 5),
-    "trav_one": (3, 4), "trav_both": (1, 1), "trav_diverged": (1, 1), "postpone": (2, 2),
-    "leaf_entry": (3, 3), "tri_test": (3, 3), "tri_u": (2, 2), "tri_v": (1, 1),
-    "tri_hit": (1, 1), "finish": (1, 2),
-}  # fmt: skip
+ROUNDS_BY_HAND = [
+    # 1: both step (two outcomes: a barrier issued again), lane 0 postpones (and lane 1 not:
+    # again). 2: both step, lane 0 meets its second leaf. 3: lane 0 runs loop_control and
+    # both its leaves while lane 1 steps alone (diverged), postpones and, the vote ending
+    # the loop, intersects its leaf as a group of its own; both finish, in two groups that
+    # reach the outer loop's exit apart.
+    (CASE_SPECULATIVE, {
+        "pool_fetch": (1, 2), "ray_setup": (1, 2), "loop_control": (2, 2), "trav_step": (3, 5),
+        "trav_one": (3, 4), "trav_both": (1, 1), "trav_diverged": (1, 1), "postpone": (2, 2),
+        "leaf_entry": (3, 3), "tri_test": (3, 3), "tri_u": (2, 2), "tri_v": (1, 1),
+        "tri_hit": (1, 1), "finish": (1, 2), "reconverge": (3, 0)}),
+    # 1: both step, lane 0 postpones, lane 1 not (a barrier again). 2: both step to their
+    # stacks' end, lane 1 holding no leaf. 3: lane 0 runs its postponed leaf and lane 1,
+    # skipping the leaf loop (its exit again), runs loop_control with it before finishing.
+    ([[TRAV_ONE, LEAF, TRI_MISS_T, TRAV_NONE], [TRAV_ONE, TRAV_NONE]], {
+        "pool_fetch": (1, 2), "ray_setup": (1, 2), "loop_control": (1, 2), "trav_step": (2, 4),
+        "trav_none": (1, 2), "trav_one": (1, 2), "postpone": (1, 1), "leaf_entry": (1, 1),
+        "tri_test": (1, 1), "finish": (1, 2), "reconverge": (2, 0)}),
+]  # fmt: skip
 
 
-def test_speculative_rounds_by_hand() -> None:
-    trace = trace_from_lists(CASE_SPECULATIVE)
+@pytest.mark.parametrize(("ops", "table"), ROUNDS_BY_HAND)
+def test_speculative_rounds_by_hand(ops: list[list[int]], table: dict) -> None:
+    trace = trace_from_lists(ops)
     scheme = get_scheme(SPECULATIVE)
     r = simulate_traces([trace], scheme, rounds_ir(SPECULATIVE), gpu_for(2))
-    expect(r, ROUNDS_TABLE)
-    addrs = [list(range(len(o))) for o in CASE_SPECULATIVE]
-    ref = reference_replay(CASE_SPECULATIVE, addrs, scheme, COSTS, 2, resident_warps=4,
-                           rounds=True)  # fmt: skip
-    assert {b: (ref.executions[b], ref.active[b]) for b in BLOCKS if ref.executions[b]} == (
-        ROUNDS_TABLE
-    )
-    # a GPU that reconverges on a stack runs the same code in phases
+    expect(r, table)
+    addrs = [list(range(len(o))) for o in ops]
+    ref = reference_replay(ops, addrs, scheme, COSTS, 2, resident_warps=4, rounds=True)
+    assert {b: (ref.executions[b], ref.active[b]) for b in BLOCKS if ref.executions[b]} == table
+
+
+def test_a_pre_volta_gpu_runs_the_rounds_code_in_phases() -> None:
+    """A GPU that reconverges on a stack runs the same code in phases, with no barrier."""
     pre_volta = replace(gpu_for(2), arch="sm_13")
-    phases = simulate_traces([trace], scheme, rounds_ir(SPECULATIVE), pre_volta)
+    trace = trace_from_lists(CASE_SPECULATIVE)
+    phases = simulate_traces([trace], get_scheme(SPECULATIVE), rounds_ir(SPECULATIVE), pre_volta)
     assert phases.executions["loop_control"] == 1 and phases.executions["leaf_entry"] == 2
+    assert phases.executions["reconverge"] == 0
 
 
 @pytest.mark.parametrize(("warp_size", "any_hit"), [(32, False), (4, True)])
