@@ -347,11 +347,10 @@ def _tri_test(li, lf, lane, woop, woop_i, any_hit):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs,
-                         barriers=False):  # fmt: skip
-    """One lockstep traversal step of lanes ``sel[:n]``: trav_step plus outcome branches
-    (``barriers``: and the issues of the step's closing barrier by each outcome's lanes
-    after the first, as while-while's kernels close it).
+def _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs):
+    """One lockstep traversal step of lanes ``sel[:n]``: trav_step plus outcome branches,
+    and the issues of the step's closing barrier by each outcome's lanes after the first,
+    as the kernels close it.
 
     Returns the cost issued, or -1 on stack overflow.
     """
@@ -366,27 +365,21 @@ def _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, 
         ops[base + lane, _C_TRAV] += 1
     for o in range(3):
         cost += charge(cnt, hist, costs, TRAV_NONE_B + o, outcome_lanes[o])
-    if barriers:
-        groups = outcome_groups(outcome_lanes[0], outcome_lanes[1], outcome_lanes[2])
-        cost += charge_apart(cnt, hist, costs, apart(groups))
-    return cost
+    groups = outcome_groups(outcome_lanes[0], outcome_lanes[1], outcome_lanes[2])
+    return cost + charge_apart(cnt, hist, costs, apart(groups))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _tri_iteration(li, lf, sel, n, woop, woop_i, any_hit, ops, base, cnt, hist, costs,
-                   barriers=False):  # fmt: skip
+def _tri_iteration(li, lf, sel, n, woop, woop_i, any_hit, ops, base, cnt, hist, costs):
     """Lanes ``sel[:n]`` each test their next triangle in lockstep (tri_test, the stages
-    some lane reaches, tri_hit; ``barriers``: the test's closing barrier issued again by
-    each group after the first that leaves it from its own branch)."""
+    some lane reaches, tri_hit; the test's closing barrier issued again by each group
+    after the first that leaves it from its own branch)."""
     a = np.int64(0)
     for k in range(n):
         lane = sel[k]
         ops[base + lane, _C_TRI] += 1
         a += tri_pack(_tri_test(li, lf, lane, woop, woop_i, any_hit))
-    cost = charge_tri(cnt, hist, costs, a)
-    if barriers:
-        cost += charge_apart(cnt, hist, costs, apart(tri_groups(a)))
-    return cost
+    return charge_tri(cnt, hist, costs, a) + charge_apart(cnt, hist, costs, apart(tri_groups(a)))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -432,7 +425,7 @@ def _intersection_loop(li, lf, stack, lanes, alive, sel, tri_sel, woop, woop_i, 
                 break
             entered = m
             cost += _tri_iteration(li, lf, tri_sel, m, woop, woop_i, any_hit, ops, base,
-                                   cnt, hist, costs, True)  # fmt: skip
+                                   cnt, hist, costs)  # fmt: skip
         cost += charge_apart(cnt, hist, costs, apart(tri_exits))
         after = _lanes_with(li, lanes, _K_LEAF, sel)
         exits += np.int64(after < n)
@@ -471,7 +464,7 @@ def _while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i, any_
                                               costs)  # fmt: skip
             else:
                 c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base,
-                                         cnt, hist, costs, True)  # fmt: skip
+                                         cnt, hist, costs)  # fmt: skip
             if c < 0:
                 return np.int64(-1)
             cost += c
@@ -507,7 +500,7 @@ def _if_if(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, bas
         n = _lanes_with(li, lanes, _K_TRAV, sel)
         if n > 0:
             c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base,
-                                     cnt, hist, costs, True)  # fmt: skip
+                                     cnt, hist, costs)  # fmt: skip
             if c < 0:
                 return np.int64(-1)
             cost += c + charge_apart(cnt, hist, costs, np.int64(n < alive))
@@ -523,7 +516,7 @@ def _if_if(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, ops, bas
         n = _lanes_with(li, lanes, _K_TRI, sel)
         if n > 0:
             cost += _tri_iteration(li, lf, sel, n, woop, woop_i, any_hit, ops, base,
-                                   cnt, hist, costs, True)  # fmt: skip
+                                   cnt, hist, costs)  # fmt: skip
         cost += charge_apart(cnt, hist, costs, apart(if_groups(n, alive)))
         after = lanes - _lanes_with(li, lanes, _K_NONE, sel)
         exits += np.int64(after < alive)
@@ -543,15 +536,14 @@ def _spec_alive(li, lanes):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs, barriers):
+def _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs):
     """One speculative traversal step of the ``n`` lanes in ``sel`` (the vote's fallback
     when some lanes are elsewhere); a lane that lands on a leaf while holding none parks
-    it and pops the next node (``postpone``). ``barriers``: the step's outcomes and the
-    lanes that postpone and those that do not reach their barriers apart. Returns the
-    cost (-1 on a stack overflow) and whether every lane that stepped now holds a parked
-    leaf (the vote ends the loop)."""
-    c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs,
-                             barriers)  # fmt: skip
+    it and pops the next node (``postpone``). The step's outcomes, and the lanes that
+    postpone and those that do not, reach their barriers apart. Returns the cost (-1 on a
+    stack overflow) and whether every lane that stepped now holds a parked leaf (the vote
+    ends the loop)."""
+    c = _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs)
     if c < 0:
         return np.int64(-1), False
     if n < hist.shape[1] - 1:  # a diverged warp: the vote takes its fallback
@@ -565,8 +557,7 @@ def _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, cost
             _pop(li, stack, lane)
             parked += 1
         held = held and li[lane, _PLEAF] != _NO_LEAF
-    if barriers:
-        c += charge_apart(cnt, hist, costs, np.int64(parked > 0 and parked < n))
+    c += charge_apart(cnt, hist, costs, np.int64(parked > 0 and parked < n))
     return c + charge(cnt, hist, costs, POSTPONE, parked), held
 
 
@@ -574,41 +565,46 @@ def _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, cost
 def _speculative_iteration(li, lf, stack, lanes, alive, nodes, nodes_i, woop, woop_i, any_hit,
                            ops, base, cnt, hist, costs, sel, tri_sel):  # fmt: skip
     """One outer iteration of the speculative kernel with ``alive`` lanes that have work:
-    loop_control, the traversal loop, the intersection loop. Returns its cost, or -1 on a
-    stack overflow; afterwards no lane holds a parked leaf. ``sel`` and ``tri_sel`` are
-    scratch of ``lanes`` entries."""
+    loop_control, the traversal loop, the intersection loop. The lanes that leave the
+    traversal loop after different steps (or skip it) reach its exit apart, those its end
+    sends out together. Returns its cost, or -1 on a stack overflow; afterwards no lane
+    holds a parked leaf. ``sel`` and ``tri_sel`` are scratch of ``lanes`` entries."""
     cost = charge(cnt, hist, costs, LOOP_CONTROL, alive)
+    member = np.zeros(lanes, np.bool_)
+    for lane in range(lanes):
+        member[lane] = _next(li, lane) != _K_NONE or li[lane, _PLEAF] != _NO_LEAF
     # Traversal loop: lanes at interior nodes step; the first leaf a lane meets is
     # parked; break once every lane that stepped holds one.
     n = _lanes_with(li, lanes, _K_TRAV, sel)
+    exits = np.int64(n < alive)
     while n > 0:
-        c, held = _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs,
-                             False)  # fmt: skip
+        c, held = _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs)
         if c < 0:
             return np.int64(-1)
         cost += c
-        if held:
-            break
         m = 0
         for k in range(n):
             if _next(li, sel[k]) == _K_TRAV:
                 sel[m] = sel[k]
                 m += 1
+        if held or m == 0:
+            exits += 1
+            break
+        exits += np.int64(m < n)
         n = m
-    member = np.ones(lanes, np.bool_)
+    cost += charge_apart(cnt, hist, costs, apart(exits))
     return cost + _spec_leaves(li, lf, stack, lanes, member, woop, woop_i, any_hit, ops, base,
-                               cnt, hist, costs, sel, tri_sel, False)  # fmt: skip
+                               cnt, hist, costs, sel, tri_sel)  # fmt: skip
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _spec_leaves(li, lf, stack, lanes, member, woop, woop_i, any_hit, ops, base, cnt, hist, costs,
-                 sel, tri_sel, barriers):  # fmt: skip
+                 sel, tri_sel):  # fmt: skip
     """The speculative kernel's intersection loop for the lanes with ``member`` set: each
-    one's parked leaf first, then the leaves it stands at. ``barriers``: a triangle test's
-    outcomes, the lanes that leave the triangle loop apart, the ``if`` that pops the leaf
-    a lane stands at (lanes that pop and those that do not) and the loop's exit (lanes
-    that leave after different leaves, lanes that skip it) are reached apart. Returns its
-    cost."""
+    one's parked leaf first, then the leaves it stands at. A triangle test's outcomes, the
+    lanes that leave the triangle loop apart, the ``if`` that pops the leaf a lane stands
+    at (lanes that pop and those that do not) and the loop's exit (lanes that leave after
+    different leaves, lanes that skip it) are reached apart. Returns its cost."""
     cost = np.int64(0)
     before = 0  # the lanes of the group, then of the last iteration
     for lane in range(lanes):
@@ -622,7 +618,7 @@ def _spec_leaves(li, lf, stack, lanes, member, woop, woop_i, any_hit, ops, base,
                 sel[n] = lane
                 n += 1
         exits += np.int64(n < before)  # the first time: lanes that skip the loop
-        if barriers and not first and 0 < n < before:  # lanes that pop a leaf, and others
+        if not first and 0 < n < before:  # lanes that pop a leaf, and others
             cost += charge_apart(cnt, hist, costs, np.int64(1))
         if n == 0:
             break
@@ -652,12 +648,9 @@ def _spec_leaves(li, lf, stack, lanes, member, woop, woop_i, any_hit, ops, base,
                 break
             entered = m
             cost += _tri_iteration(li, lf, tri_sel, m, woop, woop_i, any_hit, ops, base,
-                                   cnt, hist, costs, barriers)  # fmt: skip
-        if barriers:
-            cost += charge_apart(cnt, hist, costs, apart(tri_exits))
-    if barriers:
-        cost += charge_apart(cnt, hist, costs, apart(exits))
-    return cost
+                                   cnt, hist, costs)  # fmt: skip
+        cost += charge_apart(cnt, hist, costs, apart(tri_exits))
+    return cost + charge_apart(cnt, hist, costs, apart(exits))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -696,7 +689,7 @@ def _speculative_rounds(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_
         waiting = np.int64(0)
         if n > 0:
             c, voted = _spec_step(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist,
-                                  costs, True)  # fmt: skip
+                                  costs)  # fmt: skip
             if c < 0:
                 return np.int64(-1)
             cost += c
@@ -716,7 +709,7 @@ def _speculative_rounds(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_
                 continue
             cost += charge(cnt, hist, costs, LOOP_CONTROL, g)
             cost += _spec_leaves(li, lf, stack, lanes, group, woop, woop_i, any_hit, ops, base,
-                                 cnt, hist, costs, sel, tri_sel, True)  # fmt: skip
+                                 cnt, hist, costs, sel, tri_sel)  # fmt: skip
             left = 0
             for lane in range(lanes):
                 left += group[lane] and _next(li, lane) != _K_NONE
@@ -736,17 +729,19 @@ def _speculative(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit, op
     if rounds:
         cost = _speculative_rounds(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,
                                    ops, base, cnt, hist, costs, sel, tri_sel)  # fmt: skip
-        if cost < 0:
-            return cost
-    while True:
-        alive = _spec_alive(li, lanes)
-        if alive == 0:
-            break
+        return cost if cost < 0 else cost + charge(cnt, hist, costs, FINISH, lanes)
+    alive = _spec_alive(li, lanes)
+    exits = np.int64(alive < lanes)  # lanes that finish apart reach the loop's exit apart
+    while alive > 0:
         c = _speculative_iteration(li, lf, stack, lanes, alive, nodes, nodes_i, woop, woop_i,
                                    any_hit, ops, base, cnt, hist, costs, sel, tri_sel)  # fmt: skip
         if c < 0:
             return np.int64(-1)
         cost += c
+        after = _spec_alive(li, lanes)
+        exits += np.int64(after < alive)
+        alive = after
+    cost += charge_apart(cnt, hist, costs, apart(exits))
     return cost + charge(cnt, hist, costs, FINISH, lanes)
 
 

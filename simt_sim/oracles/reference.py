@@ -101,23 +101,22 @@ def _tri_charge(ops: dict[int, int], rec: RefCounts) -> int:
     return issued + rec.charge("tri_hit", [lane for lane in lanes if ops[lane] == TRI_HIT])
 
 
-def _tri_loop(w: _Lanes, group: list[int], rec: RefCounts, barriers: bool = True) -> int:
-    """The triangle loop of the lanes ``group`` that just entered a leaf. ``barriers``: a
-    test's outcomes close it apart, and the lanes that leave after different triangles
-    (or skip the loop: a leaf with no triangle) reach the loop's exit apart."""
+def _tri_loop(w: _Lanes, group: list[int], rec: RefCounts) -> int:
+    """The triangle loop of the lanes ``group`` that just entered a leaf. A test's
+    outcomes close it apart, and the lanes that leave after different triangles (or skip
+    the loop: a leaf with no triangle) reach the loop's exit apart."""
     issued = 0
     x = [lane for lane in group if _is_tri(w.next(lane))]
     exits = int(len(x) < len(group))
     while x:
         ops = {lane: w.next(lane) for lane in x}
         issued += _tri_charge(ops, rec)
-        if barriers:
-            issued += rec.apart(len({_tri_reach(o) for o in ops.values()}))
+        issued += rec.apart(len({_tri_reach(o) for o in ops.values()}))
         w.advance(x)
         still = [lane for lane in x if _is_tri(w.next(lane))]
         exits += len(still) < len(x)
         x = still
-    return issued + (rec.apart(exits) if barriers else 0)
+    return issued + rec.apart(exits)
 
 
 def _trav_step(w: _Lanes, t: list[int], rec: RefCounts) -> int:
@@ -128,21 +127,21 @@ def _trav_step(w: _Lanes, t: list[int], rec: RefCounts) -> int:
     return issued
 
 
-def _leaf_loop(w: _Lanes, alive: list[int], rec: RefCounts, barriers: bool = True) -> int:
+def _leaf_loop(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
     """The intersection loop: ``leaf_entry`` and the triangle loop while a lane stands at
-    a leaf. ``barriers``: lanes that leave after different leaves (or skip the loop: out
-    of ops) reach its exit apart, and the triangle loop's barriers."""
+    a leaf. Lanes that leave after different leaves (or skip the loop: out of ops) reach
+    its exit apart, as the triangle loop's barriers are reached."""
     issued = 0
     leaf = [lane for lane in alive if w.next(lane) == LEAF]
     exits = int(len(leaf) < len(alive))
     while leaf:
         issued += rec.charge("leaf_entry", leaf)
         w.advance(leaf)
-        issued += _tri_loop(w, leaf, rec, barriers)
+        issued += _tri_loop(w, leaf, rec)
         still = [lane for lane in leaf if w.next(lane) == LEAF]
         exits += len(still) < len(leaf)
         leaf = still
-    return issued + (rec.apart(exits) if barriers else 0)
+    return issued + rec.apart(exits)
 
 
 def _ww_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
@@ -213,33 +212,39 @@ def if_if_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts)
 
 
 def _spec_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
-    """loop_control, speculative traversal loop, postponed leaves, intersection loop."""
+    """loop_control, speculative traversal loop, postponed leaves, intersection loop. The
+    lanes that leave the traversal loop after different steps (or skip it: at a leaf)
+    reach its exit apart, those its end sends out together."""
     issued = rec.charge("loop_control", alive)
     parked: dict[int, list[int]] = {}
-    while True:
-        t = [lane for lane in alive if _is_trav(w.next(lane))]
-        if not t:
-            break
-        step, held, _ = _spec_step(w, t, parked, rec)
+    t = [lane for lane in alive if _is_trav(w.next(lane))]
+    exits = int(len(t) < len(alive))
+    while t:
+        step, held = _spec_step(w, t, parked, rec)
         issued += step
-        if held:
+        still = [lane for lane in t if _is_trav(w.next(lane))]
+        if held or not still:
+            exits += 1
             break
-    return issued + _spec_leaves(w, alive, parked, rec, barriers=False)
+        exits += len(still) < len(t)
+        t = still
+    return issued + rec.apart(exits) + _spec_leaves(w, alive, parked, rec)
 
 
 def _spec_step(
     w: _Lanes, t: list[int], parked: dict[int, list[int]], rec: RefCounts
-) -> tuple[int, bool, int]:
+) -> tuple[int, bool]:
     """One speculative step of the lanes ``t`` (the vote's fallback when the warp is
     diverged); a lane that lands on a leaf while holding none parks it (its LEAF and TRI
-    ops into ``parked``). Returns the instructions, whether every lane of ``t`` now holds
-    a parked leaf (the vote ends the traversal loop) and how many lanes postponed."""
-    issued = _trav_step(w, t, rec)
+    ops into ``parked``). The step's outcomes, and the lanes that postpone and those that
+    do not, reach their barriers apart. Returns the instructions and whether every lane
+    of ``t`` now holds a parked leaf (the vote ends the traversal loop)."""
+    issued = _trav_step(w, t, rec) + rec.apart(len({w.next(lane) for lane in t}))
     if len(t) < rec.warp_size:
         issued += rec.charge("trav_diverged", t)
     w.advance(t)
     post = [lane for lane in t if w.next(lane) == LEAF and lane not in parked]
-    issued += rec.charge("postpone", post)
+    issued += rec.charge("postpone", post) + rec.apart((len(post) > 0) + (len(post) < len(t)))
     for lane in post:
         ops = [LEAF]
         w.advance([lane])
@@ -247,16 +252,14 @@ def _spec_step(
             ops.append(w.next(lane))
             w.advance([lane])
         parked[lane] = ops
-    return issued, all(lane in parked for lane in t), len(post)
+    return issued, all(lane in parked for lane in t)
 
 
-def _spec_leaves(
-    w: _Lanes, lanes: list[int], parked: dict[int, list[int]], rec: RefCounts, barriers: bool
-) -> int:
+def _spec_leaves(w: _Lanes, lanes: list[int], parked: dict[int, list[int]], rec: RefCounts) -> int:
     """The postponed leaves ``parked`` (lane -> its LEAF and TRI ops), then leaf after leaf
-    for the ``lanes`` at a leaf. ``barriers``: the triangle loop's, the ``if`` that pops a
-    leaf a lane stands on (lanes that pop and lanes that do not), and the loop's exit
-    (lanes that leave after different leaves, lanes that skip it) are reached apart."""
+    for the ``lanes`` at a leaf. The triangle loop's barriers, the ``if`` that pops a leaf
+    a lane stands on (lanes that pop and lanes that do not), and the loop's exit (lanes
+    that leave after different leaves, lanes that skip it) are reached apart."""
     issued = 0
     leaf = [lane for lane in lanes if w.next(lane) == LEAF]
     exits = int(any(lane not in parked and lane not in leaf for lane in lanes))
@@ -266,21 +269,19 @@ def _spec_leaves(
         group = list(range(len(held)))
         issued += rec.charge("leaf_entry", group)
         pw.advance(group)
-        issued += _tri_loop(pw, group, rec, barriers)
+        issued += _tri_loop(pw, group, rec)
         stay = [lane for lane in held if lane in leaf]
         exits += len(stay) < len(held)
-        if barriers:
-            issued += rec.apart((len(stay) > 0) + (len(stay) < len(held)))
+        issued += rec.apart((len(stay) > 0) + (len(stay) < len(held)))
     while leaf:
         issued += rec.charge("leaf_entry", leaf)
         w.advance(leaf)
-        issued += _tri_loop(w, leaf, rec, barriers)
+        issued += _tri_loop(w, leaf, rec)
         still = [lane for lane in leaf if w.next(lane) == LEAF]
         exits += len(still) < len(leaf)
-        if barriers:
-            issued += rec.apart((len(still) > 0) + (len(still) < len(leaf)))
+        issued += rec.apart((len(still) > 0) + (len(still) < len(leaf)))
         leaf = still
-    return issued + (rec.apart(exits) if barriers else 0)
+    return issued + rec.apart(exits)
 
 
 def _spec_rounds(w: _Lanes, everyone: list[int], rec: RefCounts) -> int:
@@ -308,9 +309,8 @@ def _spec_rounds(w: _Lanes, everyone: list[int], rec: RefCounts) -> int:
         waiting = 0
         spent = []
         if t:
-            issued += rec.apart(len({w.next(lane) for lane in t}))
-            step, held, post = _spec_step(w, t, parked, rec)
-            issued += step + rec.apart((post > 0) + (post < len(t)))
+            step, held = _spec_step(w, t, parked, rec)
+            issued += step
             spent = [lane for lane in t if w.next(lane) is None and lane not in parked]
             voted = t if held else []
             waiting = int(not held)
@@ -318,7 +318,7 @@ def _spec_rounds(w: _Lanes, everyone: list[int], rec: RefCounts) -> int:
             if group:
                 issued += rec.charge("loop_control", group)
                 mine = {lane: parked.pop(lane) for lane in group if lane in parked}
-                issued += _spec_leaves(w, group, mine, rec, barriers=True)
+                issued += _spec_leaves(w, group, mine, rec)
                 left = [lane for lane in group if w.next(lane) is not None]
                 waiting += len(left) > 0
                 finishing += len(left) < len(group)
@@ -338,11 +338,15 @@ def speculative_group(streams: list[list[int]], addrs: list[list[int]], rec: Ref
     issued += rec.charge("ray_setup", everyone)
     if rec.rounds:
         issued += _spec_rounds(w, everyone, rec)
-    while not rec.rounds:
+    else:  # lanes that finish in different iterations reach the loop's exit apart
         alive = [lane for lane in everyone if w.next(lane) is not None]
-        if not alive:
-            break
-        issued += _spec_iteration(w, alive, rec)
+        exits = int(len(alive) < len(everyone))
+        while alive:
+            issued += _spec_iteration(w, alive, rec)
+            still = [lane for lane in alive if w.next(lane) is not None]
+            exits += len(still) < len(alive)
+            alive = still
+        issued += rec.apart(exits)
     return issued + rec.charge("finish", everyone)
 
 

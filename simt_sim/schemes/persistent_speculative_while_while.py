@@ -24,10 +24,13 @@ leaf loop also reach (sm_80 on: ``KernelIR.rounds``) and the GPU schedules threa
 independently, the lanes that left the loop wait there for the others' next step, and
 the warp runs in rounds instead (:func:`spec_rounds`; ``ReplayParams.rounds``).
 
-No ``reconverge`` is charged in phases: sm_75's lanes leave the traversal loop for the
-leaf loop with no barrier between them, which the replay does not model
-(docs/gpu_results.md), so neither are the leaf loop's barriers. In rounds every barrier
-is charged (:func:`spec_rounds`).
+Every group of lanes that reaches a convergence barrier apart issues it (``reconverge``),
+as in while-while: a step's outcomes, the postpone test, the traversal loop's exit
+(one group per step after which lanes leave, and the lanes the loop's end sends out),
+the intersection loop's (:func:`_leaves`) and the outer loop's exit. That is the code
+from sm_80 on, where the traversal loop closes at a barrier (of its own in speculative
+dynamic fetch, the round's here); sm_75's lanes leave it for the leaf loop with no
+barrier between them, a schedule the replay does not follow (docs/gpu_results.md).
 
 Approximation: each ray's ops are replayed from its recorded (non-speculative) stream, so
 op counts per ray are preserved; the real kernel may also visit nodes that a stale tmax
@@ -102,8 +105,12 @@ def _park(op, c, e, lane, park, park_end):
 def _spec_trav_loop(op, cur, end, park, park_end, trav, acc, post, first, costs, cnt, hist):
     """Speculative traversal loop of the lanes in mask ``trav`` (all at a TRAV op).
 
-    Returns the instructions issued and the masks of lanes holding a postponed leaf,
-    of lanes waiting at a LEAF, and of lanes still at a TRAV when the loop ended.
+    Returns the instructions issued, the masks of lanes holding a postponed leaf, of
+    lanes waiting at a LEAF and of lanes still at a TRAV when the loop ended, and the
+    issues of its convergence barriers by groups of lanes that reach them apart (beyond
+    the first): a step's outcomes, the lanes that postpone and those that do not, and
+    the loop's exit (one group per step after which lanes leave it, one for the lanes
+    its end sends out).
 
     Lanes run ahead as in while-while's :func:`trav_loop`, through up to ``len(acc)``
     iterations each: outcome counts go to ``acc[j]``, postpones to ``post[j]`` (both zero
@@ -117,6 +124,8 @@ def _spec_trav_loop(op, cur, end, park, park_end, trav, acc, post, first, costs,
     issued = np.int64(0)
     parked = np.int64(0)
     leaf = np.int64(0)
+    extra = np.int64(0)
+    exits = np.int64(0)
     window = acc.shape[0]
     while trav:
         # 1. lanes holding no postponed leaf run until they postpone one or stop
@@ -155,6 +164,7 @@ def _spec_trav_loop(op, cur, end, park, park_end, trav, acc, post, first, costs,
         # 2. lanes holding a postponed leaf step on through iteration ``last``
         nxt = np.int64(0)
         span = 0
+        left = np.uint64(0)  # bit j: some lane left after the window's step j
         m = trav
         while m:
             lane = lowest_lane(m)
@@ -172,20 +182,27 @@ def _spec_trav_loop(op, cur, end, park, park_end, trav, acc, post, first, costs,
                 cur[lane] = c
             nxt |= is_trav(o) << lane
             leaf |= is_leaf(o) << lane
+            left |= np.uint64(o > TRAV_BOTH) << np.uint64(j - 1)
             span = max(span, j)
         warp_size = hist.shape[1] - 1
         for j in range(span):
-            issued += charge_trav(cnt, hist, costs, acc[j])
-            k = trav_lanes(acc[j])
+            a = acc[j]
+            p = post[j]
+            issued += charge_trav(cnt, hist, costs, a)
+            k = trav_lanes(a)
             if k < warp_size:  # some threads are elsewhere: the vote takes its fallback
                 issued += charge(cnt, hist, costs, TRAV_DIVERGED, k)
-            issued += charge(cnt, hist, costs, POSTPONE, post[j])
+            issued += charge(cnt, hist, costs, POSTPONE, p)
+            extra += apart(trav_groups(a)) + np.int64(p > 0 and p < k)
             acc[j] = 0
             post[j] = 0
         trav = nxt
-        if ended:
+        if ended or not trav:  # the last step's lanes leave together
+            before = (np.uint64(1) << np.uint64(span - 1)) - np.uint64(1)  # steps before it
+            exits += np.int64(popcount(left & before)) + 1
             break
-    return issued, parked, leaf, trav
+        exits += np.int64(popcount(left))
+    return issued, parked, leaf, trav, extra, exits
 
 
 @njit(cache=True, nogil=True)
@@ -202,11 +219,13 @@ def spec_outer_step(op, cur, end, trav, leaf, scratch, acc, post, costs, cnt, hi
     park, park_end, first = scratch[0], scratch[1], scratch[3]
     alive = trav | leaf
     issued = charge(cnt, hist, costs, LOOP_CONTROL, popcount(alive))
-    t_issued, parked, t_leaf, trav = _spec_trav_loop(
+    t_issued, parked, t_leaf, trav, extra, exits = _spec_trav_loop(
         op, cur, end, park, park_end, trav, acc, post, first, costs, cnt, hist
     )
-    l_issued, l_trav, _ = _leaves(op, cur, end, alive, parked, leaf | t_leaf, scratch, acc,
-                                  costs, cnt, hist)  # fmt: skip
+    l_issued, l_trav, l_extra = _leaves(op, cur, end, alive, parked, leaf | t_leaf, scratch, acc,
+                                        costs, cnt, hist)  # fmt: skip
+    extra += apart(exits + np.int64(leaf != 0)) + l_extra  # lanes at a leaf skip the loop
+    issued += charge_apart(cnt, hist, costs, extra)
     return issued + t_issued + l_issued, trav | l_trav
 
 
@@ -217,7 +236,7 @@ def _leaves(op, cur, end, group, parked, leaf, scratch, acc, costs, cnt, hist):
     while-while's, leaf after leaf for those at a LEAF (mask ``leaf``). Returns the
     instructions issued, the mask of lanes that stopped at a TRAV, and the issues of its
     convergence barriers by groups of lanes that reach them apart (beyond the first; the
-    caller charges them where the GPU has such barriers): a triangle test's outcomes and
+    caller charges them): a triangle test's outcomes and
     the triangle loop's exits as while-while's, the ``if`` that pops a leaf the lane
     stands on (lanes that pop and lanes that do not, in every iteration but the last),
     and the loop's exit (lanes that leave after different leaves, and lanes that skip
@@ -343,11 +362,16 @@ def _group(offsets, op, r0, n, cur, end, scratch, acc, post, costs, cnt, hist, r
     issued += charge(cnt, hist, costs, RAY_SETUP, n)
     if rounds:
         issued += spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist)
+    exits = np.int64(popcount(trav | leaf) < n)  # lanes that finish apart: the loop's exit
     while not rounds and trav | leaf:
+        alive = trav | leaf
         o_issued, trav = spec_outer_step(op, cur, end, trav, leaf, scratch, acc, post, costs,
                                          cnt, hist)  # fmt: skip
         issued += o_issued
+        exits += np.int64(alive & ~trav != 0)
         leaf = np.int64(0)
+    if not rounds:
+        issued += charge_apart(cnt, hist, costs, apart(exits))
     issued += charge(cnt, hist, costs, FINISH, n)
     return issued
 

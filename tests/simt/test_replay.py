@@ -272,7 +272,8 @@ def test_gtx285_speculative_step_pays_no_divergent_fallback() -> None:
     warp, so a diverged speculative step costs what a converged one does; the RTX 2080 Ti
     (sm_75, the same IR) pays trav_diverged for each, and the convergence spins sm_75
     puts in the step, the loop control and ``finish`` (5 charged instructions each: the
-    branch back, which only lanes that arrive apart take, is charged nowhere)."""
+    branch back, which only lanes that arrive apart take, is charged nowhere), and its
+    barriers issued by groups that arrive apart (``reconverge``)."""
     spec = get_scheme("persistent_speculative_while_while")
     ir = kernels_ir.load(spec.kernel, "sm_75")
     trace = synthetic_trace(32 * 40, seed=3, coherence=32, divergence=0.3)
@@ -289,8 +290,10 @@ def test_gtx285_speculative_step_pays_no_divergent_fallback() -> None:
     assert spins == {"trav_step": 5, "loop_control": 5, "finish": 5}
     spun = sum(int(new.executions[b]) * n for b, n in spins.items())
     assert spun > 0
+    apart = int(new.executions["reconverge"]) * ir.cost("reconverge")
+    assert apart > 0 and old.block_instructions["reconverge"] == 0
     assert new.warp_instructions - old.warp_instructions == (
-        diverged * ir.cost("trav_diverged") + spun
+        diverged * ir.cost("trav_diverged") + spun + apart
     )
     # re-costing keeps the GPU's rule
     assert old.recost(ir).block_instructions["trav_diverged"] == 0
