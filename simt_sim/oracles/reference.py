@@ -127,21 +127,31 @@ def _trav_step(w: _Lanes, t: list[int], rec: RefCounts) -> int:
     return issued
 
 
-def _leaf_loop(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
-    """The intersection loop: ``leaf_entry`` and the triangle loop while a lane stands at
-    a leaf. Lanes that leave after different leaves (or skip the loop: out of ops) reach
-    its exit apart, as the triangle loop's barriers are reached."""
-    issued = 0
-    leaf = [lane for lane in alive if w.next(lane) == LEAF]
-    exits = int(len(leaf) < len(alive))
+def _leaves(w: _Lanes, leaf: list[int], rec: RefCounts, pops: bool) -> tuple[int, int]:
+    """``leaf_entry`` and the triangle loop while one of the lanes ``leaf`` stands at a
+    leaf. Returns the instructions and the leaves after which some lane left; ``pops``:
+    the speculative kernel's ``if`` that pops a leaf a lane stands on, reached apart by
+    the lanes that pop and those that do not."""
+    issued = exits = 0
     while leaf:
         issued += rec.charge("leaf_entry", leaf)
         w.advance(leaf)
         issued += _tri_loop(w, leaf, rec)
         still = [lane for lane in leaf if w.next(lane) == LEAF]
         exits += len(still) < len(leaf)
+        if pops:
+            issued += rec.apart((len(still) > 0) + (len(still) < len(leaf)))
         leaf = still
-    return issued + rec.apart(exits)
+    return issued, exits
+
+
+def _leaf_loop(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
+    """The intersection loop: ``leaf_entry`` and the triangle loop while a lane stands at
+    a leaf. Lanes that leave after different leaves (or skip the loop: out of ops) reach
+    its exit apart, as the triangle loop's barriers are reached."""
+    leaf = [lane for lane in alive if w.next(lane) == LEAF]
+    issued, exits = _leaves(w, leaf, rec, pops=False)
+    return issued + rec.apart(exits + (len(leaf) < len(alive)))
 
 
 def _ww_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
@@ -162,20 +172,31 @@ def _ww_iteration(w: _Lanes, alive: list[int], rec: RefCounts) -> int:
     return issued + _leaf_loop(w, alive, rec)
 
 
-def while_while_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
-    """One while-while warp, charged in issue order; returns its instructions. Lanes that
-    finish in different outer iterations reach the outer loop's exit apart."""
-    w = _Lanes(streams)
-    everyone = list(range(len(streams)))
-    issued = rec.charge("ray_setup", everyone)
+def _outer_loop(
+    w: _Lanes,
+    everyone: list[int],
+    rec: RefCounts,
+    iteration: Callable[[_Lanes, list[int], RefCounts], int],
+) -> int:
+    """``iteration`` while some lane has ops left; lanes that finish in different
+    iterations reach the loop's exit apart."""
+    issued = 0
     alive = [lane for lane in everyone if w.next(lane) is not None]
     exits = int(len(alive) < len(everyone))
     while alive:
-        issued += _ww_iteration(w, alive, rec)
+        issued += iteration(w, alive, rec)
         still = [lane for lane in alive if w.next(lane) is not None]
         exits += len(still) < len(alive)
         alive = still
-    issued += rec.apart(exits)
+    return issued + rec.apart(exits)
+
+
+def while_while_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
+    """One while-while warp, charged in issue order; returns its instructions."""
+    w = _Lanes(streams)
+    everyone = list(range(len(streams)))
+    issued = rec.charge("ray_setup", everyone)
+    issued += _outer_loop(w, everyone, rec, _ww_iteration)
     return issued + rec.charge("finish", everyone)
 
 
@@ -273,15 +294,8 @@ def _spec_leaves(w: _Lanes, lanes: list[int], parked: dict[int, list[int]], rec:
         stay = [lane for lane in held if lane in leaf]
         exits += len(stay) < len(held)
         issued += rec.apart((len(stay) > 0) + (len(stay) < len(held)))
-    while leaf:
-        issued += rec.charge("leaf_entry", leaf)
-        w.advance(leaf)
-        issued += _tri_loop(w, leaf, rec)
-        still = [lane for lane in leaf if w.next(lane) == LEAF]
-        exits += len(still) < len(leaf)
-        issued += rec.apart((len(still) > 0) + (len(still) < len(leaf)))
-        leaf = still
-    return issued + rec.apart(exits)
+    more, left = _leaves(w, leaf, rec, pops=True)
+    return issued + more + rec.apart(exits + left)
 
 
 def _spec_rounds(w: _Lanes, everyone: list[int], rec: RefCounts) -> int:
@@ -338,15 +352,8 @@ def speculative_group(streams: list[list[int]], addrs: list[list[int]], rec: Ref
     issued += rec.charge("ray_setup", everyone)
     if rec.rounds:
         issued += _spec_rounds(w, everyone, rec)
-    else:  # lanes that finish in different iterations reach the loop's exit apart
-        alive = [lane for lane in everyone if w.next(lane) is not None]
-        exits = int(len(alive) < len(everyone))
-        while alive:
-            issued += _spec_iteration(w, alive, rec)
-            still = [lane for lane in alive if w.next(lane) is not None]
-            exits += len(still) < len(alive)
-            alive = still
-        issued += rec.apart(exits)
+    else:
+        issued += _outer_loop(w, everyone, rec, _spec_iteration)
     return issued + rec.charge("finish", everyone)
 
 
