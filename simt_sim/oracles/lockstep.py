@@ -51,9 +51,12 @@ an interior node to step, a leaf to enter, a triangle to test, or nothing):
   runs the triangle loop over every triangle (``leaf_entry``, ``tri_test``, ``tri_hit`` for
   the lanes whose hit is accepted). The kernel keeps no per-lane mask, so every lane still
   searching tests every triangle, and a stage (``tri_u``, ``tri_v``, ``tri_hit``) is issued
-  when any of them reaches it, useful or not; an any-hit warp ends after the leaf in which its last
-  lane found a hit, any other when its stack is empty. ``loop_control`` is charged once per
-  node or leaf with every lane that has a ray. A step's *useful* lanes (its active count,
+  when any of them reaches it, useful or not; every lane of the warp runs each test (one
+  not searching is rejected at t), and the lanes rejected at t, at u and the others each
+  issue its closing barrier (``reconverge`` beyond the first); an any-hit warp ends after
+  the leaf in which its last lane found a hit, any other when its stack is empty.
+  ``loop_control`` is charged once per node or leaf with every lane that has a ray. A
+  step's *useful* lanes (its active count,
   and the lanes whose TRAV/LEAF/TRI it counts) are those whose ray hit the node's box when
   it was pushed (the root: all) and is still searching; a step with none is still issued.
 
@@ -159,6 +162,7 @@ from simt_sim.simt.engine import (
     if_groups,
     lane_traffic,
     outcome_groups,
+    packet_tri_groups,
     passes_t,
     passes_u,
     schedule_groups,
@@ -841,6 +845,8 @@ def _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i, a
                 for k, block in enumerate((TRI_U, TRI_V, TRI_HIT_B)):
                     if reached[0, k]:
                         cost += _issue(cnt, hist, costs, block, reached[1, k])
+                groups = packet_tri_groups(warp_size, reached[0, 0], reached[0, 1])
+                cost += charge_apart(cnt, hist, costs, apart(groups))
                 j += 3
             if any_hit and done.all():
                 break

@@ -440,6 +440,10 @@ def packet_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts
         issued += rec.charge("leaf_entry", sorted(lanes))
     for lane_ops in tris.values():
         issued += _tri_charge(lane_ops, rec)
+        # the whole warp runs the test: a lane not testing it is rejected at t
+        t = sum(int(tri_stages(o)) >= 2 for o in lane_ops.values())
+        u = sum(int(tri_stages(o)) >= 3 for o in lane_ops.values())
+        issued += rec.apart((t < rec.warp_size) + (u < t) + (u > 0))
     return issued + rec.charge("finish", everyone)
 
 

@@ -12,7 +12,11 @@ step, but only the lanes whose own ray needs a node count as active for it. Per 
   ``tri_v`` with those whose test reached the stage, ``tri_hit`` with the lanes that
   accept a hit on it;
 - ``loop_control`` once per distinct node or leaf (the packet loop pops one node per
-  iteration) with every lane that has a ray.
+  iteration) with every lane that has a ray;
+- the node loop is warp-uniform, but each triangle test closes at a convergence barrier
+  that every lane of the warp runs through: the lanes rejected at t (a lane that does not
+  test the triangle among them), at u, and the others each issue it (``reconverge``,
+  beyond the first group).
 
 Approximations: traversal order and the packet's culling by the lanes' tmax are ignored
 (the packet visits exactly the union of the recorded per-ray streams), and work is not
@@ -47,12 +51,15 @@ from simt_sim.simt.engine import (
     TRI_V,
     Counts,
     ReplayParams,
+    apart,
     charge,
+    charge_apart,
     charge_many,
     chunk_bounds,
     chunk_counts,
     lanes_so_far,
     no_per_warp,
+    packet_tri_groups,
     passes_t,
     passes_u,
     per_warp_table,
@@ -105,7 +112,9 @@ def _warp(offsets, op, addr, r0, n, table, used, costs, cnt, hist):
                 table[s, _OUT] |= passes_t(o) << lane
                 table[s, _V] |= passes_u(o) << lane
     issued = charge(cnt, hist, costs, RAY_SETUP, n)
+    warp_size = hist.shape[1] - 1
     visits = 0
+    extra = np.int64(0)  # issues of the triangle tests' barrier by groups apart
     for i in range(nused):
         s = used[i]
         kind = table[s, _KEY] & 3
@@ -118,12 +127,16 @@ def _warp(offsets, op, addr, r0, n, table, used, costs, cnt, hist):
             issued += charge(cnt, hist, costs, LEAF_ENTRY, lanes)
             visits += 1
         else:
+            t = popcount(table[s, _OUT])
+            u = popcount(table[s, _V])
             issued += charge(cnt, hist, costs, TRI_TEST, lanes)
-            issued += charge(cnt, hist, costs, TRI_U, popcount(table[s, _OUT]))
-            issued += charge(cnt, hist, costs, TRI_V, popcount(table[s, _V]))
+            issued += charge(cnt, hist, costs, TRI_U, t)
+            issued += charge(cnt, hist, costs, TRI_V, u)
             issued += charge(cnt, hist, costs, TRI_HIT_B, popcount(table[s, _HITS]))
+            extra += apart(packet_tri_groups(warp_size, t, u))
         table[s, _KEY] = -1
     issued += charge_many(cnt, hist, costs, LOOP_CONTROL, n, visits)
+    issued += charge_apart(cnt, hist, costs, extra)
     return issued + charge(cnt, hist, costs, FINISH, n)
 
 

@@ -395,6 +395,15 @@ def tri_groups(a):
     return np.int64(k > u) + np.int64(u > v) + np.int64(v > h) + np.int64(h > 0)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def packet_tri_groups(warp_size, t, u):
+    """Groups of lanes that close one of the packet kernel's triangle tests apart: every
+    lane of the warp runs it (one that does not test the triangle rejects it at t), and
+    the ``warp_size - t`` lanes rejected at t, the ``t - u`` rejected at u and the ``u``
+    others (the v test and a hit are predicated) leave it by a branch each (1 to 3)."""
+    return np.int64(warp_size > t) + np.int64(t > u) + np.int64(u > 0)
+
+
 @njit(cache=True, nogil=True)
 def chunk_bounds(n_units, n_chunks):
     """Start of each of ``n_chunks`` near-equal chunks of ``n_units`` (length n_chunks+1)."""

@@ -41,7 +41,7 @@ CONSERVING = [s for s in TRACE_SCHEMES if s != "packet"]
 #: the schemes that charge their convergence barriers per arriving group
 BARRIER_SCHEMES = (
     "while_while", "if_if", "persistent_while_while", "dynamic_fetch",
-    "persistent_speculative_while_while", "speculative_dynamic_fetch",
+    "persistent_speculative_while_while", "speculative_dynamic_fetch", "packet",
 )  # fmt: skip
 
 
@@ -196,10 +196,13 @@ BY_HAND = [
         "trav_step": (3, 5), "trav_none": (2, 2), "trav_one": (2, 3), "trav_diverged": (1, 1),
         "postpone": (2, 2), "leaf_entry": (1, 2), "tri_test": (1, 2), "tri_u": (1, 1),
         "tri_v": (1, 1), "tri_hit": (1, 1), "finish": (2, 3), "reconverge": (4, 0)}),
+    # each triangle test is closed apart by lane 1, rejecting it at t (it does not test
+    # it), and by lane 0 (rejected at u; a hit)
     ("packet", CASE_PACKET, PACKET_ADDRS, 2, 4, {}, {
         "ray_setup": (1, 2), "loop_control": (4, 8), "trav_step": (3, 4), "trav_none": (1, 1),
         "trav_one": (1, 1), "trav_both": (1, 2), "leaf_entry": (1, 1), "tri_test": (2, 2),
-        "tri_u": (2, 2), "tri_v": (1, 1), "tri_hit": (1, 1), "finish": (1, 2)}),
+        "tri_u": (2, 2), "tri_v": (1, 1), "tri_hit": (1, 1), "finish": (1, 2),
+        "reconverge": (2, 0)}),
 ]  # fmt: skip
 
 
