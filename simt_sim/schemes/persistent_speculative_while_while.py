@@ -236,11 +236,10 @@ def _leaves(op, cur, end, group, parked, leaf, scratch, acc, costs, cnt, hist):
     while-while's, leaf after leaf for those at a LEAF (mask ``leaf``). Returns the
     instructions issued, the mask of lanes that stopped at a TRAV, and the issues of its
     convergence barriers by groups of lanes that reach them apart (beyond the first; the
-    caller charges them): a triangle test's outcomes and
-    the triangle loop's exits as while-while's, the ``if`` that pops a leaf the lane
-    stands on (lanes that pop and lanes that do not, in every iteration but the last),
-    and the loop's exit (lanes that leave after different leaves, and lanes that skip
-    it, holding no leaf)."""
+    caller charges them): a triangle test's outcomes and the triangle loop's exits as
+    while-while's, the ``if`` that pops a leaf the lane stands on (lanes that pop and
+    lanes that do not, in every iteration but the last), and the loop's exit (lanes that
+    leave after different leaves, and lanes that skip it, holding no leaf)."""
     park, park_end, pcur = scratch[0], scratch[1], scratch[2]
     issued = np.int64(0)
     extra = np.int64(0)
