@@ -101,6 +101,21 @@ def _park(op, c, e, lane, park, park_end):
     return c
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _charge_step(cnt, hist, costs, a, post):
+    """Charge one speculative step from its packed outcomes ``a`` (``trav_pack``'s sum) and
+    its ``post`` postpones: the step, the vote's divergent-warp fallback when some threads
+    are elsewhere, ``postpone``. Returns the instructions and the issues of its barriers
+    by groups apart (beyond the first): the outcomes, the lanes that postpone and the
+    others."""
+    issued = charge_trav(cnt, hist, costs, a)
+    k = trav_lanes(a)
+    if k < hist.shape[1] - 1:
+        issued += charge(cnt, hist, costs, TRAV_DIVERGED, k)
+    issued += charge(cnt, hist, costs, POSTPONE, post)
+    return issued, apart(trav_groups(a)) + np.int64(post > 0 and post < k)
+
+
 @njit(cache=True, nogil=True)
 def _spec_trav_loop(op, cur, end, park, park_end, trav, acc, post, first, costs, cnt, hist):
     """Speculative traversal loop of the lanes in mask ``trav`` (all at a TRAV op).
@@ -184,16 +199,10 @@ def _spec_trav_loop(op, cur, end, park, park_end, trav, acc, post, first, costs,
             leaf |= is_leaf(o) << lane
             left |= np.uint64(o > TRAV_BOTH) << np.uint64(j - 1)
             span = max(span, j)
-        warp_size = hist.shape[1] - 1
         for j in range(span):
-            a = acc[j]
-            p = post[j]
-            issued += charge_trav(cnt, hist, costs, a)
-            k = trav_lanes(a)
-            if k < warp_size:  # some threads are elsewhere: the vote takes its fallback
-                issued += charge(cnt, hist, costs, TRAV_DIVERGED, k)
-            issued += charge(cnt, hist, costs, POSTPONE, p)
-            extra += apart(trav_groups(a)) + np.int64(p > 0 and p < k)
+            s_issued, s_extra = _charge_step(cnt, hist, costs, acc[j], post[j])
+            issued += s_issued
+            extra += s_extra
             acc[j] = 0
             post[j] = 0
         trav = nxt
@@ -289,7 +298,6 @@ def spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist):
     the outer loop's exit (each group in which lanes finish).
     """
     park, park_end = scratch[0], scratch[1]
-    warp_size = cur.shape[0]
     issued = np.int64(0)
     extra = np.int64(0)
     finishing = np.int64(0)  # groups in which lanes finish
@@ -322,12 +330,9 @@ def spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist):
                 at_trav |= is_trav(o) << lane
                 at_leaf |= is_leaf(o) << lane
                 spent |= np.int64(c == e and not parked & bit) << lane
-            issued += charge_trav(cnt, hist, costs, a)
-            k = trav_lanes(a)
-            if k < warp_size:  # some threads are elsewhere: the vote takes its fallback
-                issued += charge(cnt, hist, costs, TRAV_DIVERGED, k)
-            issued += charge(cnt, hist, costs, POSTPONE, post)
-            extra += apart(trav_groups(a)) + np.int64(post > 0 and post < k)
+            s_issued, s_extra = _charge_step(cnt, hist, costs, a, post)
+            issued += s_issued
+            extra += s_extra
             if trav & ~parked == 0:
                 voted = trav
         waiting = np.int64(trav != 0 and voted == 0)  # groups at the round's barrier
