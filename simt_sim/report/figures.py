@@ -22,7 +22,6 @@ from kernels_ir.kernel_ir import BLOCKS
 from simt_sim import schemes
 from simt_sim.report import plots
 from simt_sim.report.warpstats import has_timeline, has_warp_counts, warp_counts, warp_timeline
-from simt_sim.simt.engine import cost_vector
 from simt_sim.simt.gpus import executed_on
 from simt_sim.simt.result import SimResult
 from simt_sim.study.bench import timed
@@ -139,8 +138,8 @@ def study_figures(
         for s in plan.schemes:
             if not has_warp_counts(s):
                 continue
-            ir = executed_on(plan.irs[(s.kernel, gpu.ir_arch)], gpu)
-            wc = warp_counts(trace, s, cost_vector(ir), gpu.warp_size)
+            ir = plan.irs[(s.kernel, gpu.ir_arch)]
+            wc = warp_counts(trace, s, ir, gpu)
             eff = wc.efficiency[np.arange(trace.n_rays) // gpu.warp_size]
             images = [plots.to_image(v, wl.rays.pixel, width, height) for v in (
                 per_ray[:, 0], per_ray[:, 2], eff
@@ -153,10 +152,10 @@ def study_figures(
             steps.update()
             if rt == "primary" and has_timeline(s):
                 w = int(np.argmax(wc.warp_instructions)) if warp is None else warp
-                costs = {b: ir.cost(b) for b in BLOCKS}
+                executed = executed_on(ir, gpu)
                 figures[f"timeline_{s.name}"] = plots.timeline_figure(
-                    warp_timeline(trace, w, s, costs, gpu.warp_size),
-                    costs,
+                    warp_timeline(trace, w, s, ir, gpu),
+                    {b: executed.cost(b) for b in BLOCKS},
                     gpu.warp_size,
                     f"{s.name}: warp {w} of the primary rays on {name} ({setup}, {gpu.id})",
                 )

@@ -24,11 +24,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kernels_ir.kernel_ir import RECONVERGE
+from kernels_ir.kernel_ir import BLOCKS, RECONVERGE, KernelIR
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.reference import RefCounts
 from simt_sim.schemes import SCHEMES
-from simt_sim.simt.engine import MAX_MASK_LANES, replay_arrays
+from simt_sim.simt.engine import cost_vector, replay_arrays
+from simt_sim.simt.gpus import GpuConfig, executed_on
+from simt_sim.simt.replay import trace_params
+from simt_sim.simt.result import check_ir
 from simt_sim.simt.scheme import SchemeInfo
 from simt_sim.types.optrace import OpTrace
 
@@ -86,10 +89,9 @@ def _check_scheme(scheme: SchemeInfo, ok: bool, known: Sequence[str], what: str)
         )
 
 
-def warp_counts(
-    trace: OpTrace, scheme: SchemeInfo, costs: np.ndarray, warp_size: int
-) -> WarpCounts:
-    """Exact instructions of every warp of ``trace`` under ``scheme`` (parallel over warps).
+def warp_counts(trace: OpTrace, scheme: SchemeInfo, ir: KernelIR, gpu: GpuConfig) -> WarpCounts:
+    """Exact instructions of every warp of ``trace`` under ``scheme`` on ``gpu`` (parallel
+    over warps), with the costs and the schedule of :func:`~simt_sim.simt.replay.simulate_traces`.
 
     Parameters
     ----------
@@ -97,18 +99,20 @@ def warp_counts(
         Rays in warp order.
     scheme : SchemeInfo
         A scheme with per-warp counts (:func:`has_warp_counts`).
-    costs : int64 (N_BLOCKS,)
-        Block costs in ``BLOCKS`` order (``engine.cost_vector(ir)``).
-    warp_size : int
-        Lanes per warp (at most 64).
+    ir : KernelIR
+        Instruction costs of the scheme's kernel, as compiled (``kernels_ir.load``).
+    gpu : GpuConfig
+        Its warp size, and how its hardware runs the kernel
+        (:func:`~simt_sim.simt.gpus.executed_on`, :func:`~simt_sim.simt.gpus.runs_in_rounds`).
     """
     _check_scheme(scheme, has_warp_counts(scheme), warp_schemes(trace.layout), "per-warp counts")
     _check_layout(scheme, trace)
-    if not 1 <= warp_size <= MAX_MASK_LANES:
-        raise SimtSimError(f"warp_size must lie in 1..{MAX_MASK_LANES}, got {warp_size}")
+    check_ir(ir, scheme.kernel, scheme.kernels[scheme.kernel])
+    executed = executed_on(ir, gpu)
+    p = trace_params(scheme, executed, gpu)
     offsets, op, addr = replay_arrays(trace)
-    out = scheme.warp_counts(offsets, op, addr, np.ascontiguousarray(costs, np.int64), warp_size)
-    return WarpCounts(out[:, 0].copy(), out[:, 1].copy(), warp_size)
+    out = scheme.warp_counts(offsets, op, addr, cost_vector(executed), p)
+    return WarpCounts(out[:, 0].copy(), out[:, 1].copy(), p.warp_size)
 
 
 def _check_layout(scheme: SchemeInfo, trace: OpTrace) -> None:
@@ -122,8 +126,8 @@ def _check_layout(scheme: SchemeInfo, trace: OpTrace) -> None:
 class _Log(RefCounts):
     """Reference counters that also log each issued block and its active lanes, in order."""
 
-    def __init__(self, warp_size: int, costs: dict[str, int]) -> None:
-        super().__init__(warp_size, costs)
+    def __init__(self, warp_size: int, costs: dict[str, int], rounds: bool) -> None:
+        super().__init__(warp_size, costs, rounds=rounds)
         self.events: list[tuple[str, int]] = []
 
     def charge(self, block: str, lanes: Sequence[int]) -> int:
@@ -139,15 +143,20 @@ class _Log(RefCounts):
 
 
 def warp_timeline(
-    trace: OpTrace, warp: int, scheme: SchemeInfo, costs: dict[str, int], warp_size: int
+    trace: OpTrace, warp: int, scheme: SchemeInfo, ir: KernelIR, gpu: GpuConfig
 ) -> list[tuple[str, int]]:
-    """The blocks warp ``warp`` issues under ``scheme``, in order, with their active lanes.
+    """The blocks warp ``warp`` issues under ``scheme`` on ``gpu``, in order, with their
+    active lanes (``ir`` and ``gpu`` as for :func:`warp_counts`).
 
     Runs the plain-Python reference replay (the rules of the scheme's module docstring)
-    on the warp's ``warp_size`` rays. Cheap for one warp, too slow for many.
+    on the warp's rays. Cheap for one warp, too slow for many.
     """
     _check_scheme(scheme, has_timeline(scheme), timeline_schemes(trace.layout), "issue timeline")
     _check_layout(scheme, trace)
+    check_ir(ir, scheme.kernel, scheme.kernels[scheme.kernel])
+    executed = executed_on(ir, gpu)
+    p = trace_params(scheme, executed, gpu)
+    warp_size = p.warp_size
     n_warps = -(-trace.n_rays // warp_size)
     if not 0 <= warp < n_warps:
         raise SimtSimError(f"warp {warp} does not exist; the rays form warps 0..{n_warps - 1}")
@@ -155,6 +164,6 @@ def warp_timeline(
     off = trace.offsets
     streams = [trace.op[off[r] : off[r + 1]].tolist() for r in range(r0, r1)]
     addrs = [trace.addr[off[r] : off[r + 1]].tolist() for r in range(r0, r1)]
-    log = _Log(warp_size, costs)
+    log = _Log(warp_size, {b: executed.cost(b) for b in BLOCKS}, p.rounds)
     scheme.reference_warp(streams, addrs, log)
     return log.events

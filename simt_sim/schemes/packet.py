@@ -189,11 +189,11 @@ def replay(
 
 
 def warp_counts(
-    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, warp_size: int
+    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, p: ReplayParams
 ) -> np.ndarray:
     """Warp and lane instructions of each warp (int64 (n_warps, 2)), as ``replay`` counts."""
-    per_warp = per_warp_table(offsets, warp_size)
-    _replay(offsets, op, addr, costs, warp_size, per_warp)
+    per_warp = per_warp_table(offsets, p.warp_size)
+    _replay(offsets, op, addr, costs, p.warp_size, per_warp)
     return per_warp
 
 

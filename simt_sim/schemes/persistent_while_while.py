@@ -78,12 +78,12 @@ def replay(
 
 
 def warp_counts(
-    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, warp_size: int
+    offsets: np.ndarray, op: np.ndarray, addr: np.ndarray, costs: np.ndarray, p: ReplayParams
 ) -> np.ndarray:
-    """Warp and lane instructions of each fetched group of ``warp_size`` consecutive rays
+    """Warp and lane instructions of each fetched group of ``p.warp_size`` consecutive rays
     (int64 (n_groups, 2)), as ``replay`` counts them (the scheduling aside)."""
-    per_warp = per_warp_table(offsets, warp_size)
-    _replay(offsets, op, costs, warp_size, per_warp)
+    per_warp = per_warp_table(offsets, p.warp_size)
+    _replay(offsets, op, costs, p.warp_size, per_warp)
     return per_warp
 
 

@@ -90,6 +90,29 @@ def _check_kind(scheme: SchemeInfo, kind: str, call: str) -> None:
         )
 
 
+def trace_params(
+    scheme: SchemeInfo,
+    executed: KernelIR,
+    gpu: GpuConfig,
+    resident_warps: int | None = None,
+    **params: Any,
+) -> ReplayParams:
+    """What ``scheme``'s replay needs on ``gpu`` beyond the trace and the costs: the warp
+    size, the resident warps (SMs x the kernel's occupancy unless given), the scheme's own
+    parameters and whether the warp runs its traversal loop in rounds. ``executed`` is the
+    kernel's IR as ``gpu`` runs it (:func:`~simt_sim.simt.gpus.executed_on`), so the per-warp
+    views (:mod:`simt_sim.report.warpstats`) replay as :func:`simulate_traces` does."""
+    w = gpu.warp_size
+    check_warp_size(w)
+    if resident_warps is None:
+        resident_warps = gpu.sms * kernel_occupancy(gpu, executed, scheme.launch).warps_per_sm
+    if resident_warps < 1:
+        raise SimtSimError(f"resident_warps must be >= 1, got {resident_warps}")
+    return ReplayParams(
+        w, resident_warps, scheme.with_params(params), runs_in_rounds(executed, gpu)
+    )
+
+
 def simulate_traces(
     traces: Iterable[OpTrace],
     scheme: SchemeInfo,
@@ -128,19 +151,12 @@ def simulate_traces(
     _check_kind(scheme, TRACE, "simulate_traces")
     check_ir(ir, scheme.kernel, scheme.kernels[scheme.kernel])
     ir = executed_on(ir, gpu)
-    values = scheme.with_params(params)
-    w = gpu.warp_size
-    check_warp_size(w)
-    occupancy = kernel_occupancy(gpu, ir, scheme.launch)
-    r = gpu.sms * occupancy.warps_per_sm if resident_warps is None else resident_warps
-    if r < 1:
-        raise SimtSimError(f"resident_warps must be >= 1, got {r}")
+    replay_params = trace_params(scheme, ir, gpu, resident_warps, **params)
+    w, r = replay_params.warp_size, replay_params.resident_warps
     if launch_size is not None and (launch_size < 1 or launch_size % w):
         raise SimtSimError(
             f"launch_size must be a positive multiple of the warp size {w}, got {launch_size}"
         )
-    rounds = runs_in_rounds(ir, gpu)
-    replay_params = ReplayParams(w, r, values, rounds)
     costs = cost_vector(ir)
     totals = np.zeros(3, np.int64)
     state: dict[str, Any] = {"rays": 0, "ray_type": None, "short": None}
@@ -194,11 +210,11 @@ def simulate_traces(
     if scheme.persistent:
         extra.update(
             resident_warps=r,
-            **(occupancy.card() if resident_warps is None else {}),
+            **(kernel_occupancy(gpu, ir, scheme.launch).card() if resident_warps is None else {}),
             launch_size=launch_size if launch_size is not None else "one launch per batch",
             launches=launches,
         )
-    if rounds:
+    if replay_params.rounds:
         extra["traversal_rounds"] = True
     card = model_card(
         scheme.name,
@@ -208,7 +224,7 @@ def simulate_traces(
         recostable=scheme.recostable,
         blocks=scheme.kernels[scheme.kernel],
         **extra,
-        **values,
+        **replay_params.scheme,
     )
     return SimResult(
         scene=scene,

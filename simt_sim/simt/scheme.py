@@ -74,7 +74,7 @@ class SchemeInfo:
         Trace schemes: ``replay(offsets, op, addr, costs, ReplayParams) -> Counts``.
     warp_counts : callable, optional
         Schemes whose warps are fixed sets of consecutive rays:
-        ``warp_counts(offsets, op, addr, costs, warp_size)``, each warp's instructions.
+        ``warp_counts(offsets, op, addr, costs, ReplayParams)``, each warp's instructions.
     replay_paths : callable, optional
         Path schemes: ``replay_paths(path_trace, irs, gpu, **params) -> PathReplay``.
     reference : callable, optional

@@ -23,8 +23,7 @@ from simt_sim.errors import SimtSimError
 from simt_sim.report.plots import to_image
 from simt_sim.report.warpstats import timeline_schemes, warp_counts, warp_schemes, warp_timeline
 from simt_sim.schemes import get_scheme
-from simt_sim.simt.engine import cost_vector
-from simt_sim.simt.gpus import executed_on, get_gpu
+from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.study.workload import make_workload
 from simt_sim.trace.record import record_all
@@ -127,12 +126,15 @@ def primary():
     return wl, record_all(wl.bvh, wl.rays)
 
 
+@pytest.mark.parametrize("gpu_id", ["gtx285", "h200"])
 @pytest.mark.parametrize("scheme", warp_schemes())
-def test_warp_counts_add_up_to_the_replay(primary, scheme: str) -> None:
+def test_warp_counts_add_up_to_the_replay(primary, scheme: str, gpu_id: str) -> None:
+    """On the GPU's own code and schedule: the GTX 285 has no convergence barriers, the
+    H200 issues them by groups and runs the speculative traversal loop in rounds."""
     _, trace = primary
-    gpu = get_gpu("gtx285")
+    gpu = get_gpu(gpu_id)
     ir = kernels_ir.load(scheme, gpu.ir_arch)
-    wc = warp_counts(trace, get_scheme(scheme), cost_vector(executed_on(ir, gpu)), gpu.warp_size)
+    wc = warp_counts(trace, get_scheme(scheme), ir, gpu)
     r = simulate_traces([trace], get_scheme(scheme), ir, gpu)
     assert wc.warp_instructions.shape == (trace.n_rays // 32,)
     assert wc.warp_instructions.sum() == r.warp_instructions
@@ -140,14 +142,16 @@ def test_warp_counts_add_up_to_the_replay(primary, scheme: str) -> None:
     assert np.all((wc.efficiency > 0) & (wc.efficiency <= 1))
 
 
+@pytest.mark.parametrize("gpu_id", ["rtx2080ti", "h200"])
 @pytest.mark.parametrize("scheme", timeline_schemes())
-def test_timeline_costs_what_the_warp_counts_say(primary, scheme: str) -> None:
+def test_timeline_costs_what_the_warp_counts_say(primary, scheme: str, gpu_id: str) -> None:
     _, trace = primary
-    ir = kernels_ir.load(scheme, "sm_75")
-    wc = warp_counts(trace, get_scheme(scheme), cost_vector(ir), 32)
+    gpu = get_gpu(gpu_id)
+    ir = kernels_ir.load(scheme, gpu.ir_arch)
+    wc = warp_counts(trace, get_scheme(scheme), ir, gpu)
     costs = {b: ir.cost(b) for b in BLOCKS}
     for warp in (0, int(np.argmax(wc.warp_instructions))):
-        events = warp_timeline(trace, warp, get_scheme(scheme), costs, 32)
+        events = warp_timeline(trace, warp, get_scheme(scheme), ir, gpu)
         assert sum(costs[b] for b, _ in events) == wc.warp_instructions[warp]
         assert sum(costs[b] * n for b, n in events) == wc.lane_instructions[warp]
         # a barrier issued again by a group that arrives apart counts its lanes with the
@@ -158,13 +162,15 @@ def test_timeline_costs_what_the_warp_counts_say(primary, scheme: str) -> None:
 
 def test_per_warp_views_refuse_schemes_without_fixed_warps(primary) -> None:
     _, trace = primary
-    costs = cost_vector(kernels_ir.load("dynamic_fetch", "sm_75"))
+    gpu = get_gpu("rtx2080ti")
     with pytest.raises(SimtSimError, match="dynamic_fetch"):
-        warp_counts(trace, get_scheme("dynamic_fetch"), costs, 32)
+        warp_counts(trace, get_scheme("dynamic_fetch"), kernels_ir.load("dynamic_fetch", "sm_75"),
+                    gpu)  # fmt: skip
     with pytest.raises(SimtSimError, match="packet"):
-        warp_timeline(trace, 0, get_scheme("packet"), {b: 1 for b in BLOCKS}, 32)
+        warp_timeline(trace, 0, get_scheme("packet"), kernels_ir.load("packet", "sm_75"), gpu)
+    ww = kernels_ir.load("while_while", "sm_75")
     with pytest.raises(SimtSimError, match="warp 24 does not exist"):
-        warp_timeline(trace, 24, get_scheme("while_while"), {b: 1 for b in BLOCKS}, 32)
+        warp_timeline(trace, 24, get_scheme("while_while"), ww, gpu)
 
 
 def test_primary_rays_fill_the_image(primary) -> None:

@@ -18,7 +18,7 @@ from simt_sim.oracles.reference import reference_replay
 from simt_sim.rays.generate import paper_rays
 from simt_sim.schemes import get_scheme, names
 from simt_sim.schemes.cwbvh_persistent_while_while import BLOCKS_CHARGED
-from simt_sim.simt.engine import kernel_outcomes
+from simt_sim.simt.engine import ReplayParams, kernel_outcomes
 from simt_sim.simt.gpus import get_gpu, issue_limited
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.synth import trace_from_lists
@@ -184,11 +184,12 @@ def test_warp_counts_are_the_replay_group_by_group() -> None:
     tr = cw_trace(ops)
     costs = np.array([COSTS[b] for b in BLOCKS], np.int64)
     offsets, op, addr = tr.csr()
-    per_warp = get_scheme(NAME).warp_counts(offsets, kernel_outcomes(op), addr, costs, 32)
+    p = ReplayParams(32, 4)
+    per_warp = get_scheme(NAME).warp_counts(offsets, kernel_outcomes(op), addr, costs, p)
     assert per_warp.shape == (7, 2)
     # the recorded codes of 3 or more children hit are node steps too
     assert (op > TRI_HIT).any()
-    assert get_scheme(NAME).warp_counts(offsets, op, addr, costs, 32).tolist() == per_warp.tolist()
+    assert get_scheme(NAME).warp_counts(offsets, op, addr, costs, p).tolist() == per_warp.tolist()
     for w in range(7):
         alone = run(cw_trace(ops[32 * w : 32 * w + 32]), 32)
         lanes = int(np.dot(alone.counts.active, alone.costs))

@@ -14,7 +14,7 @@ from simt_sim import schemes
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.reference import reference_replay
 from simt_sim.schemes import SCHEMES, get_scheme
-from simt_sim.simt.engine import Counts
+from simt_sim.simt.engine import Counts, ReplayParams
 from simt_sim.simt.gpus import GpuConfig, issue_limited
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult, check_ir
@@ -354,19 +354,27 @@ def test_dynamic_fetch_matches_reference(
     assert r.makespan == ref.makespan
 
 
-@pytest.mark.parametrize("scheme", [s for s in TRACE_SCHEMES if SCHEMES[s].warp_counts])
-def test_warp_counts_are_the_replay_warp_by_warp(scheme: str) -> None:
-    """Each warp's instructions from ``warp_counts`` equal a replay of that warp alone."""
+@pytest.mark.parametrize(
+    ("scheme", "rounds"),
+    [(s, False) for s in TRACE_SCHEMES if SCHEMES[s].warp_counts] + [(SPECULATIVE, True)],
+)
+def test_warp_counts_are_the_replay_warp_by_warp(scheme: str, rounds: bool) -> None:
+    """Each warp's instructions from ``warp_counts`` equal a replay of that warp alone (in
+    rounds where the code and the GPU run the traversal loop so)."""
     rng = np.random.default_rng(5)
     ops, addrs = random_streams(rng, 32 * 12 + 7)
     trace = trace_from_lists(ops, addrs)
     costs = np.array([COSTS[b] for b in BLOCKS], np.int64)
-    per_warp = SCHEMES[scheme].warp_counts(trace.offsets, trace.op, trace.addr, costs, 32)
+    p = ReplayParams(32, 4, rounds=rounds)
+    per_warp = SCHEMES[scheme].warp_counts(trace.offsets, trace.op, trace.addr, costs, p)
     assert per_warp.shape == (13, 2)
+    ir = rounds_ir(scheme) if rounds else ir_for(scheme)
     for w in range(13):
-        alone = run(
-            trace_from_lists(ops[32 * w : 32 * w + 32], addrs[32 * w : 32 * w + 32]), scheme, 32
-        )
+        alone = simulate_traces(
+            [trace_from_lists(ops[32 * w : 32 * w + 32], addrs[32 * w : 32 * w + 32])],
+            get_scheme(scheme), ir, gpu_for(32),
+        )  # fmt: skip
+        assert alone.model_card.get("traversal_rounds", False) == rounds
         lanes = int(np.dot(alone.counts.active, alone.costs))
         assert per_warp[w].tolist() == [alone.warp_instructions, lanes]
 
