@@ -61,6 +61,7 @@ from simt_sim.simt.engine import (
     LOOP_CONTROL,
     N_BLOCKS,
     N_CHUNKS,
+    NO_OP,
     POOL_FETCH,
     POSTPONE,
     RAY_SETUP,
@@ -269,10 +270,15 @@ def _leaves(op, cur, end, group, parked, leaf, scratch, acc, costs, cnt, hist):
         extra += t_extra + apart(t_exits + np.int64((parked & ~tri) != 0))
         extra += np.int64(gone != 0 and gone != parked)
         exits += np.int64(gone != 0)
-    i_issued, i_trav, i_extra, i_exits = isect_loop(op, cur, end, leaf, acc, costs, cnt, hist)
-    extra += i_extra + apart(i_exits)  # the pop's two groups, in each but the last leaf
-    extra += apart(exits + i_exits + np.int64((group & ~parked & ~leaf) != 0))
-    return issued + i_issued, i_trav, extra
+    i_trav = np.int64(0)
+    if leaf:
+        i_issued, i_trav, i_extra, i_exits = isect_loop(op, cur, end, leaf, acc, costs, cnt,
+                                                        hist)  # fmt: skip
+        issued += i_issued
+        extra += i_extra + apart(i_exits)  # the pop's two groups, in each but the last leaf
+        exits += i_exits
+    extra += apart(exits + np.int64((group & ~parked & ~leaf) != 0))
+    return issued, i_trav, extra
 
 
 @njit(cache=True, nogil=True)
@@ -320,12 +326,15 @@ def spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist):
                 a += trav_pack(op[np.uint64(cur[lane])])
                 c = cur[lane] + 1
                 e = end[lane]
-                o = op_at(op, c, e)
+                # op_at's test written out: inlined into this loop, whose branches defeat
+                # numba's reference-count pruning, its array argument cost an incref and a
+                # decref per step (a fifth of the rounds replay's time)
+                o = op[np.uint64(c)] if c < e else NO_OP
                 if o == LEAF and not parked & bit:
                     c = _park(op, c, e, lane, park, park_end)
                     parked |= bit
                     post += 1
-                    o = op_at(op, c, e)
+                    o = op[np.uint64(c)] if c < e else NO_OP
                 cur[lane] = c
                 at_trav |= is_trav(o) << lane
                 at_leaf |= is_leaf(o) << lane
