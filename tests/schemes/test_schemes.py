@@ -506,10 +506,14 @@ def assert_conserved(r: SimResult, ops: list[list[int]], scheme: str) -> None:
     assert r.mean_trav == pytest.approx(by_code[:3].sum() / len(ops))
 
 
-@pytest.mark.parametrize("scheme", TRACE_SCHEMES)
-def test_identical_rays_in_a_warp_are_fully_efficient(scheme: str) -> None:
+@pytest.mark.parametrize(
+    ("scheme", "rounds"), [(s, False) for s in TRACE_SCHEMES] + [(SPECULATIVE, True)]
+)
+def test_identical_rays_in_a_warp_are_fully_efficient(scheme: str, rounds: bool) -> None:
     trace = synthetic_trace(32 * 40, seed=5, coherence=32, divergence=0.0)
-    r = run(trace, scheme, 32)
+    ir = rounds_ir(scheme) if rounds else ir_for(scheme)
+    r = simulate_traces([trace], get_scheme(scheme), ir, gpu_for(32))
+    assert r.model_card.get("traversal_rounds", False) == rounds
     assert r.simd_efficiency_traversal == 1.0
     assert r.simd_efficiency_intersection == 1.0
     assert r.simd_efficiency == 1.0
