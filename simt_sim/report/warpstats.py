@@ -28,7 +28,7 @@ from kernels_ir.kernel_ir import BLOCKS, RECONVERGE, KernelIR
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.reference import RefCounts
 from simt_sim.schemes import SCHEMES
-from simt_sim.simt.engine import cost_vector, replay_arrays
+from simt_sim.simt.engine import ReplayParams, cost_vector, replay_arrays
 from simt_sim.simt.gpus import GpuConfig, executed_on
 from simt_sim.simt.replay import trace_params
 from simt_sim.simt.result import check_ir
@@ -107,12 +107,18 @@ def warp_counts(trace: OpTrace, scheme: SchemeInfo, ir: KernelIR, gpu: GpuConfig
     """
     _check_scheme(scheme, has_warp_counts(scheme), warp_schemes(trace.layout), "per-warp counts")
     _check_layout(scheme, trace)
-    check_ir(ir, scheme.kernel, scheme.kernels[scheme.kernel])
-    executed = executed_on(ir, gpu)
-    p = trace_params(scheme, executed, gpu)
+    executed, p = _as_run(scheme, ir, gpu)
     offsets, op, addr = replay_arrays(trace)
     out = scheme.warp_counts(offsets, op, addr, cost_vector(executed), p)
     return WarpCounts(out[:, 0].copy(), out[:, 1].copy(), p.warp_size)
+
+
+def _as_run(scheme: SchemeInfo, ir: KernelIR, gpu: GpuConfig) -> tuple[KernelIR, ReplayParams]:
+    """``ir`` as ``gpu`` runs it and the replay's params there, as ``simulate_traces`` takes
+    them, so the per-warp views add up to its counts."""
+    check_ir(ir, scheme.kernel, scheme.kernels[scheme.kernel])
+    executed = executed_on(ir, gpu)
+    return executed, trace_params(scheme, executed, gpu)
 
 
 def _check_layout(scheme: SchemeInfo, trace: OpTrace) -> None:
@@ -153,9 +159,7 @@ def warp_timeline(
     """
     _check_scheme(scheme, has_timeline(scheme), timeline_schemes(trace.layout), "issue timeline")
     _check_layout(scheme, trace)
-    check_ir(ir, scheme.kernel, scheme.kernels[scheme.kernel])
-    executed = executed_on(ir, gpu)
-    p = trace_params(scheme, executed, gpu)
+    executed, p = _as_run(scheme, ir, gpu)
     warp_size = p.warp_size
     n_warps = -(-trace.n_rays // warp_size)
     if not 0 <= warp < n_warps:
