@@ -20,6 +20,7 @@ from matplotlib.figure import Figure
 
 from kernels_ir.kernel_ir import BLOCKS
 from simt_sim import schemes
+from simt_sim.bvh.layouts import Tree
 from simt_sim.report import plots
 from simt_sim.report.warpstats import has_timeline, has_warp_counts, warp_counts, warp_timeline
 from simt_sim.simt.gpus import executed_on
@@ -53,9 +54,10 @@ def figure_steps(spec: StudySpec, measured: bool) -> int:
     return 2 * n_figures + n_measured + 1 + len(traced)
 
 
-def measure_numba(wl: Workload) -> float:
-    """MRays/s of the numba tracer on the workload's rays (median of 3 after a warm-up)."""
-    _, sec = timed(lambda: numba_tracer.trace(wl.bvh, wl.rays), MEASURE_REPEATS)
+def measure_numba(tree: Tree, wl: Workload) -> float:
+    """MRays/s of the numba tracer of ``tree``'s layout on the workload's rays (median of 3
+    after a warm-up)."""
+    _, sec = timed(lambda: numba_tracer.trace(tree, wl.rays), MEASURE_REPEATS)
     return len(wl.rays) / sec / 1e6 if sec > 0 else float("nan")
 
 
@@ -116,7 +118,7 @@ def study_figures(
     if measured:
         steps.set_description("measuring")
         for rt in plan.trace_ray_types:
-            speeds[rt] = measure_numba(plan.workload(rt))
+            speeds[rt] = measure_numba(plan.tree, plan.workload(rt))
             steps.update()
     steps.set_description("drawing")
     figures["mrays"] = plots.mrays_figure(table, f"Upper-bound MRays/s on {name} ({setup})", speeds)
@@ -131,7 +133,7 @@ def study_figures(
                            "issue order)")  # fmt: skip
     for rt in plan.trace_ray_types:
         wl = plan.workload(rt)
-        trace = load_trace(saved[rt])[0] if saved else record_all(wl.bvh, wl.rays)
+        trace = load_trace(saved[rt])[0] if saved else record_all(plan.tree, wl.rays)
         steps.update()
         per_ray = trace.counts()
         maps = {}

@@ -165,9 +165,9 @@ def warp_timeline(
     if not 0 <= warp < n_warps:
         raise SimtSimError(f"warp {warp} does not exist; the rays form warps 0..{n_warps - 1}")
     r0, r1 = warp * warp_size, min((warp + 1) * warp_size, trace.n_rays)
-    off = trace.offsets
-    streams = [trace.op[off[r] : off[r + 1]].tolist() for r in range(r0, r1)]
-    addrs = [trace.addr[off[r] : off[r + 1]].tolist() for r in range(r0, r1)]
+    off, op, addr = replay_arrays(trace)  # a wide tree's node steps as the kernel branches
+    streams = [op[off[r] : off[r + 1]].tolist() for r in range(r0, r1)]
+    addrs = [addr[off[r] : off[r + 1]].tolist() for r in range(r0, r1)]
     log = _Log(warp_size, {b: executed.cost(b) for b in BLOCKS}, p.rounds)
     scheme.reference_warp(streams, addrs, log)
     return log.events

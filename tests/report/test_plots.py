@@ -160,6 +160,32 @@ def test_timeline_costs_what_the_warp_counts_say(primary, scheme: str, gpu_id: s
         assert all(n == 0 for b, n in events if b == "reconverge")
 
 
+@pytest.mark.parametrize(
+    ("layout", "scheme"), [("bvh4", "while_while"), ("cwbvh", "cwbvh_persistent_while_while")]
+)
+def test_a_wide_tree_has_per_warp_views(layout: str, scheme: str) -> None:
+    """A wide tree's node steps (3 or more children hit) are the kernel's outcomes in the
+    timeline as in the counts (the reference once looped on their raw codes)."""
+    wl = make_workload("room", "primary", cameras="0", resolution=(32, 24), layout=layout)
+    trace = record_all(wl.tree, wl.rays)
+    record = get_scheme(scheme).for_layout(layout)
+    gpu = get_gpu("h200")
+    ir = kernels_ir.load(record.kernel, gpu.ir_arch)
+    wc = warp_counts(trace, record, ir, gpu)
+    assert wc.warp_instructions.sum() == simulate_traces([trace], record, ir, gpu).warp_instructions
+    costs = {b: ir.cost(b) for b in BLOCKS}
+    events = warp_timeline(trace, 3, record, ir, gpu)
+    assert sum(costs[b] for b, _ in events) == wc.warp_instructions[3]
+
+
+def test_plot_draws_a_wide_tree(tmp_path: Path) -> None:
+    out = tmp_path / "figs"
+    proc = run_cli("plot", *SMALL, "--rays", "primary", "--bvh", "bvh4", "--schemes",
+                   "while_while,persistent_while_while", "--out", str(out))  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert {"pixels_while_while.png", "timeline_while_while.png"} <= {p.name for p in out.iterdir()}
+
+
 def test_per_warp_views_refuse_schemes_without_fixed_warps(primary) -> None:
     _, trace = primary
     gpu = get_gpu("rtx2080ti")
