@@ -30,7 +30,7 @@ from simt_sim.oracles.reference import RefCounts
 from simt_sim.schemes import SCHEMES
 from simt_sim.simt.engine import ReplayParams, cost_vector, replay_arrays
 from simt_sim.simt.gpus import GpuConfig, executed_on
-from simt_sim.simt.replay import trace_params
+from simt_sim.simt.replay import check_streams, trace_params
 from simt_sim.simt.result import check_ir
 from simt_sim.simt.scheme import SchemeInfo
 from simt_sim.types.optrace import OpTrace
@@ -109,6 +109,7 @@ def warp_counts(trace: OpTrace, scheme: SchemeInfo, ir: KernelIR, gpu: GpuConfig
     _check_layout(scheme, trace)
     executed, p = _as_run(scheme, ir, gpu)
     offsets, op, addr = replay_arrays(trace)
+    check_streams(offsets, op)
     out = scheme.warp_counts(offsets, op, addr, cost_vector(executed), p)
     return WarpCounts(out[:, 0].copy(), out[:, 1].copy(), p.warp_size)
 
@@ -166,6 +167,7 @@ def warp_timeline(
         raise SimtSimError(f"warp {warp} does not exist; the rays form warps 0..{n_warps - 1}")
     r0, r1 = warp * warp_size, min((warp + 1) * warp_size, trace.n_rays)
     off, op, addr = replay_arrays(trace)  # a wide tree's node steps as the kernel branches
+    check_streams(off[r0 : r1 + 1], op, r0)
     streams = [op[off[r] : off[r + 1]].tolist() for r in range(r0, r1)]
     addrs = [addr[off[r] : off[r + 1]].tolist() for r in range(r0, r1)]
     log = _Log(warp_size, {b: executed.cost(b) for b in BLOCKS}, p.rounds)

@@ -90,6 +90,22 @@ def _check_kind(scheme: SchemeInfo, kind: str, call: str) -> None:
         )
 
 
+def check_streams(offsets: np.ndarray, op: np.ndarray, first_ray: int = 0) -> tuple[int, int, int]:
+    """The TRAV, LEAF and TRI ops of replay arrays (:func:`~simt_sim.simt.engine.replay_arrays`),
+    refusing a malformed stream, which no replay loop would leave, in words that name its
+    ray (``first_ray`` is the first ray's number in the caller's whole trace)."""
+    n_trav, n_leaf, n_tri, bad = scan_trace(offsets, op)
+    if bad >= 0:
+        local = int(np.searchsorted(offsets, bad, side="right") - 1)
+        code = int(op[bad])
+        what = OP_NAMES[code] if code < len(OP_NAMES) else f"unknown op code {code}"
+        raise SimtSimError(
+            f"ray {local + first_ray}: malformed op stream ({what} at op "
+            f"{bad - int(offsets[local])}; {STREAM_RULE}); re-record the trace"
+        )
+    return int(n_trav), int(n_leaf), int(n_tri)
+
+
 def trace_params(
     scheme: SchemeInfo,
     executed: KernelIR,
@@ -184,16 +200,7 @@ def simulate_traces(
                     f"this {trace.layout} trace: take scheme.for_layout({trace.layout!r}), "
                     f"or record the trace with --bvh {scheme.layout}"
                 )
-            n_trav, n_leaf, n_tri, bad = scan_trace(a[0], a[1])
-            if bad >= 0:
-                local = int(np.searchsorted(a[0], bad, side="right") - 1)
-                code = int(a[1][bad])
-                what = OP_NAMES[code] if code < len(OP_NAMES) else f"unknown op code {code}"
-                raise SimtSimError(
-                    f"ray {local + state['rays']}: malformed op stream ({what} at op "
-                    f"{bad - int(a[0][local])}; {STREAM_RULE}); re-record the trace"
-                )
-            totals[:] += (n_trav, n_leaf, n_tri)
+            totals[:] += check_streams(a[0], a[1], state["rays"])
             state["rays"] += n
             yield a
 

@@ -25,8 +25,10 @@ from simt_sim.report.warpstats import timeline_schemes, warp_counts, warp_scheme
 from simt_sim.schemes import get_scheme
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.replay import simulate_traces
+from simt_sim.simt.synth import trace_from_lists
 from simt_sim.study.workload import make_workload
 from simt_sim.trace.record import record_all
+from simt_sim.types.optrace import LEAF, TRAV_ONE, TRI_MISS
 
 #: one scheme with a timeline, one with per-pixel figures only, one with neither
 SCHEMES = "persistent_speculative_while_while,packet,dynamic_fetch"
@@ -184,6 +186,20 @@ def test_plot_draws_a_wide_tree(tmp_path: Path) -> None:
                    "while_while,persistent_while_while", "--out", str(out))  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert {"pixels_while_while.png", "timeline_while_while.png"} <= {p.name for p in out.iterdir()}
+
+
+def test_per_warp_views_refuse_a_malformed_trace() -> None:
+    """A triangle test with no leaf before it would never leave a loop: one clear error,
+    naming the ray, as simulate_traces gives."""
+    ops = [[TRAV_ONE, LEAF, TRI_MISS]] * 40 + [[TRAV_ONE, TRI_MISS]] + [[TRAV_ONE]] * 23
+    trace = trace_from_lists(ops, [[0] * len(o) for o in ops])
+    gpu = get_gpu("h200")
+    ir = kernels_ir.load("while_while", gpu.ir_arch)
+    with pytest.raises(SimtSimError, match="ray 40: malformed op stream"):
+        warp_counts(trace, get_scheme("while_while"), ir, gpu)
+    with pytest.raises(SimtSimError, match="ray 40: malformed op stream"):
+        warp_timeline(trace, 1, get_scheme("while_while"), ir, gpu)
+    assert warp_timeline(trace, 0, get_scheme("while_while"), ir, gpu)  # its warp is sound
 
 
 def test_per_warp_views_refuse_schemes_without_fixed_warps(primary) -> None:
