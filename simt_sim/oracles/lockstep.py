@@ -1436,11 +1436,15 @@ class Execution:
     ops : int64 (n, 3)
         Per-ray TRAV, LEAF, TRI counts of the work each lane did (packet: the nodes,
         leaves and triangles the lane was active for).
+    per_warp : int64 (units, 2), optional
+        Warp and lane instructions of each warp (persistent kernels: each fetched group)
+        of consecutive rays; None for speculative dynamic fetch, whose lanes refill.
     """
 
     result: SimResult
     hits: Hits
     ops: np.ndarray
+    per_warp: np.ndarray | None = None
 
 
 def _gpu(gpu: GpuConfig | None, warp_size: int | None) -> GpuConfig:
@@ -1602,6 +1606,8 @@ def execute(
             scheme.lockstep, persistent, *args, g.warp_size, costs, rounds
         )
         counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0)
+    # each fixed warp's counters, costed; speculative dynamic fetch's lanes refill instead
+    per_warp = None if scheme.lockstep == SPECULATIVE_FETCH_BODY else cnt @ costs
     if overflow:
         raise SimtSimError(
             f"{'' if width == 2 else 'wide '}BVH is deeper than its stats.depth "
@@ -1641,7 +1647,7 @@ def execute(
         n_tri=int(n_ops[_C_TRI]),
         model_card=card,
     )
-    return Execution(result=result, hits=Hits(tri=tri, t=t), ops=ops)
+    return Execution(result=result, hits=Hits(tri=tri, t=t), ops=ops, per_warp=per_warp)
 
 
 #: metrics compared by :func:`approximation_error`

@@ -5,7 +5,8 @@ warp by warp. Both views run the scheme's own code, so they agree with the repla
 
 - :func:`warp_counts` calls the scheme's ``warp_counts`` (its own replay kernel,
   recording each warp's totals), so the per-warp warp and lane instructions are exact
-  and sum to the SimResult's totals;
+  and sum to the SimResult's totals; a scheme the study executes rather than replays
+  (packet) takes them from the same lockstep run, given the trace's rays;
 - :func:`warp_timeline` runs the scheme's plain-Python reference replay of one warp
   (``SchemeInfo.reference_warp``) with a counter that also logs every issue in order.
 
@@ -25,7 +26,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from kernels_ir.kernel_ir import BLOCKS, RECONVERGE, KernelIR
+from simt_sim.bvh.layouts import Tree
 from simt_sim.errors import SimtSimError
+from simt_sim.oracles.lockstep import execute
 from simt_sim.oracles.reference import RefCounts
 from simt_sim.schemes import SCHEMES
 from simt_sim.simt.engine import ReplayParams, cost_vector, replay_arrays
@@ -34,6 +37,7 @@ from simt_sim.simt.replay import check_streams, trace_params
 from simt_sim.simt.result import check_ir
 from simt_sim.simt.scheme import SchemeInfo
 from simt_sim.types.optrace import OpTrace
+from simt_sim.types.raybatch import RayBatch
 
 
 def has_warp_counts(scheme: SchemeInfo) -> bool:
@@ -89,9 +93,17 @@ def _check_scheme(scheme: SchemeInfo, ok: bool, known: Sequence[str], what: str)
         )
 
 
-def warp_counts(trace: OpTrace, scheme: SchemeInfo, ir: KernelIR, gpu: GpuConfig) -> WarpCounts:
+def warp_counts(
+    trace: OpTrace,
+    scheme: SchemeInfo,
+    ir: KernelIR,
+    gpu: GpuConfig,
+    *,
+    launch: tuple[Tree, RayBatch] | None = None,
+) -> WarpCounts:
     """Exact instructions of every warp of ``trace`` under ``scheme`` on ``gpu`` (parallel
-    over warps), with the costs and the schedule of :func:`~simt_sim.simt.replay.simulate_traces`.
+    over warps), with the costs and the schedule of :func:`~simt_sim.simt.replay.simulate_traces`
+    (an executed scheme given ``launch``: of the study's lockstep run).
 
     Parameters
     ----------
@@ -104,9 +116,22 @@ def warp_counts(trace: OpTrace, scheme: SchemeInfo, ir: KernelIR, gpu: GpuConfig
     gpu : GpuConfig
         Its warp size, and how its hardware runs the kernel
         (:func:`~simt_sim.simt.gpus.executed_on`, :func:`~simt_sim.simt.gpus.runs_in_rounds`).
+    launch : (tree, rays), optional
+        The tree and rays ``trace`` was recorded from. A scheme the study executes
+        (``SchemeInfo.executed``: packet) then runs its kernel on them as the study does,
+        so the counts add up to the table's; without them its replay approximates it.
     """
     _check_scheme(scheme, has_warp_counts(scheme), warp_schemes(trace.layout), "per-warp counts")
     _check_layout(scheme, trace)
+    if scheme.executed and launch is not None:
+        tree, rays = launch
+        if len(rays) != trace.n_rays:
+            raise SimtSimError(
+                f"the launch has {len(rays)} rays, the trace {trace.n_rays}: pass the rays "
+                "the trace was recorded from"
+            )
+        run = execute(tree, rays, scheme, ir, gpu)
+        return WarpCounts(run.per_warp[:, 0].copy(), run.per_warp[:, 1].copy(), gpu.warp_size)
     executed, p = _as_run(scheme, ir, gpu)
     offsets, op, addr = replay_arrays(trace)
     check_streams(offsets, op)

@@ -1,7 +1,11 @@
 """packet traversal (Günther et al. 2007): one shared stack per warp, the union of its rays.
 
-The warp visits every node any of its lanes visits, once; every lane takes part in every
-step, but only the lanes whose own ray needs a node count as active for it. Per warp:
+A study runs the packet kernel itself on its rays (``executed``: the lockstep executor,
+:mod:`simt_sim.oracles.lockstep`, within 0.1% of an H200's counters); the replay below
+is what a trace without its rays gets, an approximation whose error docs/paper_table.md
+measures. The warp visits every node any of its lanes visits, once; every lane takes part
+in every step, but only the lanes whose own ray needs a node count as active for it. Per
+warp:
 
 - ``ray_setup`` and ``finish`` with every lane that has a ray;
 - per distinct interior node (TRAV address) in the union of the lanes' streams:
@@ -217,5 +221,6 @@ SCHEME = SchemeInfo(
     reference_warp=packet_warp,
     issue_order=False,
     lockstep=PACKET_BODY,
+    executed=True,
     launch=KernelLaunch("packet", shared_stack=True),
 )

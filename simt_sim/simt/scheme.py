@@ -86,6 +86,11 @@ class SchemeInfo:
         when ``issue_order`` (the timeline figure draws it).
     lockstep : int, optional
         The kernel body the exact lockstep executor runs for it (``oracles.lockstep``).
+    executed : bool
+        A study that has the rays runs its kernel in lockstep over the tree (``lockstep``,
+        exact) instead of replaying the recorded streams: what one of its warps does
+        depends on all of the warp's rays together (packet's shared traversal), which no
+        replay of per-ray streams gives. Slower; saved traces still replay.
     launch : KernelLaunch, optional
         How the CUDA tracer launches its kernel (trace schemes with a ``.cu`` tracer).
     layout : str
@@ -112,6 +117,7 @@ class SchemeInfo:
     reference_warp: Callable[..., Any] | None = None
     issue_order: bool = True
     lockstep: int | None = None
+    executed: bool = False
     launch: KernelLaunch | None = None
     layout: str = "bvh2"
     wide: Mapping[str, Mapping[str, tuple[str, ...]]] = field(
@@ -125,6 +131,8 @@ class SchemeInfo:
             raise ValueError(f"scheme {self.name!r}: a trace scheme has a replay, a path one not")
         if (self.kind == PATH) != (self.replay_paths is not None):
             raise ValueError(f"scheme {self.name!r}: a path scheme has replay_paths")
+        if self.executed and self.lockstep is None:
+            raise ValueError(f"scheme {self.name!r}: an executed scheme has a lockstep body")
         object.__setattr__(self, "kernels", MappingProxyType(dict(self.kernels)))
         object.__setattr__(self, "params", MappingProxyType(dict(self.params)))
         object.__setattr__(

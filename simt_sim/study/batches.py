@@ -2,9 +2,11 @@
 
 Rays stream launch by launch (2^20 rays, as the paper traced secondary rays): each
 launch batch is recorded once (:func:`record_batch`) and replayed under every trace
-scheme and GPU of the plan (:func:`replay_batch`); in one process the next batch is
-recorded while the current one replays (:func:`pipelined`), so memory stays bounded by
-two launches whatever the ray count. With ``sample < 1`` each batch records a stratified
+scheme and GPU of the plan (:func:`replay_batch`; a scheme whose warp's work no replay of
+per-ray streams gives, packet, runs its kernel on the batch's rays instead:
+:func:`simulate_launch`); in one process the next batch is recorded while the current
+one replays (:func:`pipelined`), so memory stays bounded by two launches whatever the
+ray count. With ``sample < 1`` each batch records a stratified
 sample of its warps in random groups (``simt_sim.study.sampling``), each replayed as a
 launch of its own.
 """
@@ -17,10 +19,16 @@ from dataclasses import dataclass
 
 import numba
 
+from kernels_ir.kernel_ir import KernelIR
+from simt_sim.bvh.layouts import Tree
+from simt_sim.errors import SimtSimError
+from simt_sim.oracles.lockstep import execute
 from simt_sim.progress import checkpoint
+from simt_sim.simt.gpus import GpuConfig
 from simt_sim.simt.memory import MemoryCounts, memory_counts
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult
+from simt_sim.simt.scheme import SchemeInfo
 from simt_sim.study.plan import StudyPlan
 from simt_sim.study.sampling import sample_warps
 from simt_sim.trace.record import record_all
@@ -30,14 +38,16 @@ from simt_sim.types.raybatch import RAY_TYPES, RayBatch
 
 @dataclass(frozen=True, eq=False)
 class RecordedBatch:
-    """One launch batch recorded: its trace (all rays, or the sampled warps group by group)
-    and the ray offsets of the groups."""
+    """One launch batch recorded: its trace (all rays, or the sampled warps group by group),
+    the ray offsets of the groups, and the rays traced (kept when a scheme of the plan is
+    executed rather than replayed)."""
 
     ray_type: str
     index: int
     rays: int
     trace: OpTrace
     bounds: tuple[int, ...]
+    traced: RayBatch | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,12 +89,40 @@ def record_batch(plan: StudyPlan, ray_type: str, rays: RayBatch, index: int) -> 
     else:
         traced, bounds = rays, [0, len(rays)]
     trace = record_all(plan.tree, traced, batch_size=spec.launch_size)
-    return RecordedBatch(ray_type, index, len(rays), trace, tuple(bounds))
+    keep = traced if any(s.executed for s in plan.trace_schemes) else None
+    return RecordedBatch(ray_type, index, len(rays), trace, tuple(bounds), keep)
+
+
+def simulate_launch(
+    tree: Tree,
+    rays: RayBatch | None,
+    trace: OpTrace,
+    scheme: SchemeInfo,
+    ir: KernelIR,
+    gpu: GpuConfig,
+    *,
+    scene: str,
+    resident_warps: int | None = None,
+) -> SimResult:
+    """One launch of ``rays`` (recorded as ``trace``) under ``scheme`` on ``gpu``.
+
+    A scheme marked ``executed`` (packet) runs its kernel in lockstep over ``tree``
+    (:func:`~simt_sim.oracles.lockstep.execute`): its warps share one traversal whose
+    nodes follow all their rays together, so the replay of the per-ray streams could only
+    approximate it. Every other scheme replays ``trace``.
+    """
+    if scheme.executed:
+        if rays is None:
+            raise SimtSimError(f"{scheme.name} runs its kernel on the rays; pass the launch's rays")
+        run = execute(tree, rays, scheme, ir, gpu, scene=scene, resident_warps=resident_warps)
+        return run.result
+    return simulate_traces([trace], scheme, ir, gpu, scene=scene, resident_warps=resident_warps)
 
 
 def replay_batch(plan: StudyPlan, recorded: RecordedBatch) -> BatchResults:
-    """Replay a recorded batch under every trace scheme x GPU of ``plan`` (and run the
-    memory model where it is on).
+    """Replay a recorded batch under every trace scheme x GPU of ``plan`` (an executed
+    scheme runs on its rays: :func:`simulate_launch`), and run the memory model where it
+    is on.
 
     Sampled, each random group is replayed as a launch of its own; persistent schemes
     then keep the full launch's rays per resident warp (their resident warps scale with
@@ -96,6 +134,9 @@ def replay_batch(plan: StudyPlan, recorded: RecordedBatch) -> BatchResults:
     results: dict[tuple[str, str], list[SimResult | None]] = {}
     for start, stop in zip(bounds[:-1], bounds[1:], strict=True):
         piece = trace.slice(start, stop) if sampled else trace
+        rays = recorded.traced
+        if sampled and rays is not None:
+            rays = rays.slice(start, stop)
         for g in plan.gpus:
             resident = None
             if sampled:
@@ -105,9 +146,10 @@ def replay_batch(plan: StudyPlan, recorded: RecordedBatch) -> BatchResults:
                 r = None
                 if stop > start:
                     ir = plan.irs[(s.kernel, g.ir_arch)]
-                    r = simulate_traces(
-                        [piece], s, ir, g, scene=plan.scene.name, resident_warps=resident
-                    )
+                    r = simulate_launch(
+                        plan.tree, rays, piece, s, ir, g, scene=plan.scene.name,
+                        resident_warps=resident,
+                    )  # fmt: skip
                 results.setdefault((s.name, g.id), []).append(r)
     return BatchResults(
         recorded.index, recorded.rays, {k: tuple(v) for k, v in results.items()}, memory

@@ -26,10 +26,10 @@ from simt_sim.progress import bar as progress_bar
 from simt_sim.progress import checkpoint
 from simt_sim.simt.gpus import GpuConfig
 from simt_sim.simt.memory import MemoryCounts, memory_columns, memory_counts
-from simt_sim.simt.replay import simulate_paths, simulate_queues
+from simt_sim.simt.replay import simulate_paths
 from simt_sim.simt.result import SimResult, merge
 from simt_sim.simt.scheme import PATH, SchemeInfo
-from simt_sim.study.batches import BatchResults, pipelined
+from simt_sim.study.batches import BatchResults, pipelined, simulate_launch
 from simt_sim.study.plan import StudyPlan, plan_study
 from simt_sim.study.sampling import GROUPS, half_width
 from simt_sim.study.spec import StudySpec
@@ -216,8 +216,9 @@ def trace_rows(
 
 def path_rows(plan: StudyPlan, bar: tqdm) -> tuple[list[SimResult], list[dict]]:
     """Trace one diffuse path per pixel once and replay it under every scheme x GPU: trace
-    schemes run each bounce's queue as a launch, path schemes the whole paths. The memory
-    model, where it runs, counts the scene traffic of every extend and shadow ray."""
+    schemes run each bounce's queue as a launch (:func:`simulate_launch`), path schemes
+    the whole paths. The memory model, where it runs, counts the scene traffic of every
+    extend and shadow ray."""
     spec = plan.spec
     bar.set_description(f"{plan.scene.name} {PATH_RAYS}")
     pt = trace_paths(
@@ -233,11 +234,14 @@ def path_rows(plan: StudyPlan, bar: tqdm) -> tuple[list[SimResult], list[dict]]:
     bar.total += pt.n_rays
     name = plan.scene.name
     replayed: dict[tuple[str, str], SimResult] = {}
+    queues = list(zip(pt.queue_rays("all"), pt.queues("all"), strict=True))
     for g in plan.gpus:
         for s in plan.trace_schemes:
             checkpoint()
             ir = plan.irs[(s.kernel, g.ir_arch)]
-            replayed[(s.name, g.id)] = simulate_queues(pt, "all", s, ir, g, scene=name)
+            replayed[(s.name, g.id)] = merge(
+                [simulate_launch(plan.bvh, r, q, s, ir, g, scene=name) for r, q in queues]
+            )
         for s in plan.path_schemes:
             checkpoint()
             replayed[(s.name, g.id)] = simulate_paths(pt, s, plan.irs_for(s, g), g, scene=name)

@@ -4,11 +4,14 @@ A trace file holds the op streams of one ray type over one tree, recorded from t
 rays a table makes (its header names the scene, cameras, resolution, spp, seed and tree).
 :func:`saved_spec` turns the files' headers into the study that would have recorded them;
 :func:`run_saved` replays the files' rays in the table's launches of ``launch_size`` rays,
-so every number equals the table's that records them anew, bit for bit.
+so every number equals the table's that records them anew, bit for bit. A scheme the
+study executes rather than replays (packet) needs the rays themselves: they are made again
+from the header's protocol, launch by launch.
 """
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from typing import Any
@@ -25,6 +28,7 @@ from simt_sim.study.spec import StudySpec
 from simt_sim.trace.record import concat_traces
 from simt_sim.trace.tracefile import iter_trace, read_meta
 from simt_sim.types.optrace import OpTrace
+from simt_sim.types.raybatch import RayBatch
 
 #: what every saved file of one study must share (header ``meta`` keys)
 SHARED = ("scene", "up", "camera_file", "cameras", "resolution", "spp", "seed", "bvh")
@@ -93,6 +97,21 @@ def _check_tree(plan: StudyPlan, path: str) -> None:
         )
 
 
+def _rays_of(plan: StudyPlan, ray_type: str, path: str) -> Iterator[RayBatch | None]:
+    """The rays of each launch of ``path``, remade from the spec, where a scheme executes
+    on them (else ``None`` for every launch)."""
+    if not any(s.executed for s in plan.trace_schemes):
+        yield from itertools.repeat(None)
+        return
+    stream = plan.workload(ray_type).stream
+    if stream.n_rays != read_meta(path)["rays"]:
+        raise SimtSimError(
+            f"{path} holds {read_meta(path)['rays']} rays, its header's protocol makes "
+            f"{stream.n_rays}; re-record it"
+        )
+    yield from stream.batches(plan.spec.launch_size)
+
+
 def run_saved(
     spec: StudySpec, paths: Sequence[str], plan: StudyPlan | None = None
 ) -> tuple[list[SimResult], pd.DataFrame]:
@@ -110,8 +129,10 @@ def run_saved(
     for path, rt in zip(paths, spec.ray_types, strict=True):
         _check_tree(plan, path)
         batches: list[BatchResults] = []
-        for k, launch in enumerate(_launches(path, spec.launch_size)):
-            recorded = RecordedBatch(rt, k, launch.n_rays, launch, (0, launch.n_rays))
+        # as many launches as rays (checked), or None without end: not strict
+        launches = zip(_launches(path, spec.launch_size), _rays_of(plan, rt, path), strict=False)
+        for k, (launch, rays) in enumerate(launches):
+            recorded = RecordedBatch(rt, k, launch.n_rays, launch, (0, launch.n_rays), rays)
             batches.append(replay_batch(plan, recorded))
         r, w = trace_rows(plan, rt, batches)
         results += r

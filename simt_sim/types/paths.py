@@ -100,13 +100,11 @@ class PathTrace:
         ``"all"`` (bounce by bounce, extend then connect). Each queue is its own launch:
         simulate them one by one and merge, so no warp straddles two queues.
         """
-        if kind not in ("extend", "connect", "all"):
-            raise SimtSimError(f"unknown queue kind {kind!r}; use extend, connect or all")
-        if kind == "extend":
-            return list(self.extend)
-        if kind == "connect":
-            return list(self.connect)
-        return [t for pair in zip(self.extend, self.connect, strict=True) for t in pair]
+        return _in_queue_order(kind, self.extend, self.connect)
+
+    def queue_rays(self, kind: str = "all") -> list[RayBatch]:
+        """The rays of :meth:`queues`, queue for queue (for a scheme the study executes)."""
+        return _in_queue_order(kind, self.extend_rays, self.connect_rays)
 
     def op_counts(self) -> np.ndarray:
         """Total TRAV, LEAF, TRI ops over every extend and shadow ray (int64 (3,))."""
@@ -114,3 +112,14 @@ class PathTrace:
         for t in self.extend + self.connect:
             total += t.op_totals()
         return total
+
+
+def _in_queue_order(kind: str, extend: tuple, connect: tuple) -> list:
+    """Per-bounce ``extend`` and ``connect`` items as the queues of ``kind`` list them."""
+    if kind not in ("extend", "connect", "all"):
+        raise SimtSimError(f"unknown queue kind {kind!r}; use extend, connect or all")
+    if kind == "extend":
+        return list(extend)
+    if kind == "connect":
+        return list(connect)
+    return [t for pair in zip(extend, connect, strict=True) for t in pair]

@@ -272,3 +272,19 @@ def test_bad_input_is_refused(bvh):
         execute(bvh, rays, get_scheme("while_while"), ir_for("while_while"), GPU, warp_size=65)
     with pytest.raises(SimtSimError, match="KernelIR is for kernel"):
         execute(bvh, rays, get_scheme("while_while"), ir_for("if_if"), GPU)
+
+
+@pytest.mark.parametrize("scheme", LOCKSTEP_SCHEMES)
+def test_per_warp_counts_add_up_to_the_execution(bvh: BVH, scheme: str) -> None:
+    """Each fixed warp's (persistent: fetched group's) warp and lane instructions sum to
+    the run's; speculative dynamic fetch refills its lanes, so it has none."""
+    rays = make_rays(200, "any", 11)  # a last, partial warp
+    run = execute(bvh, rays, get_scheme(scheme), ir_for(scheme), GPU)
+    if scheme == "speculative_dynamic_fetch":
+        assert run.per_warp is None
+        return
+    r = run.result
+    assert run.per_warp.shape == (7, 2)
+    assert run.per_warp[:, 0].sum() == r.warp_instructions
+    assert run.per_warp[:, 1].sum() == int(np.dot(r.counts.active, r.costs))
+    assert np.all(run.per_warp[:, 1] <= 32 * run.per_warp[:, 0])
