@@ -327,7 +327,9 @@ figures whose 95% interval contains the full run's value (of `ci_figures`).
 ## The replay's approximations against the exact lockstep executor
 
 Camera 0, 128x96 primary rays and AO/diffuse rays spawned from 32x24 pixels,
-{args.spp} per hit ({approx_seconds:.0f} s). `*_err`: (replay - exact) / exact.
+{args.spp} per hit ({approx_seconds:.0f} s). `*_err`: (replay - exact) / exact. A study
+runs packet's kernel itself, so its rows above have no such error; its row here is what
+the union replay of a trace without its rays would be off by.
 
 {md(approx[approx_cols])}
 
