@@ -90,7 +90,7 @@ class SchemeInfo:
         A study that has the rays runs its kernel in lockstep over the tree (``lockstep``,
         exact) instead of replaying the recorded streams: what one of its warps does
         depends on all of the warp's rays together (packet's shared traversal), which no
-        replay of per-ray streams gives. Slower; saved traces still replay.
+        replay of per-ray streams gives. Slower; a trace without its rays still replays.
     launch : KernelLaunch, optional
         How the CUDA tracer launches its kernel (trace schemes with a ``.cu`` tracer).
     layout : str
