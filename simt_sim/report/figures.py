@@ -141,7 +141,7 @@ def study_figures(
             if not has_warp_counts(s):
                 continue
             ir = plan.irs[(s.kernel, gpu.ir_arch)]
-            wc = warp_counts(trace, s, ir, gpu, launch=None if saved else (plan.tree, wl.rays))
+            wc = warp_counts(trace, s, ir, gpu, launch=(plan.tree, wl.rays))
             eff = wc.efficiency[np.arange(trace.n_rays) // gpu.warp_size]
             images = [plots.to_image(v, wl.rays.pixel, width, height) for v in (
                 per_ray[:, 0], per_ray[:, 2], eff

@@ -9,7 +9,7 @@ from pathlib import Path
 from test_cli import assert_clean_error, run_cli
 
 from simt_sim.cli import main
-from simt_sim.trace.tracefile import read_meta
+from simt_sim.trace.tracefile import load_trace, read_meta, save_trace
 
 
 def test_a_saved_trace_replays_to_the_recorded_runs_numbers_exactly(tmp_path: Path) -> None:
@@ -26,6 +26,20 @@ def test_a_saved_trace_replays_to_the_recorded_runs_numbers_exactly(tmp_path: Pa
     fresh = run_cli("table", "--rays", "primary,ao", "--quiet", "--format", "csv")
     assert saved.returncode == 0 and fresh.returncode == 0, saved.stderr + fresh.stderr
     assert saved.stdout == fresh.stdout
+
+
+def test_a_trace_short_of_its_protocols_rays_is_refused_where_packet_needs_them(tmp_path):
+    """Packet runs its kernel on the rays the header's protocol makes; a file that does
+    not hold exactly those rays cannot be matched to them and is refused in one line."""
+    full = tmp_path / "full.trace"
+    small = ["--rays", "primary", "--camera", "0", "--resolution", "16x12", "--quiet"]
+    assert run_cli("trace", *small, "--out", str(full)).returncode == 0
+    trace, meta = load_trace(full)
+    short = tmp_path / "short.trace"
+    save_trace(short, [trace.slice(0, trace.n_rays - 32)], meta)
+    assert_clean_error(run_cli("table", "--trace", str(short)), "re-record it")
+    ok = run_cli("table", "--trace", str(full), "--schemes", "packet", "--format", "csv")
+    assert ok.returncode == 0, ok.stderr
 
 
 def test_traces_that_do_not_belong_together_or_clash_with_flags_are_refused(tmp_path) -> None:
