@@ -89,7 +89,7 @@ def record_batch(plan: StudyPlan, ray_type: str, rays: RayBatch, index: int) -> 
     else:
         traced, bounds = rays, [0, len(rays)]
     trace = record_all(plan.tree, traced, batch_size=spec.launch_size)
-    keep = traced if any(s.executed for s in plan.trace_schemes) else None
+    keep = traced if plan.needs_rays else None
     return RecordedBatch(ray_type, index, len(rays), trace, tuple(bounds), keep)
 
 

@@ -70,6 +70,12 @@ class StudyPlan:
         return tuple(s for s in self.schemes if s.kind == TRACE)
 
     @property
+    def needs_rays(self) -> bool:
+        """Whether a trace scheme runs its kernel on the rays (``SchemeInfo.executed``),
+        so a launch keeps its rays beside its trace."""
+        return any(s.executed for s in self.trace_schemes)
+
+    @property
     def path_schemes(self) -> tuple[SchemeInfo, ...]:
         """The schemes that replay whole path traces (PathTrace)."""
         return tuple(s for s in self.schemes if s.kind == PATH)

@@ -100,14 +100,14 @@ def _check_tree(plan: StudyPlan, path: str) -> None:
 def _rays_of(plan: StudyPlan, ray_type: str, path: str) -> Iterator[RayBatch | None]:
     """The rays of each launch of ``path``, remade from the spec, where a scheme executes
     on them (else ``None`` for every launch)."""
-    if not any(s.executed for s in plan.trace_schemes):
+    if not plan.needs_rays:
         yield from itertools.repeat(None)
         return
     stream = plan.workload(ray_type).stream
-    if stream.n_rays != read_meta(path)["rays"]:
+    held = read_meta(path)["rays"]
+    if stream.n_rays != held:
         raise SimtSimError(
-            f"{path} holds {read_meta(path)['rays']} rays, its header's protocol makes "
-            f"{stream.n_rays}; re-record it"
+            f"{path} holds {held} rays, its header's protocol makes {stream.n_rays}; re-record it"
         )
     yield from stream.batches(plan.spec.launch_size)
 
