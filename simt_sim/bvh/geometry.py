@@ -129,6 +129,31 @@ def near_columns(idx: np.float32, idy: np.float32, idz: np.float32) -> tuple[int
 
 
 @njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def box_interval(
+    xn: np.float32,
+    yn: np.float32,
+    zn: np.float32,
+    xf: np.float32,
+    yf: np.float32,
+    zf: np.float32,
+    ox: np.float32,
+    oy: np.float32,
+    oz: np.float32,
+    idx: np.float32,
+    idy: np.float32,
+    idz: np.float32,
+    tmin: np.float32,
+    tmax: np.float32,
+) -> tuple[np.float32, np.float32]:
+    """``(tnear, tfar)`` of one box from its near (``xn, yn, zn``) and far planes: the
+    box is hit iff ``tnear <= tfar``. Taking the planes as values lets a loop over the lanes
+    of a packet pick each lane's planes by a select and run as a vector loop."""
+    tn = max(max((xn - ox) * idx, (yn - oy) * idy), max((zn - oz) * idz, tmin))
+    tf = min(BOX_ROUNDING * min(min((xf - ox) * idx, (yf - oy) * idy), (zf - oz) * idz), tmax)
+    return tn, tf
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def node_child_intervals(
     nodes: np.ndarray,
     k: int,
@@ -147,34 +172,100 @@ def node_child_intervals(
     """``(tnear0, tfar0, tnear1, tfar1)`` of node ``k``'s two child boxes.
 
     Child ``c`` is hit iff ``tnear_c <= tfar_c``, with ``tnear = max(tmin, slab nears)``
-    and ``tfar = min(tmax, BOX_ROUNDING * slab fars)``; ``nx, ny, nz`` come from
-    :func:`near_columns`.
+    and ``tfar = min(tmax, BOX_ROUNDING * slab fars)`` (:func:`box_interval`); ``nx, ny,
+    nz`` come from :func:`near_columns`.
     """
     fx = nx ^ 1
     fy = ny ^ 1
     fz = nz ^ 1
-    n0 = max(
-        max((nodes[k, nx] - ox) * idx, (nodes[k, ny] - oy) * idy),
-        max((nodes[k, nz] - oz) * idz, tmin),
-    )
-    f0 = min(
-        BOX_ROUNDING
-        * min(min((nodes[k, fx] - ox) * idx, (nodes[k, fy] - oy) * idy), (nodes[k, fz] - oz) * idz),
-        tmax,
-    )
-    n1 = max(
-        max((nodes[k, nx + 4] - ox) * idx, (nodes[k, ny + 4] - oy) * idy),
-        max((nodes[k, nz + 2] - oz) * idz, tmin),
-    )
-    f1 = min(
-        BOX_ROUNDING
-        * min(
-            min((nodes[k, fx + 4] - ox) * idx, (nodes[k, fy + 4] - oy) * idy),
-            (nodes[k, fz + 2] - oz) * idz,
-        ),
-        tmax,
-    )
+    n0, f0 = box_interval(
+        nodes[k, nx], nodes[k, ny], nodes[k, nz], nodes[k, fx], nodes[k, fy], nodes[k, fz],
+        ox, oy, oz, idx, idy, idz, tmin, tmax,
+    )  # fmt: skip
+    n1, f1 = box_interval(
+        nodes[k, nx + 4], nodes[k, ny + 4], nodes[k, nz + 2],
+        nodes[k, fx + 4], nodes[k, fy + 4], nodes[k, fz + 2],
+        ox, oy, oz, idx, idy, idz, tmin, tmax,
+    )  # fmt: skip
     return n0, f0, n1, f1
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def woop_t(
+    w0x: np.float32,
+    w0y: np.float32,
+    w0z: np.float32,
+    w0w: np.float32,
+    ox: np.float32,
+    oy: np.float32,
+    oz: np.float32,
+    dx: np.float32,
+    dy: np.float32,
+    dz: np.float32,
+) -> tuple[np.float32, np.float32]:
+    """The Woop test's t stage from row 0: ``(t, D.w0)``."""
+    dn = dx * w0x + dy * w0y + dz * w0z
+    return (w0w - (ox * w0x + oy * w0y + oz * w0z)) / dn, dn
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def woop_error_scales(
+    t: np.float32,
+    dn: np.float32,
+    w0x: np.float32,
+    w0y: np.float32,
+    w0z: np.float32,
+    w0w: np.float32,
+    ox: np.float32,
+    oy: np.float32,
+    oz: np.float32,
+    dx: np.float32,
+    dy: np.float32,
+    dz: np.float32,
+) -> tuple[np.float32, np.float32, np.float32, np.float32]:
+    """The rounding-error bounds' scales at ``t`` (module docstring): per axis
+    ``|o_i| + 2 |t d_i|``, so that ``sum_i p_i |w_i| = O + 2 |t| D``, and the slope, the
+    error of ``t`` over ``|D.w0|``: ``(px, py, pz, slope)``."""
+    t2 = abs(t + t)
+    px = abs(ox) + t2 * abs(dx)
+    py = abs(oy) + t2 * abs(dy)
+    pz = abs(oz) + t2 * abs(dz)
+    slope = (abs(w0w) + px * abs(w0x) + py * abs(w0y) + pz * abs(w0z)) / abs(dn)
+    return px, py, pz, slope
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def woop_coordinate(
+    wx: np.float32,
+    wy: np.float32,
+    wz: np.float32,
+    ww: np.float32,
+    t: np.float32,
+    ox: np.float32,
+    oy: np.float32,
+    oz: np.float32,
+    dx: np.float32,
+    dy: np.float32,
+    dz: np.float32,
+    px: np.float32,
+    py: np.float32,
+    pz: np.float32,
+    slope: np.float32,
+) -> tuple[np.float32, np.float32]:
+    """A barycentric coordinate (``u`` from row 1, ``v`` from row 2) at ``t`` and its
+    rounding-error bound: ``(c, e)``."""
+    dc = dx * wx + dy * wy + dz * wz
+    c = (ww + (ox * wx + oy * wy + oz * wz)) + t * dc
+    e = TRI_ROUNDING * (
+        (abs(ww) + px * abs(wx) + py * abs(wy) + pz * abs(wz)) + (_HALF * abs(c) + slope * abs(dc))
+    )
+    return c, e
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def woop_v_inside(u: np.float32, eu: np.float32, v: np.float32, ev: np.float32) -> bool:
+    """The v stage's acceptance: ``v >= -ev`` and ``u + v <= 1 + eu + ev``."""
+    return (v >= -ev) & (u + v <= _ONE + (eu + ev))
 
 
 @njit(cache=True, nogil=True, inline="always", error_model="numpy")
@@ -199,43 +290,25 @@ def woop_test(
     must lie in the triangle *up to their rounding-error bounds* ``eu``, ``ev``:
     ``u >= -eu``, ``v >= -ev``, ``u + v <= 1 + eu + ev`` (see :data:`TRI_ROUNDING`).
     Every test is written so that a NaN fails it, so a hit never carries a NaN ``t``.
+    The stages are :func:`woop_t`, :func:`woop_error_scales`, :func:`woop_coordinate` and
+    :func:`woop_v_inside`.
     """
-    w0x = woop[j, 0]
-    w0y = woop[j, 1]
-    w0z = woop[j, 2]
-    w0w = woop[j, 3]
-    dn = dx * w0x + dy * w0y + dz * w0z
-    t = (w0w - (ox * w0x + oy * w0y + oz * w0z)) / dn
+    w0x, w0y, w0z, w0w = woop[j, 0], woop[j, 1], woop[j, 2], woop[j, 3]
+    t, dn = woop_t(w0x, w0y, w0z, w0w, ox, oy, oz, dx, dy, dz)
     if t > tmin and t < tmax:
-        # Rounding-error bounds (module docstring): per axis |o_i| + 2 |t d_i|, so that
-        # sum_i p_i |w_i| = O + 2 |t| D; slope: the error of t over |D.w0|.
-        t2 = abs(t + t)
-        px = abs(ox) + t2 * abs(dx)
-        py = abs(oy) + t2 * abs(dy)
-        pz = abs(oz) + t2 * abs(dz)
-        slope = (abs(w0w) + px * abs(w0x) + py * abs(w0y) + pz * abs(w0z)) / abs(dn)
+        px, py, pz, slope = woop_error_scales(t, dn, w0x, w0y, w0z, w0w, ox, oy, oz, dx, dy, dz)
         j1 = j + 1
-        w1x = woop[j1, 0]
-        w1y = woop[j1, 1]
-        w1z = woop[j1, 2]
-        du = dx * w1x + dy * w1y + dz * w1z
-        u = (woop[j1, 3] + (ox * w1x + oy * w1y + oz * w1z)) + t * du
-        eu = TRI_ROUNDING * (
-            (abs(woop[j1, 3]) + px * abs(w1x) + py * abs(w1y) + pz * abs(w1z))
-            + (_HALF * abs(u) + slope * abs(du))
-        )
+        u, eu = woop_coordinate(
+            woop[j1, 0], woop[j1, 1], woop[j1, 2], woop[j1, 3],
+            t, ox, oy, oz, dx, dy, dz, px, py, pz, slope,
+        )  # fmt: skip
         if u >= -eu:
             j2 = j + 2
-            w2x = woop[j2, 0]
-            w2y = woop[j2, 1]
-            w2z = woop[j2, 2]
-            dv = dx * w2x + dy * w2y + dz * w2z
-            v = (woop[j2, 3] + (ox * w2x + oy * w2y + oz * w2z)) + t * dv
-            ev = TRI_ROUNDING * (
-                (abs(woop[j2, 3]) + px * abs(w2x) + py * abs(w2y) + pz * abs(w2z))
-                + (_HALF * abs(v) + slope * abs(dv))
-            )
-            if v >= -ev and u + v <= _ONE + (eu + ev):
+            v, ev = woop_coordinate(
+                woop[j2, 0], woop[j2, 1], woop[j2, 2], woop[j2, 3],
+                t, ox, oy, oz, dx, dy, dz, px, py, pz, slope,
+            )  # fmt: skip
+            if woop_v_inside(u, eu, v, ev):
                 return True, 3, t
             return False, 3, t
         return False, 2, t

@@ -132,6 +132,21 @@ from simt_sim.bvh.wide import PLANES, WideBVH
 from simt_sim.bvh.wide_traverse import check_wide
 from simt_sim.bvh.wide_traverse import stack_size as wide_stack_size
 from simt_sim.errors import SimtSimError
+from simt_sim.oracles.packet_lanes import (
+    DX,
+    DY,
+    DZ,
+    IX,
+    IY,
+    IZ,
+    OX,
+    OY,
+    OZ,
+    RAY_ROWS,
+    TMIN,
+    box_votes,
+    triangle_tests,
+)
 from simt_sim.simt.card import model_card
 from simt_sim.simt.engine import (
     FINISH,
@@ -163,8 +178,6 @@ from simt_sim.simt.engine import (
     lane_traffic,
     outcome_groups,
     packet_tri_groups,
-    passes_t,
-    passes_u,
     schedule_groups,
     tri_groups,
     tri_pack,
@@ -760,15 +773,51 @@ def _issue(cnt, hist, costs, block, n):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _packet_rays(li, lf, lanes):
+    """The packet's lanes as :mod:`~simt_sim.oracles.packet_lanes` columns: the float32
+    rays, ``tmax`` and the inverse direction's signs."""
+    rays = np.empty((RAY_ROWS, lanes), np.float32)
+    tmax = np.empty(lanes, np.float32)
+    neg = np.empty((3, lanes), np.bool_)
+    for lane in range(lanes):
+        rays[OX, lane] = lf[lane, _OX]
+        rays[OY, lane] = lf[lane, _OY]
+        rays[OZ, lane] = lf[lane, _OZ]
+        rays[DX, lane] = lf[lane, _DX]
+        rays[DY, lane] = lf[lane, _DY]
+        rays[DZ, lane] = lf[lane, _DZ]
+        rays[IX, lane] = lf[lane, _IX]
+        rays[IY, lane] = lf[lane, _IY]
+        rays[IZ, lane] = lf[lane, _IZ]
+        rays[TMIN, lane] = lf[lane, _TMIN]
+        tmax[lane] = lf[lane, _TMAX]
+        neg[0, lane] = li[lane, _NX] == 1
+        neg[1, lane] = li[lane, _NY] == 3
+        neg[2, lane] = li[lane, _NZ] == 9
+    return rays, tmax, neg
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i, any_hit, ops,
             base, cnt, hist, costs):  # fmt: skip
-    """One packet (shared stack) traversal of ``lanes`` lanes (see the module docstring)."""
+    """One packet (shared stack) traversal of ``lanes`` lanes (see the module docstring).
+
+    The lanes' box and triangle tests run as vector loops over lane columns
+    (:mod:`~simt_sim.oracles.packet_lanes`); the packet's own state (node, stack of nodes
+    and lane masks) is the kernel's.
+    """
+    rays, tmax, neg = _packet_rays(li, lf, lanes)
     node_stack = np.empty(cap, np.int32)
     mask_stack = np.zeros((cap, lanes), np.bool_)
     mask = np.ones(lanes, np.bool_)  # useful lanes: their ray hit the node's box when pushed
     m0 = np.empty(lanes, np.bool_)
     m1 = np.empty(lanes, np.bool_)
     done = np.zeros(lanes, np.bool_)
+    hit = np.full(lanes, -1, np.int32)
+    trav = np.zeros(lanes, np.int64)  # per lane: TRAV, LEAF, TRI ops while useful
+    leaf = np.zeros(lanes, np.int64)
+    tri = np.zeros(lanes, np.int64)
+    reached = np.zeros((2, 3), np.int64)  # (every testing lane, useful) x (u, v, hit)
     sp = 0
     node = root
     cost = np.int64(0)
@@ -776,32 +825,20 @@ def _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i, a
         cost += charge(cnt, hist, costs, LOOP_CONTROL, lanes)  # the whole warp runs the loop
         useful = 0
         for lane in range(lanes):
-            useful += mask[lane] and not done[lane]
+            useful += mask[lane] & (not done[lane])
         go_on = False  # whether the warp continues with a child instead of popping
         if node >= 0:
             cost += _issue(cnt, hist, costs, TRAV_STEP, useful)
-            any0 = 0
-            any1 = 0
-            vote1 = 0
-            for lane in range(lanes):  # every lane tests the boxes, finished ones too
-                if mask[lane] and not done[lane]:
-                    ops[base + lane, _C_TRAV] += 1
-                li[lane, _NODE] = node
-                n0, f0, n1, f1 = _child_hits(nodes, li, lf, lane)
-                h0 = n0 <= f0
-                h1 = n1 <= f1
-                m0[lane] = h0
-                m1[lane] = h1
-                any0 += h0
-                any1 += h1
-                vote1 += h1 and (not h0 or n1 < n0)
+            for lane in range(lanes):
+                trav[lane] += mask[lane] & (not done[lane])
+            any0, any1, near1 = box_votes(nodes, node, rays, tmax, neg, lanes, m0, m1)
             c0 = nodes_i[node, COL_CHILD0]
             c1 = nodes_i[node, COL_CHILD1]
             if any0 > 0 and any1 > 0:
                 cost += _issue(cnt, hist, costs, TRAV_NONE_B + TRAV_BOTH, useful)
                 if sp == cap:
                     return np.int64(-1)
-                near_is_1 = 2 * vote1 > warp_size  # a majority of the whole warp
+                near_is_1 = 2 * near1 > warp_size  # a majority of the whole warp
                 node_stack[sp] = c0 if near_is_1 else c1
                 for lane in range(lanes):
                     mask_stack[sp, lane] = m0[lane] if near_is_1 else m1[lane]
@@ -820,27 +857,14 @@ def _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i, a
         else:
             cost += _issue(cnt, hist, costs, LEAF_ENTRY, useful)
             for lane in range(lanes):
-                if mask[lane] and not done[lane]:
-                    ops[base + lane, _C_LEAF] += 1
+                leaf[lane] += mask[lane] & (not done[lane])
             j = ~node
             while woop_i[j, 0] != SENTINEL_I32:  # every triangle of the leaf, as the kernel
                 # every lane still searching tests it, so any of them issues a stage; the
                 # useful ones (their ray hit the leaf's box) are the stage's active lanes
-                reached = np.zeros((2, 3), np.int64)  # (all, useful) x (u, v, hit)
-                testing = 0
-                for lane in range(lanes):
-                    if done[lane]:
-                        continue
-                    useful = mask[lane]
-                    testing += useful
-                    ops[base + lane, _C_TRI] += useful
-                    li[lane, _J] = j
-                    o = _tri_test(li, lf, lane, woop, woop_i, any_hit)
-                    for row in range(1 + useful):
-                        reached[row, 0] += passes_t(o)
-                        reached[row, 1] += passes_u(o)
-                        reached[row, 2] += o == _OP_TRI_HIT
-                    done[lane] = any_hit and o == _OP_TRI_HIT
+                reached[:] = 0
+                testing = triangle_tests(woop, j, rays, tmax, lanes, done, mask, hit, tri,
+                                         any_hit, reached)  # fmt: skip
                 cost += _issue(cnt, hist, costs, TRI_TEST, testing)
                 for k, block in enumerate((TRI_U, TRI_V, TRI_HIT_B)):
                     if reached[0, k]:
@@ -858,7 +882,12 @@ def _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i, a
             for lane in range(lanes):
                 mask[lane] = mask_stack[sp, lane]
     for lane in range(lanes):
+        ops[base + lane, _C_TRAV] += trav[lane]
+        ops[base + lane, _C_LEAF] += leaf[lane]
+        ops[base + lane, _C_TRI] += tri[lane]
         li[lane, _J] = -1
+        li[lane, _HIT] = hit[lane]
+        lf[lane, _TMAX] = tmax[lane]
     return cost + charge(cnt, hist, costs, FINISH, lanes)
 
 
