@@ -791,9 +791,10 @@ def _packet_rays(li, lf, lanes):
         rays[IZ, lane] = lf[lane, _IZ]
         rays[TMIN, lane] = lf[lane, _TMIN]
         tmax[lane] = lf[lane, _TMAX]
-        neg[0, lane] = li[lane, _NX] == 1
-        neg[1, lane] = li[lane, _NY] == 3
-        neg[2, lane] = li[lane, _NZ] == 9
+        # the near plane is hi where its column is odd (bvh.layout: lo, hi pairs)
+        neg[0, lane] = li[lane, _NX] & 1
+        neg[1, lane] = li[lane, _NY] & 1
+        neg[2, lane] = li[lane, _NZ] & 1
     return rays, tmax, neg
 
 

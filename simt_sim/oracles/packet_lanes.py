@@ -49,7 +49,8 @@ def box_votes(
 
     ``rays`` (``RAY_ROWS``, lanes) float32, ``tmax`` (lanes,) the lanes' current ``tmax``,
     ``neg`` (3, lanes) whether each inverse direction component is negative (the near
-    plane is ``hi``, as :func:`~simt_sim.bvh.geometry.near_columns` picks it). Fills
+    plane is ``hi``, as :func:`~simt_sim.bvh.geometry.near_columns` picks it; node
+    columns as in :mod:`simt_sim.bvh.layout`). Fills
     ``m0``, ``m1`` (child hit) and returns the votes ``(any0, any1, near1)``, ``near1``
     the lanes for which child 1 is hit and nearer, or the only child hit. The node's
     planes are read before the loop: reads of ``nodes`` in it might alias the stores to
