@@ -35,7 +35,7 @@ from typing import NamedTuple
 
 from kernels_ir.cfg import ControlFlow, build_cfg
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kernel_ir import BLOCKS, CLASSES, SPIN_BLOCKS, STEP_OUTCOMES
+from kernels_ir.kernel_ir import BLOCKS, CLASSES, POOL_FETCH, POOL_TAKE, SPIN_BLOCKS, STEP_OUTCOMES
 from kernels_ir.sass import SassInstruction, base_opcode, branch_target, classify
 
 UNATTRIBUTED = "unattributed"
@@ -412,6 +412,34 @@ def by_basic_block(
     return out
 
 
+def after_exit(
+    cfg: ControlFlow, placed: list[str], instructions: Sequence[SassInstruction]
+) -> list[str]:
+    """``placed`` with the fetch loop's code past its exit moved to ``pool_take``.
+
+    A persistent warp leaves through a guarded ``EXIT`` in ``pool_fetch``: the fetch that
+    finds the pool empty (dynamic fetch: the visit that finds every lane done). That
+    visit runs ``pool_fetch`` up to the ``EXIT``; what the ``EXIT``'s basic block
+    dominates runs only on visits that go on, so it is the build's block ``pool_take``
+    (no marker), and the replay charges a warp's last visit ``pool_fetch`` alone.
+    """
+    out = list(placed)
+    exits = {
+        cfg.block_of[i]: i
+        for i, ins in enumerate(instructions)
+        if placed[i] == POOL_FETCH and base_opcode(ins.opcode) == "EXIT" and ins.guarded
+    }
+    for i, block in enumerate(placed):
+        b = cfg.block_of[i]
+        if block != POOL_FETCH or i <= exits.get(b, -1):
+            continue
+        while b not in exits and (b := cfg.idom[b]) is not None:
+            pass
+        if b is not None:
+            out[i] = POOL_TAKE
+    return out
+
+
 def shared_outcomes(
     cfg: ControlFlow,
     placed: Sequence[str | None],
@@ -582,6 +610,9 @@ def place_instructions(
     shared = {i: outcomes for i, outcomes in shared.items() if i not in never}
     for i, outcomes in shared.items():
         block[i] = outcomes[0]
+    taken = after_exit(cfg, [block[i] for i in kernel], [instructions[i] for i in kernel])
+    for i, taken_block in zip(kernel, taken, strict=True):
+        block[i] = taken_block
     full_warp = frozenset(full_warp_only(instructions))
     rounds = frozenset(
         block[kernel[cfg.starts[loop.header]]]

@@ -7,7 +7,12 @@ SIMT model, which charges a block every time a warp executes it:
 block              charged when
 =================  ====================================================================
 ray_setup          a lane starts a new ray (load ray, inverse direction, init stack)
-pool_fetch         a warp (persistent) or lane group (dynamic fetch) takes rays from the pool
+pool_fetch         a warp (persistent) or lane group (dynamic fetch) takes rays from the pool:
+                   its code up to the warp's exit, so a warp's last fetch, which finds the
+                   pool empty and exits, is charged it too
+pool_take          ... a fetch that goes on: the fetch loop's code after the exit (the
+                   lanes' ray indices, the loop's barrier and branch back; made by the
+                   build, no marker)
 loop_control       one iteration of the outer trace loop (termination checks)
 refill_test        dynamic fetch: the lanes still tracing, while the warp's pool has rays,
                    count themselves against the refill threshold
@@ -51,6 +56,7 @@ from dataclasses import dataclass, field
 BLOCKS = (
     "ray_setup",
     "pool_fetch",
+    "pool_take",
     "loop_control",
     "refill_test",
     "refill_break",
@@ -75,6 +81,10 @@ STEP_OUTCOMES = ("trav_none", "trav_one", "trav_both")
 """The blocks of a node step's outcomes: exactly one of them runs per step."""
 RECONVERGE = "reconverge"
 """The block of a convergence barrier's issues by groups of lanes that reach it apart."""
+POOL_FETCH = "pool_fetch"
+"""The block of a warp's fetch from the pool, up to the exit its last (empty) fetch takes."""
+POOL_TAKE = "pool_take"
+"""The build's block of the fetch loop's code after the warp's exit: a fetch that goes on."""
 SPIN_BLOCKS = ("refill_break", "idle_wait")
 """Blocks whose code is what the compiler puts on a path (a convergence spin before a warp
 vote, sm_75): a target that needs none (sm_80 on) leaves them empty."""

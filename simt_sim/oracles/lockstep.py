@@ -17,8 +17,9 @@ an interior node to step, a leaf to enter, a triangle to test, or nothing):
 
 - ``while_while``, ``if_if``, ``persistent_while_while``: as the replay's rules; the
   persistent variant runs each group of ``warp_size`` consecutive rays as one fetch
-  (``pool_fetch`` then while-while) and assigns groups to resident warps by the replay's
-  ideal-scheduling rule.
+  (``pool_fetch`` and ``pool_take``, then while-while) and assigns groups to resident
+  warps by the replay's ideal-scheduling rule, each warp's last, empty fetch charged
+  as the replay charges it.
 - ``persistent_speculative_while_while`` (Aila & Laine's kernel): per outer iteration
   every lane starts *searching*; in the traversal loop each lane with an interior node
   steps; a lane that lands on a leaf while holding none postpones it (``postpone``: park
@@ -82,18 +83,18 @@ Compressed wide trees: the ``cwbvh_persistent_while_while`` record (its ``layout
 (``kernels_ir/cuda/cwbvh_persistent_while_while.cu``) over a
 :class:`~simt_sim.bvh.cwbvh.CwBVH`. A lane holds a node group (child base, imask and the
 hit interior children still to visit, kept in visiting order: slot ``s`` at bit ``s ^
-octant``), a triangle group, and a stack of node groups; it starts at the group of
-node 0 alone. Per fetched group of ``warp_size`` consecutive rays: ``pool_fetch`` and
-``ray_setup``; then while a lane has a node left (in its group or on its stack), one
+octant``), a triangle group, and a stack of node groups; it starts at the group of node 0
+alone. Per fetched group of ``warp_size`` consecutive rays: ``pool_fetch``, ``pool_take``
+and ``ray_setup``; then while a lane has a node left (in its group or on its stack), one
 iteration for those lanes: ``trav_step`` (each pops a group if its own is empty, takes the
 group's lowest bit, pushes the rest if any, and tests that node's 8 decoded child boxes
 ``p + 2^e * q`` in float32 with the binary test's arithmetic; interior children hit become
 its node group, leaf children hit its triangle group), the triangle loop (``tri_test``
 while a lane that stepped has a triangle of its group left, lowest bit first, with
 ``tri_hit`` for the accepted hits: a closest-hit lane shrinks ``tmax``, an any-hit lane
-ends) and ``loop_control``; finally ``finish``. Groups go to resident warps by the replay's
-ideal scheduling, as persistent while-while. A LEAF op (per-ray counts) is a hit leaf
-child's first triangle reached in the loop; it costs no block.
+ends) and ``loop_control``; finally ``finish``. Groups go to resident warps by the
+replay's ideal scheduling, as persistent while-while. A LEAF op (per-ray counts) is a hit
+leaf child's first triangle reached in the loop; it costs no block.
 """
 
 from __future__ import annotations
@@ -155,6 +156,7 @@ from simt_sim.simt.engine import (
     LOOP_CONTROL,
     N_BLOCKS,
     POOL_FETCH,
+    POOL_TAKE,
     POSTPONE,
     RAY_SETUP,
     REFILL_BREAK,
@@ -181,6 +183,7 @@ from simt_sim.simt.engine import (
     schedule_groups,
     tri_groups,
     tri_pack,
+    with_exits,
 )
 from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, executed_on, get_gpu, runs_in_rounds
 from simt_sim.simt.occupancy import kernel_occupancy
@@ -188,6 +191,7 @@ from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult, check_ir
 from simt_sim.simt.scheme import SchemeInfo
 from simt_sim.trace.record import record_all
+from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.hits import Hits
 from simt_sim.types.optrace import TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT
 from simt_sim.types.raybatch import RayBatch
@@ -1059,6 +1063,7 @@ def _execute_wide(persistent, nodes, width, woop, tri_index, root, origin, direc
         cost = np.int64(0)
         if persistent:
             cost += charge(c, h, costs, POOL_FETCH, lanes)
+            cost += charge(c, h, costs, POOL_TAKE, lanes)
             cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
         cost += charge(c, h, costs, RAY_SETUP, lanes)
         rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i,
@@ -1299,6 +1304,7 @@ def _execute_cwbvh(nodes, woop, tri_index, origin, direction, tmin, tmax, any_hi
         c = cnt[u]
         h = hist[u]
         cost = charge(c, h, costs, POOL_FETCH, lanes)
+        cost += charge(c, h, costs, POOL_TAKE, lanes)
         cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
         cost += charge(c, h, costs, RAY_SETUP, lanes)
         rest = _cw_group(lc, lf, stack, lanes, nodes, nodes_f, nodes_u, woop, any_hit, ops,
@@ -1335,6 +1341,7 @@ def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, 
         cost = np.int64(0)
         if persistent:
             cost += charge(c, h, costs, POOL_FETCH, lanes)
+            cost += charge(c, h, costs, POOL_TAKE, lanes)
             cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
         cost += charge(c, h, costs, RAY_SETUP, lanes)
         if body == WHILE_WHILE_BODY:
@@ -1407,11 +1414,12 @@ def _execute_fetch(nodes, woop, tri_index, root, origin, direction, tmin, tmax, 
                     _init_lane(li[w], lf[w], lane, pool, origin, direction, tmin, tmax, root)
                     pool += 1
                     fetched += 1
-            issued += charge(cnt, hist, costs, POOL_FETCH, idle if fetched else 0)
+            issued += charge(cnt, hist, costs, POOL_FETCH, idle)
             issued += charge(cnt, hist, costs, RAY_SETUP, fetched)
             dry[w] = pool == n
             held += fetched
-            if held:
+            if held:  # a lane traces: the fetch goes on
+                issued += charge(cnt, hist, costs, POOL_TAKE, idle)
                 issued += charge(cnt, hist, costs, IDLE_WAIT, warp_size - held)
         if held == 0:  # the warp holds no ray and gets none: it retires
             totals[w] = key[0] + issued
@@ -1493,15 +1501,19 @@ def _gpu(gpu: GpuConfig | None, warp_size: int | None) -> GpuConfig:
 WIDE_LAYOUTS = {"bvh4": 4}
 
 
-def _unit_counts(cnt, hist, unit_cost, resident: int) -> Counts:
+def _unit_counts(cnt, hist, unit_cost, resident: int, costs: np.ndarray) -> Counts:
     """The counters of all units; with ``resident`` warps (persistent kernels, else 0) the
-    units are dealt to them by the replay's ideal scheduling (warp totals and makespan)."""
+    units are dealt to them by the replay's ideal scheduling (warp totals and makespan),
+    and each warp's last, empty fetch is charged (:func:`with_exits`)."""
     totals = None
     span = 0
-    if resident:
-        totals = np.zeros(resident, np.int64)
-        span = int(schedule_groups(unit_cost, resident, totals)) if unit_cost.shape[0] else 0
-    return Counts(cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0), totals, span)
+    counts = Counts(cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0))
+    if not resident:
+        return counts
+    totals = np.zeros(resident, np.int64)
+    span = int(schedule_groups(unit_cost, resident, totals)) if unit_cost.shape[0] else 0
+    counts = Counts(counts.executions, counts.active, counts.hist, totals, span)
+    return with_exits(counts, costs, unit_cost.shape[0])
 
 
 def _tree_width(tree: Tree, scheme: SchemeInfo) -> int:
@@ -1616,26 +1628,28 @@ def execute(
         cnt, hist, unit_cost, tri, t, ops, overflow = _execute_cwbvh(
             bvh.nodes, *args[1:3], *args[4:], g.warp_size, costs
         )
-        counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0)
+        counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0, costs)
     elif width != 2:  # the wide while-while kernels (checked by _tree_width)
         cnt, hist, unit_cost, tri, t, ops, overflow = _execute_wide(
             persistent, bvh.nodes, width, *args[1:], g.warp_size, costs
         )
-        counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0)
+        counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0, costs)
     elif scheme.lockstep == SPECULATIVE_FETCH_BODY:
         threshold = int(values["threshold"])
         if threshold < 1:
             raise SimtSimError(f"threshold must be >= 1, got {threshold}")
+        launched = persistent_warps(-(-len(rays) // g.warp_size), r)
         cnt, hist, totals, span, tri, t, ops, overflow = _execute_fetch(
-            *args, g.warp_size, r, threshold, costs
+            *args, g.warp_size, launched, threshold, costs
         )
+        totals = np.concatenate([totals, np.zeros(r - launched, np.int64)])
         counts = Counts(cnt[0], cnt[1], hist, totals, int(span))
     else:
         rounds = runs_in_rounds(ir, g)
         cnt, hist, unit_cost, tri, t, ops, overflow = _execute(
             scheme.lockstep, persistent, *args, g.warp_size, costs, rounds
         )
-        counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0)
+        counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0, costs)
     # each fixed warp's counters, costed; speculative dynamic fetch's lanes refill instead
     per_warp = None if scheme.lockstep == SPECULATIVE_FETCH_BODY else cnt @ costs
     if overflow:

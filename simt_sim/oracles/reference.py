@@ -17,6 +17,7 @@ from typing import Any
 from kernels_ir.kernel_ir import BLOCKS
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.scheme import SchemeInfo
+from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRI_HIT, is_tri, is_wide_trav, tri_stages
 
 _OUTCOME_BLOCK = ("trav_none", "trav_one", "trav_both")
@@ -348,7 +349,8 @@ def speculative_group(streams: list[list[int]], addrs: list[list[int]], rec: Ref
     """One fetched group of persistent speculative while-while, in issue order."""
     w = _Lanes(streams)
     everyone = list(range(len(streams)))
-    issued = rec.charge("pool_fetch", everyone) + _idle_wait(len(everyone), rec)
+    issued = rec.charge("pool_fetch", everyone) + rec.charge("pool_take", everyone)
+    issued += _idle_wait(len(everyone), rec)
     issued += rec.charge("ray_setup", everyone)
     if rec.rounds:
         issued += _spec_rounds(w, everyone, rec)
@@ -358,8 +360,10 @@ def speculative_group(streams: list[list[int]], addrs: list[list[int]], rec: Ref
 
 
 def persistent_group(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
-    """One fetched group of persistent while-while: pool_fetch, then a while-while warp."""
+    """One fetched group of persistent while-while: pool_fetch and pool_take, then a
+    while-while warp."""
     issued = rec.charge("pool_fetch", list(range(len(streams))))
+    issued += rec.charge("pool_take", list(range(len(streams))))
     issued += _idle_wait(len(streams), rec)
     return issued + while_while_warp(streams, addrs, rec)
 
@@ -390,7 +394,8 @@ def cwbvh_group(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts
             elif _is_tri(o):
                 its[-1].append(o)
         iterations.append(its)
-    issued = rec.charge("pool_fetch", everyone) + _idle_wait(len(everyone), rec)
+    issued = rec.charge("pool_fetch", everyone) + rec.charge("pool_take", everyone)
+    issued += _idle_wait(len(everyone), rec)
     issued += rec.charge("ray_setup", everyone)
     j = 0
     while True:
@@ -455,23 +460,26 @@ def _fetch_launch(
     iteration: Callable[[_Lanes, list[int], RefCounts], int],
 ) -> tuple[list[int], int]:
     """One dynamic-fetch launch whose warps run ``iteration`` between refills: each
-    resident warp's instructions and the makespan.
+    resident warp's instructions and the makespan. The launch runs no more warps than
+    its rays fill (:func:`~simt_sim.tracers.cuda_tracer.persistent_warps`).
 
     One event per inner iteration, the warp with the fewest instructions first. A warp
     at the top of its loop (no lane traces, or fewer than ``threshold``) that is not dry
-    fetches for its idle lanes (``pool_fetch``, uncharged if it gets no ray, and
-    ``ray_setup``); it is dry once a fetch empties the pool. Holding no ray it retires;
-    idle lanes beside tracing ones wait (``idle_wait``). After an iteration the lanes
-    still tracing of a warp that is not dry test the threshold (``refill_test``) and,
-    below it, break (``refill_break``)."""
+    fetches for its idle lanes (``pool_fetch``, a fetch that gets no ray too, and
+    ``ray_setup``); it is dry once a fetch empties the pool. Holding no ray it retires
+    (its last visit to the top, a dry warp's, uncharged), else the fetch goes on
+    (``pool_take``); idle lanes beside tracing ones wait (``idle_wait``). After an
+    iteration the lanes still tracing of a warp that is not dry test the threshold
+    (``refill_test``) and, below it, break (``refill_break``)."""
     w = rec.warp_size
-    slots: list[list[int | None]] = [[None] * w for _ in range(resident)]  # ray per lane
-    cursors = [[0] * w for _ in range(resident)]
-    dry = [False] * resident
-    at_top = [True] * resident
-    pool = 0
-    heap = [(0, wid) for wid in range(resident)]
     totals = [0] * resident
+    launched = persistent_warps(-(-len(rays) // w), resident)
+    slots: list[list[int | None]] = [[None] * w for _ in range(launched)]  # ray per lane
+    cursors = [[0] * w for _ in range(launched)]
+    dry = [False] * launched
+    at_top = [True] * launched
+    pool = 0
+    heap = [(0, wid) for wid in range(launched)]
     span = 0
     while heap:
         issued_so_far, wid = heapq.heappop(heap)
@@ -485,11 +493,12 @@ def _fetch_launch(
                     ray[lane], cur[lane] = pool, 0
                     pool += 1
                     fetch.append(lane)
-            issued += rec.charge("pool_fetch", idle if fetch else [])
+            issued += rec.charge("pool_fetch", idle)
             issued += rec.charge("ray_setup", fetch)
             dry[wid] = pool == len(rays)
             waiting = [lane for lane in range(w) if ray[lane] is None]
-            if len(waiting) < w:
+            if len(waiting) < w:  # a lane traces: the fetch goes on
+                issued += rec.charge("pool_take", idle)
                 issued += rec.charge("idle_wait", waiting)
         if all(r is None for r in ray):
             totals[wid] = issued_so_far + issued
@@ -582,8 +591,12 @@ def reference_replay(
                 load, wid = heapq.heappop(heap)
                 heapq.heappush(heap, (load + cost, wid))
             totals = [0] * resident_warps
+            launched = persistent_warps(-(-len(launch) // warp_size), resident_warps)
             for load, wid in heap:
-                totals[wid] = load
+                # each launched warp's last fetch finds the pool empty: pool_fetch up to
+                # the exit, every lane live
+                last = rec.charge("pool_fetch", list(range(warp_size))) if wid < launched else 0
+                totals[wid] = load + last
             span = max(totals)
         rec.warp_totals = [a + b for a, b in zip(rec.warp_totals, totals, strict=True)]
         rec.makespan += span

@@ -31,11 +31,12 @@ from simt_sim.errors import SimtSimError
 from simt_sim.oracles.lockstep import execute
 from simt_sim.oracles.reference import RefCounts
 from simt_sim.schemes import SCHEMES
-from simt_sim.simt.engine import ReplayParams, cost_vector, replay_arrays
+from simt_sim.simt.engine import POOL_FETCH, ReplayParams, cost_vector, replay_arrays
 from simt_sim.simt.gpus import GpuConfig, executed_on
 from simt_sim.simt.replay import check_streams, trace_params
 from simt_sim.simt.result import check_ir
 from simt_sim.simt.scheme import SchemeInfo
+from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.optrace import OpTrace
 from simt_sim.types.raybatch import RayBatch
 
@@ -71,11 +72,17 @@ class WarpCounts:
     lane_instructions : int64 (n_warps,)
         Active lanes summed over those instructions.
     warp_size : int
+    launch_instructions, launch_lanes : int
+        What the launch issues beyond its warps of rays: a persistent launch's warps each
+        end with a fetch that finds the pool empty (``pool_fetch``, every lane live). The
+        warps' sums plus these are the launch's counts.
     """
 
     warp_instructions: np.ndarray
     lane_instructions: np.ndarray
     warp_size: int
+    launch_instructions: int = 0
+    launch_lanes: int = 0
 
     @property
     def efficiency(self) -> np.ndarray:
@@ -135,8 +142,12 @@ def warp_counts(
     executed, p = _as_run(scheme, ir, gpu)
     offsets, op, addr = replay_arrays(trace)
     check_streams(offsets, op)
-    out = scheme.warp_counts(offsets, op, addr, cost_vector(executed), p)
-    return WarpCounts(out[:, 0].copy(), out[:, 1].copy(), p.warp_size)
+    costs = cost_vector(executed)
+    out = scheme.warp_counts(offsets, op, addr, costs, p)
+    # the trace as one launch: each of its warps ends with an empty fetch (with_exits)
+    launched = persistent_warps(out.shape[0], p.resident_warps) if scheme.persistent else 0
+    exits = launched * int(costs[POOL_FETCH])
+    return WarpCounts(out[:, 0].copy(), out[:, 1].copy(), p.warp_size, exits, exits * p.warp_size)
 
 
 def _as_run(scheme: SchemeInfo, ir: KernelIR, gpu: GpuConfig) -> tuple[KernelIR, ReplayParams]:

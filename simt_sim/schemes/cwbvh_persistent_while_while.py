@@ -11,9 +11,10 @@ the current one is empty (``loop_control``; push and pop are branch free, so no 
 depends on which hit children were interior, which the trace does not say). A lane's
 iterations are its TRAV ops; the warp iterates until all of its lanes are done, and
 within an iteration the triangle loop runs until every lane has tested its group. Per
-fetched group of ``warp_size`` consecutive rays: ``pool_fetch`` and ``ray_setup`` with
-its lanes, the iterations, ``finish`` with its lanes. Groups are replayed in parallel and
-assigned to resident warps in pool order by ideal scheduling, as persistent_while_while.
+fetched group of ``warp_size`` consecutive rays: ``pool_fetch``, ``pool_take`` and
+``ray_setup`` with its lanes, the iterations, ``finish`` with its lanes. Groups are
+replayed in parallel and assigned to resident warps in pool order by ideal scheduling,
+as persistent_while_while.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from simt_sim.simt.engine import (
     N_BLOCKS,
     N_CHUNKS,
     POOL_FETCH,
+    POOL_TAKE,
     RAY_SETUP,
     TRAV_STEP,
     Counts,
@@ -54,6 +56,7 @@ from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_LAST, TRAV_WIDE, is_tra
 BLOCKS_CHARGED = (
     "ray_setup",
     "pool_fetch",
+    "pool_take",
     "idle_wait",
     "loop_control",
     "trav_step",
@@ -126,6 +129,7 @@ def _tri_loop(op, cur, end, tri, acc, costs, cnt, hist):
 def _group(offsets, op, r0, n, cur, end, acc, costs, cnt, hist):
     """One fetched group of ``n`` lanes (rays ``r0 ..``); returns its instructions."""
     issued = charge(cnt, hist, costs, POOL_FETCH, n)
+    issued += charge(cnt, hist, costs, POOL_TAKE, n)
     issued += charge(cnt, hist, costs, IDLE_WAIT, cur.shape[0] - n)
     issued += charge(cnt, hist, costs, RAY_SETUP, n)
     alive = np.int64(0)
@@ -202,7 +206,7 @@ def replay(
     """Replay one launch: groups in parallel, then ideal assignment to resident warps."""
     _check_streams(offsets, op)
     return persistent_counts(
-        *_replay(offsets, op, costs, p.warp_size, no_per_warp()), p.resident_warps
+        *_replay(offsets, op, costs, p.warp_size, no_per_warp()), p.resident_warps, costs
     )
 
 

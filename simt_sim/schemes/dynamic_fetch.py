@@ -5,9 +5,11 @@ kernel's loops (``kernels_ir/cuda/dynamic_fetch.cu``):
 
 - at the top of the warp loop, unless the warp's last fetch emptied the pool (it is
   *dry*), its lanes without a ray take the next rays of the pool in lane order:
-  ``pool_fetch`` with those lanes (one atomic per warp; a fetch that gets no ray, the
-  last of a warp, is not charged, as in the persistent kernels), then ``ray_setup`` with
-  the lanes that got one. A warp holding no ray then retires;
+  ``pool_fetch`` with those lanes (one atomic per warp; a fetch that gets no ray too),
+  then ``ray_setup`` with the lanes that got one. A warp holding no ray then exits;
+  otherwise the fetch goes on (``pool_take``, the loop's code after the exit). A dry
+  warp's last visit to the top, with every lane done, is not charged (its ballot and
+  exit test: about a dozen instructions per warp, which no block holds apart);
   lanes left without one while others trace go back to wait (``idle_wait``);
 - then inner iterations, each one while-while outer iteration (``loop_control``,
   traversal loop, intersection loop) with the lanes holding a ray, and ``finish`` with the
@@ -57,6 +59,7 @@ from simt_sim.simt.engine import (
     LOOP_CONTROL,
     N_BLOCKS,
     POOL_FETCH,
+    POOL_TAKE,
     RAY_SETUP,
     REFILL_BREAK,
     REFILL_TEST,
@@ -70,6 +73,7 @@ from simt_sim.simt.engine import (
     popcount,
 )
 from simt_sim.simt.scheme import FETCH_BLOCKS, TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
+from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.optrace import TRAV_BOTH
 
 #: refill dead lanes when fewer than this many lanes hold a ray (the kernel's default)
@@ -182,15 +186,16 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, speculativ
                     iters = max(iters, runs[pool])
                     pool += 1
             k = popcount(new)
-            # a fetch that gets no ray (a warp's last) is not charged, as in the persistent
-            # kernels: it is once per resident warp and launch
-            issued = charge(cnt[0], hist[0], costs, POOL_FETCH, popcount(idle) * (k > 0))
+            # a fetch that gets no ray is charged too; with no lane left tracing the warp
+            # exits there, so that fetch does not go on (``pool_take``)
+            issued = charge(cnt[0], hist[0], costs, POOL_FETCH, popcount(idle))
             issued += charge(cnt[0], hist[0], costs, RAY_SETUP, k)
             dry[w] = pool == n_rays
             h |= new
             if h == 0:  # nothing to trace: it retires
                 t[w] += issued
                 continue
+            issued += charge(cnt[0], hist[0], costs, POOL_TAKE, popcount(idle))
             issued += charge(cnt[0], hist[0], costs, IDLE_WAIT, popcount(lanes & ~h))
             held[w] = h
             fresh[w] = new
@@ -242,15 +247,17 @@ def fetch_counts(
     offsets: np.ndarray, op: np.ndarray, costs: np.ndarray, p: ReplayParams, speculative: bool
 ) -> Counts:
     """One launch's Counts: refill points in event order, warps' iterations between them in
-    parallel (see the module docstring), each a while-while or a ``speculative`` one."""
+    parallel (see the module docstring), each a while-while or a ``speculative`` one. The
+    launch runs no more warps than its rays fill (:func:`persistent_warps`)."""
     threshold = p.scheme["threshold"]
     if not isinstance(threshold, int | np.integer) or threshold < 1:
         raise SimtSimError(
             f"threshold must be an integer >= 1 (lanes alive before refilling), got {threshold!r}"
         )
     totals = np.zeros(p.resident_warps, np.int64)
+    launched = persistent_warps(-(-(offsets.shape[0] - 1) // p.warp_size), p.resident_warps)
     cnt, hist, span = _replay(
-        offsets, op, costs, p.warp_size, p.resident_warps, int(threshold), speculative, totals
+        offsets, op, costs, p.warp_size, launched, int(threshold), speculative, totals[:launched]
     )
     return Counts(cnt[:, 0].sum(axis=0), cnt[:, 1].sum(axis=0), hist.sum(axis=0), totals, int(span))
 

@@ -63,6 +63,7 @@ from simt_sim.simt.engine import (
     N_CHUNKS,
     NO_OP,
     POOL_FETCH,
+    POOL_TAKE,
     POSTPONE,
     RAY_SETUP,
     TRAV_DIVERGED,
@@ -371,6 +372,7 @@ def _group(offsets, op, r0, n, cur, end, scratch, acc, post, costs, cnt, hist, r
         end[lane] = offsets[r0 + lane + 1]
         trav, leaf = classify(op, cur, end, lane, trav, leaf)
     issued = charge(cnt, hist, costs, POOL_FETCH, n)
+    issued += charge(cnt, hist, costs, POOL_TAKE, n)
     issued += charge(cnt, hist, costs, IDLE_WAIT, cur.shape[0] - n)
     issued += charge(cnt, hist, costs, RAY_SETUP, n)
     if rounds:
@@ -422,7 +424,7 @@ def replay(
 ) -> Counts:
     """Replay one launch: groups in parallel, then ideal assignment to resident warps."""
     return persistent_counts(
-        *_replay(offsets, op, costs, p.warp_size, no_per_warp(), p.rounds), p.resident_warps
+        *_replay(offsets, op, costs, p.warp_size, no_per_warp(), p.rounds), p.resident_warps, costs
     )
 
 

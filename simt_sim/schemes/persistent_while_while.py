@@ -7,7 +7,10 @@ while-while (``ray_setup`` ... ``finish``). Each fetched group is independent, s
 instruction totals do not depend on which warp runs it; groups are replayed in parallel
 and then assigned in pool order by ideal scheduling (the next fetch goes to the warp
 with the fewest instructions so far, ties to the lowest id), which gives each warp's
-total and the launch's makespan as a load-balance diagnostic.
+total and the launch's makespan as a load-balance diagnostic. A fetch that gets rays
+goes on past the kernel's exit test (``pool_take``); each resident warp's last fetch
+finds the pool empty and exits, charged once per warp and launch
+(:func:`simt_sim.simt.engine.with_exits`).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from simt_sim.simt.engine import (
     N_BLOCKS,
     N_CHUNKS,
     POOL_FETCH,
+    POOL_TAKE,
     Counts,
     ReplayParams,
     charge,
@@ -38,9 +42,11 @@ from simt_sim.simt.scheme import POOL_BLOCKS, TRACE, TRACE_BLOCKS, KernelLaunch,
 
 @njit(cache=True, nogil=True)
 def _group(offsets, op, r0, n, cur, end, acc, costs, cnt, hist):
-    """One fetched group: ``pool_fetch`` with its lanes (``idle_wait`` with the lanes past
-    the pool's end, in a launch's last group), then the while-while warp body."""
+    """One fetched group: ``pool_fetch`` and ``pool_take`` with its lanes (``idle_wait``
+    with the lanes past the pool's end, in a launch's last group), then the while-while
+    warp body."""
     issued = charge(cnt, hist, costs, POOL_FETCH, n)
+    issued += charge(cnt, hist, costs, POOL_TAKE, n)
     issued += charge(cnt, hist, costs, IDLE_WAIT, cur.shape[0] - n)
     return issued + warp_body(offsets, op, r0, n, cur, end, acc, costs, cnt, hist)
 
@@ -73,7 +79,7 @@ def replay(
 ) -> Counts:
     """Replay one launch: groups in parallel, then ideal assignment to resident warps."""
     return persistent_counts(
-        *_replay(offsets, op, costs, p.warp_size, no_per_warp()), p.resident_warps
+        *_replay(offsets, op, costs, p.warp_size, no_per_warp()), p.resident_warps, costs
     )
 
 

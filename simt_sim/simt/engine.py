@@ -26,6 +26,7 @@ from numba.extending import intrinsic
 from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR
 from kernels_ir.kernel_ir import RECONVERGE as RECONVERGE_BLOCK
 from simt_sim.errors import SimtSimError
+from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.optrace import (
     LEAF,
     TRAV_BOTH,
@@ -40,6 +41,7 @@ from simt_sim.types.optrace import (
 N_BLOCKS = len(BLOCKS)
 RAY_SETUP = BLOCKS.index("ray_setup")
 POOL_FETCH = BLOCKS.index("pool_fetch")
+POOL_TAKE = BLOCKS.index("pool_take")
 LOOP_CONTROL = BLOCKS.index("loop_control")
 REFILL_TEST = BLOCKS.index("refill_test")
 REFILL_BREAK = BLOCKS.index("refill_break")
@@ -537,14 +539,40 @@ def schedule_groups(group_cost, resident_warps, warp_totals):
 
 
 def persistent_counts(
-    cnt: np.ndarray, hist: np.ndarray, group_cost: np.ndarray, resident_warps: int
+    cnt: np.ndarray,
+    hist: np.ndarray,
+    group_cost: np.ndarray,
+    resident_warps: int,
+    costs: np.ndarray,
 ) -> Counts:
     """A persistent launch's Counts: the chunks' counters, with its fetched groups (in
-    pool order) scheduled ideally onto ``resident_warps`` warps (:func:`schedule_groups`)."""
+    pool order) scheduled ideally onto ``resident_warps`` warps (:func:`schedule_groups`)
+    and each warp's last fetch (:func:`with_exits`)."""
     totals = np.zeros(resident_warps, np.int64)
     span = schedule_groups(group_cost, resident_warps, totals)
     c = chunk_counts(cnt, hist)
-    return Counts(c.executions, c.active, c.hist, totals, int(span))
+    counts = Counts(c.executions, c.active, c.hist, totals, int(span))
+    return with_exits(counts, costs, group_cost.shape[0])
+
+
+def with_exits(c: Counts, costs: np.ndarray, groups: int) -> Counts:
+    """``c`` (a persistent launch of ``groups`` fetched groups, its ``warp_totals`` set)
+    with each launched warp's last fetch: the pool is empty and the warp exits, having
+    issued ``pool_fetch`` up to its ``EXIT`` (``pool_take`` is what a fetch that goes on
+    adds), every lane live. A launch runs no more warps than its groups fill
+    (:func:`~simt_sim.tracers.cuda_tracer.persistent_warps`); ideal scheduling gives the
+    first groups to the lowest warp ids, so those are the launched ones."""
+    assert c.warp_totals is not None
+    warps = persistent_warps(groups, c.warp_totals.shape[0])
+    lanes = c.hist.shape[1] - 1
+    executions, active, hist = c.executions.copy(), c.active.copy(), c.hist.copy()
+    executions[POOL_FETCH] += warps
+    active[POOL_FETCH] += warps * lanes
+    hist[POOL_FETCH, lanes] += warps
+    cost = int(costs[POOL_FETCH])
+    totals = c.warp_totals.copy()
+    totals[:warps] += cost
+    return Counts(executions, active, hist, totals, int(totals.max(initial=0)))
 
 
 @dataclass(frozen=True)

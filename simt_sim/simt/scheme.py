@@ -41,7 +41,7 @@ TRACE_BLOCKS = (
     "finish",
 )
 #: the blocks of a persistent kernel's fetches, and of a dynamic-fetch kernel's refills
-POOL_BLOCKS = ("pool_fetch", "idle_wait")
+POOL_BLOCKS = ("pool_fetch", "pool_take", "idle_wait")
 FETCH_BLOCKS = (*POOL_BLOCKS, "refill_test", "refill_break")
 
 

@@ -229,6 +229,13 @@ def check_block_threads(block_threads: int) -> None:
         )
 
 
+def persistent_warps(groups: int, resident_warps: int) -> int:
+    """Warps a persistent launch of ``groups`` warp-sized groups of rays runs: the resident
+    warps, but no more than the groups fill, since an extra warp would only find the pool
+    empty (the model charges each launched warp's last, empty fetch)."""
+    return min(resident_warps, groups)
+
+
 def launch_config(
     launch: KernelLaunch,
     n_rays: int,
@@ -259,7 +266,7 @@ def launch_config(
                 f"{launch.kernel} needs a GPU with resident warps, got {gpu.sms} SMs x "
                 f"{gpu.resident_warps_per_sm} warps"
             )
-        warps = min(gpu.sms * gpu.resident_warps_per_sm, -(-n_rays // WARP_SIZE))
+        warps = persistent_warps(-(-n_rays // WARP_SIZE), gpu.sms * gpu.resident_warps_per_sm)
         return -(-warps // warps_per_block), block_threads, 0
     grid = -(-n_rays // block_threads)
     shared = warps_per_block * STACK_SIZE * STACK_ENTRY_BYTES if launch.shared_stack else 0

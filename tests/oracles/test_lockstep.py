@@ -277,14 +277,21 @@ def test_bad_input_is_refused(bvh):
 @pytest.mark.parametrize("scheme", LOCKSTEP_SCHEMES)
 def test_per_warp_counts_add_up_to_the_execution(bvh: BVH, scheme: str) -> None:
     """Each fixed warp's (persistent: fetched group's) warp and lane instructions sum to
-    the run's; speculative dynamic fetch refills its lanes, so it has none."""
+    the run's, a persistent launch's with each launched warp's last, empty fetch
+    (``pool_fetch`` with every lane); speculative dynamic fetch refills its lanes, so it
+    has none."""
     rays = make_rays(200, "any", 11)  # a last, partial warp
     run = execute(bvh, rays, get_scheme(scheme), ir_for(scheme), GPU)
     if scheme == "speculative_dynamic_fetch":
         assert run.per_warp is None
         return
     r = run.result
+    # 7 groups on 4 resident warps: each warp is launched and ends with an empty fetch
+    exits = len(r.counts.warp_totals) if get_scheme(scheme).persistent else 0
+    fetch = BLOCKS.index("pool_fetch")
+    assert exits == (4 if get_scheme(scheme).persistent else 0)
     assert run.per_warp.shape == (7, 2)
-    assert run.per_warp[:, 0].sum() == r.warp_instructions
-    assert run.per_warp[:, 1].sum() == int(np.dot(r.counts.active, r.costs))
+    assert run.per_warp[:, 0].sum() + exits * r.costs[fetch] == r.warp_instructions
+    lanes = int(np.dot(r.counts.active, r.costs))
+    assert run.per_warp[:, 1].sum() + exits * 32 * r.costs[fetch] == lanes
     assert np.all(run.per_warp[:, 1] <= 32 * run.per_warp[:, 0])

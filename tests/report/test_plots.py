@@ -28,6 +28,7 @@ from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.synth import trace_from_lists
 from simt_sim.study.workload import make_workload
 from simt_sim.trace.record import record_all
+from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.optrace import LEAF, TRAV_ONE, TRI_MISS
 
 #: one scheme with a timeline, one with per-pixel figures only, one with neither
@@ -139,8 +140,16 @@ def test_warp_counts_add_up_to_the_replay(primary, scheme: str, gpu_id: str) -> 
     wc = warp_counts(trace, get_scheme(scheme), ir, gpu)
     r = simulate_traces([trace], get_scheme(scheme), ir, gpu)
     assert wc.warp_instructions.shape == (trace.n_rays // 32,)
-    assert wc.warp_instructions.sum() == r.warp_instructions
-    assert wc.lane_instructions.sum() == int(np.dot(r.counts.active, r.costs))
+    # a persistent launch adds each launched warp's last, empty fetch to its groups
+    exits = max(int(r.executions["pool_fetch"]) - len(wc.warp_instructions), 0)
+    resident = r.counts.warp_totals
+    groups = len(wc.warp_instructions)
+    assert exits == (persistent_warps(groups, len(resident)) if resident is not None else 0)
+    assert wc.launch_instructions == exits * int(r.costs[BLOCKS.index("pool_fetch")])
+    assert wc.launch_lanes == 32 * wc.launch_instructions
+    assert wc.warp_instructions.sum() + wc.launch_instructions == r.warp_instructions
+    lanes = int(np.dot(r.counts.active, r.costs))
+    assert wc.lane_instructions.sum() + wc.launch_lanes == lanes
     assert np.all((wc.efficiency > 0) & (wc.efficiency <= 1))
 
 
@@ -174,7 +183,8 @@ def test_a_wide_tree_has_per_warp_views(layout: str, scheme: str) -> None:
     gpu = get_gpu("h200")
     ir = kernels_ir.load(record.kernel, gpu.ir_arch)
     wc = warp_counts(trace, record, ir, gpu)
-    assert wc.warp_instructions.sum() == simulate_traces([trace], record, ir, gpu).warp_instructions
+    r = simulate_traces([trace], record, ir, gpu)
+    assert wc.warp_instructions.sum() + wc.launch_instructions == r.warp_instructions
     costs = {b: ir.cost(b) for b in BLOCKS}
     events = warp_timeline(trace, 3, record, ir, gpu)
     assert sum(costs[b] for b, _ in events) == wc.warp_instructions[3]

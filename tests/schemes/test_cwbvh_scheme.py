@@ -23,6 +23,7 @@ from simt_sim.simt.gpus import get_gpu, issue_limited
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.synth import trace_from_lists
 from simt_sim.trace.record import record_all
+from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.tracers.numba_tracer import trace
 from simt_sim.types.optrace import (
     LEAF,
@@ -89,13 +90,16 @@ CASE_B = [
 # u-stage miss, lane 1's miss; tri_v: lane 0's hit, lane 1's miss.
 # CASE_B: iteration 0: trav_step {0,1}; triangle 0 {0,1} (hit: 1; lane 0 stops at t),
 # triangle 1 {0} (hit: 0); iteration 1: trav_step {0,1}; triangle 0 {0} (stops at u).
+# Both: the one resident warp's last fetch finds the pool empty (pool_fetch, both lanes).
 BY_HAND = [
     (CASE_A, {
-        "pool_fetch": (1, 2), "ray_setup": (1, 2), "trav_step": (3, 5), "tri_test": (4, 4),
+        "pool_fetch": (2, 4), "pool_take": (1, 2), "ray_setup": (1, 2), "trav_step": (3, 5),
+        "tri_test": (4, 4),
         "tri_u": (3, 3), "tri_v": (2, 2), "tri_hit": (1, 1),
         "loop_control": (3, 5), "finish": (1, 2)}),
     (CASE_B, {
-        "pool_fetch": (1, 2), "ray_setup": (1, 2), "trav_step": (2, 4), "tri_test": (3, 4),
+        "pool_fetch": (2, 4), "pool_take": (1, 2), "ray_setup": (1, 2), "trav_step": (2, 4),
+        "tri_test": (3, 4),
         "tri_u": (3, 3), "tri_v": (2, 2), "tri_hit": (2, 2),
         "loop_control": (2, 4), "finish": (1, 2)}),
 ]  # fmt: skip
@@ -192,8 +196,11 @@ def test_warp_counts_are_the_replay_group_by_group() -> None:
     assert get_scheme(NAME).warp_counts(offsets, op, addr, costs, p).tolist() == per_warp.tolist()
     for w in range(7):
         alone = run(cw_trace(ops[32 * w : 32 * w + 32]), 32)
-        lanes = int(np.dot(alone.counts.active, alone.costs))
-        assert per_warp[w].tolist() == [alone.warp_instructions, lanes]
+        # less the resident warps' last, empty fetches
+        launched = persistent_warps(1, len(alone.counts.warp_totals))
+        exits = launched * alone.costs[BLOCKS.index("pool_fetch")]
+        lanes = int(np.dot(alone.counts.active, alone.costs)) - 32 * exits
+        assert per_warp[w].tolist() == [alone.warp_instructions - exits, lanes]
 
 
 def test_each_lane_work_is_conserved() -> None:
@@ -208,7 +215,10 @@ def test_each_lane_work_is_conserved() -> None:
     assert a["tri_u"] == int(np.isin(flat, (TRI_MISS_U, TRI_MISS, TRI_HIT)).sum())
     assert a["tri_v"] == int(np.isin(flat, (TRI_MISS, TRI_HIT)).sum())
     assert a["tri_hit"] == int((flat == TRI_HIT).sum())
-    assert a["ray_setup"] == a["finish"] == a["pool_fetch"] == r.rays == len(ops)
+    assert a["ray_setup"] == a["finish"] == a["pool_take"] == r.rays == len(ops)
+    # each launched warp's last fetch, with every lane, finds the pool empty
+    launched = persistent_warps(-(-len(ops) // 32), len(r.warp_totals))
+    assert a["pool_fetch"] == len(ops) + launched * 32
     assert {b for b in BLOCKS if r.executions[b]} == set(BLOCKS_CHARGED)
 
 

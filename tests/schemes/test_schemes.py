@@ -22,6 +22,7 @@ from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
 from simt_sim.simt.synth import synthetic_trace, trace_from_lists
 from simt_sim.study.run import run_study
 from simt_sim.study.spec import StudySpec
+from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.optrace import (
     LEAF,
     TRAV_BOTH,
@@ -168,34 +169,39 @@ BY_HAND = [
     # 1 at the vote), the postponed leaves' triangle test (rejected at u, rejected at t),
     # the pop of the leaf lane 0 stands on (lane 1 none), the leaf loop's exit (lane 1
     # after its postponed leaf, lane 0 after one more)
+    # The one launched warp (one group) ends with a fetch that finds the pool empty.
     ("persistent_speculative_while_while", CASE_SPECULATIVE, None, 2, 4, {}, {
-        "pool_fetch": (1, 2), "ray_setup": (1, 2), "loop_control": (1, 2),
+        "pool_fetch": (2, 4), "pool_take": (1, 2), "ray_setup": (1, 2), "loop_control": (1, 2),
         "trav_step": (3, 5), "trav_one": (3, 4), "trav_both": (1, 1), "trav_diverged": (1, 1),
         "postpone": (2, 2), "leaf_entry": (2, 3), "tri_test": (2, 3), "tri_u": (2, 2),
         "tri_v": (1, 1), "tri_hit": (1, 1), "finish": (1, 2), "reconverge": (6, 0)}),
-    # the second group has one ray: the other lane waits for it
+    # the second group has one ray: the other lane waits for it; each of the two launched
+    # warps (one per group) ends with a fetch that finds the pool empty (all lanes)
     ("persistent_while_while", CASE_DYNAMIC, None, 2, 4, {}, {
-        "pool_fetch": (2, 3), "idle_wait": (1, 1), "ray_setup": (2, 3), "loop_control": (2, 3),
-        "trav_step": (3, 4), "trav_none": (3, 3), "trav_one": (1, 1), "finish": (2, 3),
-        "reconverge": (2, 0)}),
-    # the second fetch is for both idle lanes, gets the last ray and leaves one lane idle
+        "pool_fetch": (4, 7), "pool_take": (2, 3), "idle_wait": (1, 1), "ray_setup": (2, 3),
+        "loop_control": (2, 3), "trav_step": (3, 4), "trav_none": (3, 3), "trav_one": (1, 1),
+        "finish": (2, 3), "reconverge": (2, 0)}),
+    # the second fetch is for both idle lanes, gets the last ray and leaves one lane idle;
+    # both go on past the exit test (pool_take); the dry warp's last visit is not charged
     ("dynamic_fetch", CASE_DYNAMIC, None, 2, 1, {"threshold": 2}, {
-        "pool_fetch": (2, 4), "ray_setup": (2, 3), "idle_wait": (1, 1), "loop_control": (2, 3),
-        "trav_step": (3, 4), "trav_none": (3, 3), "trav_one": (1, 1), "finish": (2, 3),
-        "reconverge": (2, 0)}),
+        "pool_fetch": (2, 4), "pool_take": (2, 4), "ray_setup": (2, 3), "idle_wait": (1, 1),
+        "loop_control": (2, 3), "trav_step": (3, 4), "trav_none": (3, 3), "trav_one": (1, 1),
+        "finish": (2, 3), "reconverge": (2, 0)}),
     # lane 1 traces on alone, below the threshold: it tests it and breaks for the refill
     ("dynamic_fetch", CASE_REFILL, None, 2, 1, {"threshold": 2}, {
-        "pool_fetch": (2, 3), "ray_setup": (2, 3), "loop_control": (2, 4), "refill_test": (1, 1),
+        "pool_fetch": (2, 3), "pool_take": (2, 3), "ray_setup": (2, 3), "loop_control": (2, 4),
+        "refill_test": (1, 1),
         "refill_break": (1, 1), "trav_step": (2, 4), "trav_none": (2, 3), "trav_one": (1, 1),
         "leaf_entry": (1, 1), "tri_test": (1, 1), "finish": (2, 3), "reconverge": (2, 0)}),
     # both lanes postpone their leaf and step on; the refilled ray steps alone (diverged).
     # Barriers reached apart: both steps' postpone tests (one lane postpones), the second
     # step's two outcomes, the triangle test (rejected at t, a hit)
     ("speculative_dynamic_fetch", CASE_SPECULATIVE_DYNAMIC, None, 2, 1, {"threshold": 2}, {
-        "pool_fetch": (2, 4), "idle_wait": (1, 1), "ray_setup": (2, 3), "loop_control": (2, 3),
-        "trav_step": (3, 5), "trav_none": (2, 2), "trav_one": (2, 3), "trav_diverged": (1, 1),
-        "postpone": (2, 2), "leaf_entry": (1, 2), "tri_test": (1, 2), "tri_u": (1, 1),
-        "tri_v": (1, 1), "tri_hit": (1, 1), "finish": (2, 3), "reconverge": (4, 0)}),
+        "pool_fetch": (2, 4), "pool_take": (2, 4), "idle_wait": (1, 1), "ray_setup": (2, 3),
+        "loop_control": (2, 3), "trav_step": (3, 5), "trav_none": (2, 2), "trav_one": (2, 3),
+        "trav_diverged": (1, 1), "postpone": (2, 2), "leaf_entry": (1, 2), "tri_test": (1, 2),
+        "tri_u": (1, 1), "tri_v": (1, 1), "tri_hit": (1, 1), "finish": (2, 3),
+        "reconverge": (4, 0)}),
     # each triangle test is closed apart by lane 1, rejecting it at t (it does not test
     # it), and by lane 0 (rejected at u; a hit)
     ("packet", CASE_PACKET, PACKET_ADDRS, 2, 4, {}, {
@@ -246,9 +252,11 @@ ROUNDS_BY_HAND = [
     # again). 2: both step, lane 0 meets its second leaf. 3: lane 0 runs loop_control and
     # both its leaves while lane 1 steps alone (diverged), postpones and, the vote ending
     # the loop, intersects its leaf as a group of its own; both finish, in two groups that
-    # reach the outer loop's exit apart.
+    # reach the outer loop's exit apart. The one launched warp ends with a fetch that finds
+    # the pool empty.
     (CASE_SPECULATIVE, {
-        "pool_fetch": (1, 2), "ray_setup": (1, 2), "loop_control": (2, 2), "trav_step": (3, 5),
+        "pool_fetch": (2, 4), "pool_take": (1, 2), "ray_setup": (1, 2), "loop_control": (2, 2),
+        "trav_step": (3, 5),
         "trav_one": (3, 4), "trav_both": (1, 1), "trav_diverged": (1, 1), "postpone": (2, 2),
         "leaf_entry": (3, 3), "tri_test": (3, 3), "tri_u": (2, 2), "tri_v": (1, 1),
         "tri_hit": (1, 1), "finish": (1, 2), "reconverge": (3, 0)}),
@@ -256,7 +264,8 @@ ROUNDS_BY_HAND = [
     # stacks' end, lane 1 holding no leaf. 3: lane 0 runs its postponed leaf and lane 1,
     # skipping the leaf loop (its exit again), runs loop_control with it before finishing.
     ([[TRAV_ONE, LEAF, TRI_MISS_T, TRAV_NONE], [TRAV_ONE, TRAV_NONE]], {
-        "pool_fetch": (1, 2), "ray_setup": (1, 2), "loop_control": (1, 2), "trav_step": (2, 4),
+        "pool_fetch": (2, 4), "pool_take": (1, 2), "ray_setup": (1, 2), "loop_control": (1, 2),
+        "trav_step": (2, 4),
         "trav_none": (1, 2), "trav_one": (1, 2), "postpone": (1, 1), "leaf_entry": (1, 1),
         "tri_test": (1, 1), "finish": (1, 2), "reconverge": (2, 0)}),
 ]  # fmt: skip
@@ -360,7 +369,8 @@ def test_dynamic_fetch_matches_reference(
 )
 def test_warp_counts_are_the_replay_warp_by_warp(scheme: str, rounds: bool) -> None:
     """Each warp's instructions from ``warp_counts`` equal a replay of that warp alone (in
-    rounds where the code and the GPU run the traversal loop so)."""
+    rounds where the code and the GPU run the traversal loop so), less the resident warps'
+    last, empty fetches that launch adds."""
     rng = np.random.default_rng(5)
     ops, addrs = random_streams(rng, 32 * 12 + 7)
     trace = trace_from_lists(ops, addrs)
@@ -375,8 +385,11 @@ def test_warp_counts_are_the_replay_warp_by_warp(scheme: str, rounds: bool) -> N
             get_scheme(scheme), ir, gpu_for(32),
         )  # fmt: skip
         assert alone.model_card.get("traversal_rounds", False) == rounds
-        lanes = int(np.dot(alone.counts.active, alone.costs))
-        assert per_warp[w].tolist() == [alone.warp_instructions, lanes]
+        resident = alone.counts.warp_totals
+        launched = 0 if resident is None else persistent_warps(1, len(resident))
+        exits = launched * alone.costs[BLOCKS.index("pool_fetch")]
+        lanes = int(np.dot(alone.counts.active, alone.costs)) - 32 * exits
+        assert per_warp[w].tolist() == [alone.warp_instructions - exits, lanes]
 
 
 # ---- the registry ----------------------------------------------------------------------------
@@ -498,11 +511,17 @@ def assert_conserved(r: SimResult, ops: list[list[int]], scheme: str) -> None:
     assert a["tri_v"] == by_code[[TRI_MISS, TRI_HIT]].sum()
     assert a["tri_hit"] == by_code[TRI_HIT]
     assert a["ray_setup"] == a["finish"] == r.rays == len(ops)
-    if "idle_wait" in SCHEMES[scheme].kernels.get(scheme, ()):
-        # every idle lane asks, the pool's last fetches included: at most once per lane
+    kernel_blocks = SCHEMES[scheme].kernels.get(scheme, ())
+    if "refill_test" in kernel_blocks:
+        # every idle lane asks, a warp's empty fetch included: at most once per lane and
+        # warp beyond the rays it takes; every fetch that got a ray goes on
         assert 0 <= a["pool_fetch"] - len(ops) <= len(r.warp_totals) * 32
-    elif scheme != "while_while" and scheme != "if_if":
-        assert a["pool_fetch"] == len(ops)
+        assert len(ops) <= a["pool_take"] <= a["pool_fetch"]
+    elif "pool_fetch" in kernel_blocks:
+        # a group's lanes fetch and go on; each launched warp's last fetch, all lanes, exits
+        launched = persistent_warps(-(-len(ops) // 32), len(r.warp_totals))
+        assert a["pool_take"] == len(ops)
+        assert a["pool_fetch"] == len(ops) + launched * 32
     assert r.mean_trav == pytest.approx(by_code[:3].sum() / len(ops))
 
 

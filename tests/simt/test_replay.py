@@ -17,6 +17,7 @@ from simt_sim.simt.gpus import GpuConfig, get_gpu, issue_limited
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult, merge
 from simt_sim.simt.synth import synthetic_trace, trace_from_lists
+from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.optrace import (
     LEAF,
     TRAV_NONE,
@@ -151,12 +152,27 @@ def test_results_do_not_depend_on_batch_split(scheme: str) -> None:
     if whole.warp_totals is not None:
         assert np.array_equal(whole.warp_totals, parts.warp_totals)
         assert whole.makespan == parts.makespan
-    if scheme not in REFILLING:  # launches cut elsewhere: only refills' counts move
+    if scheme not in REFILLING:  # launches cut elsewhere: only refills' counts move ...
         per_batch = simulate_traces(
             split(trace, [32 * 5, 32 * 65 + 3]), get_scheme(scheme), ir_for(scheme), gpu_for()
         )
-        same(whole, per_batch)
         assert per_batch.model_card.get("launches", 2) == 2
+        if not get_scheme(scheme).persistent:
+            same(whole, per_batch)
+            return
+        # ... and each launched warp's last, empty fetch: four 20-group launches and an
+        # 11-group one against launches of 5 and 66 groups, on 4 resident warps
+        resident = len(whole.warp_totals)
+        launched = [sum(persistent_warps(g, resident) for g in launches)
+                    for launches in ((20, 20, 20, 11), (5, 66))]  # fmt: skip
+        extra = launched[0] - launched[1]
+        assert extra == 16 - 8
+        fetch = BLOCKS.index("pool_fetch")
+        moved = np.zeros_like(whole.counts.executions)
+        moved[fetch] = extra
+        assert np.array_equal(whole.counts.executions - per_batch.counts.executions, moved)
+        assert np.array_equal(whole.counts.active - per_batch.counts.active, 32 * moved)
+        assert whole.counts.hist[fetch, 32] - per_batch.counts.hist[fetch, 32] == extra
 
 
 @pytest.mark.parametrize("scheme", list(TRACE_SCHEMES))
