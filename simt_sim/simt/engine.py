@@ -572,7 +572,7 @@ def with_exits(c: Counts, costs: np.ndarray, groups: int) -> Counts:
     cost = int(costs[POOL_FETCH])
     totals = c.warp_totals.copy()
     totals[:warps] += cost
-    return Counts(executions, active, hist, totals, int(totals.max(initial=0)))
+    return Counts(executions, active, hist, totals, c.makespan + cost * (warps > 0))
 
 
 @dataclass(frozen=True)
