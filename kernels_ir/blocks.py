@@ -35,7 +35,15 @@ from typing import NamedTuple
 
 from kernels_ir.cfg import ControlFlow, build_cfg
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kernel_ir import BLOCKS, CLASSES, POOL_FETCH, POOL_TAKE, SPIN_BLOCKS, STEP_OUTCOMES
+from kernels_ir.kernel_ir import (
+    BLOCKS,
+    CLASSES,
+    POOL_CLAIM,
+    POOL_FETCH,
+    POOL_TAKE,
+    SPIN_BLOCKS,
+    STEP_OUTCOMES,
+)
 from kernels_ir.sass import SassInstruction, base_opcode, branch_target, classify
 
 UNATTRIBUTED = "unattributed"
@@ -284,9 +292,10 @@ def by_frequency(
     - ``L`` shares its header with the loop around it and the instruction is in a join
       block both go round through (:attr:`kernels_ir.cfg.Loop.joins`): to ``L``'s own
       block, as the header's test is.
-    - ``L`` is the function and its own block is the instruction's, whose home is a loop
-      (the set-up before a persistent kernel's fetch loop, marked as the fetch): to no
-      block (``None``), since it runs once per thread and no block is charged so.
+    - ``L`` is the function and the instruction's block is the fetch's (``pool_fetch``,
+      ``pool_claim``), whose home is a loop (the set-up before a persistent kernel's
+      fetch loop, marked as the fetch or hoisted from its claim): to no block (``None``),
+      since it runs once per thread and no block is charged so.
 
     Everything else keeps its marker block.
     """
@@ -325,8 +334,8 @@ def by_frequency(
             # one source line and claims nothing: the source loop is its enclosing one's
             claimed.add(statement)
         block = owner.get(statement) if statement is not None else None
-        if key is None:  # the function's own block: where the thread starts
-            block = next((b for b in line_blocks if b is not None), None)
+        if key is None:  # the function's own block: where the thread starts in the source
+            block = owner[min(owner)] if owner else None
         elif block is None and steady.get(key):
             block = steady[key].most_common(1)[0][0]
         if block is not None:
@@ -345,9 +354,10 @@ def by_frequency(
             continue
         loop = cfg.loop_of(i)
         preheader = loop != home[block] and cfg.encloses(loop, home[block])
-        if loop is None and preheader and own.get(None) == block:
-            # before (or after) a persistent kernel's fetch loop, in its own block: once
-            # per thread, which no block of the replay is charged as
+        if loop is None and preheader and block in (POOL_FETCH, POOL_CLAIM):
+            # before (or after) a persistent kernel's fetch loop, in the fetch's blocks
+            # (the claim's lane mask, hoisted): once per thread, which no block of the
+            # replay is charged as
             out[i] = None
             continue
         if loop not in own or own[loop] == block:

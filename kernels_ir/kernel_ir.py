@@ -7,9 +7,11 @@ SIMT model, which charges a block every time a warp executes it:
 block              charged when
 =================  ====================================================================
 ray_setup          a lane starts a new ray (load ray, inverse direction, init stack)
-pool_fetch         a warp (persistent) or lane group (dynamic fetch) takes rays from the pool:
-                   its code up to the warp's exit, so a warp's last fetch, which finds the
-                   pool empty and exits, is charged it too
+pool_fetch         a warp visits its fetch loop's top, up to the warp's exit: a persistent
+                   warp's fetch (its last, which finds the pool empty and exits, too); a
+                   dynamic-fetch warp's vote and exit test (a dry warp's last visit too)
+pool_claim         ... dynamic fetch: the idle lanes claim rays (the refill test and the
+                   atomic); a dry warp, whose fetch emptied the pool, skips it
 pool_take          ... a fetch that goes on: the fetch loop's code after the exit (the
                    lanes' ray indices, the loop's barrier and branch back; made by the
                    build, no marker)
@@ -56,6 +58,7 @@ from dataclasses import dataclass, field
 BLOCKS = (
     "ray_setup",
     "pool_fetch",
+    "pool_claim",
     "pool_take",
     "loop_control",
     "refill_test",
@@ -83,6 +86,8 @@ RECONVERGE = "reconverge"
 """The block of a convergence barrier's issues by groups of lanes that reach it apart."""
 POOL_FETCH = "pool_fetch"
 """The block of a warp's fetch from the pool, up to the exit its last (empty) fetch takes."""
+POOL_CLAIM = "pool_claim"
+"""The block of a dynamic-fetch warp's claim on the pool, which a dry warp skips."""
 POOL_TAKE = "pool_take"
 """The build's block of the fetch loop's code after the warp's exit: a fetch that goes on."""
 SPIN_BLOCKS = ("refill_break", "idle_wait")

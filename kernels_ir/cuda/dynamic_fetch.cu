@@ -26,21 +26,27 @@ extern "C" __global__ void dynamic_fetch(const float4* __restrict__ nodes,
 #pragma unroll 1
     while (true) {
         const unsigned idle = __ballot_sync(SIMT_FULL_MASK, node == SIMT_SENTINEL);
-        if (!pool_empty && __popc(~idle) < SIMT_DYNAMIC_FETCH_THRESHOLD) {
-            const int base = simt_warp_fetch_add(pool_next, idle, SIMT_FULL_MASK);
-            pool_empty = base + __popc(idle) >= num_rays;
-            const int slot = base + __popc(idle & simt_lanemask_lt());
-            if (node == SIMT_SENTINEL && slot < num_rays) {
-                // @block ray_setup
-                ray = slot;
-                r = simt_load_ray(ray_o, ray_d, ray);
-                sp = 0;
-                stack[0] = SIMT_SENTINEL;
-                node = root;
-                hit_addr = -1;
-                t_best = r.tmax;
-                // @block pool_fetch
+        // a dry warp (its fetch emptied the pool) skips the claim: its last visit
+        // here runs pool_fetch alone
+        if (!pool_empty) {
+            // @block pool_claim
+            if (__popc(~idle) < SIMT_DYNAMIC_FETCH_THRESHOLD) {
+                const int base = simt_warp_fetch_add(pool_next, idle, SIMT_FULL_MASK);
+                pool_empty = base + __popc(idle) >= num_rays;
+                const int slot = base + __popc(idle & simt_lanemask_lt());
+                if (node == SIMT_SENTINEL && slot < num_rays) {
+                    // @block ray_setup
+                    ray = slot;
+                    r = simt_load_ray(ray_o, ray_d, ray);
+                    sp = 0;
+                    stack[0] = SIMT_SENTINEL;
+                    node = root;
+                    hit_addr = -1;
+                    t_best = r.tmax;
+                    // @block pool_claim
+                }
             }
+            // @block pool_fetch
         }
         if (__all_sync(SIMT_FULL_MASK, node == SIMT_SENTINEL)) break;
         // @block idle_wait

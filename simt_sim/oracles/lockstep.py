@@ -38,7 +38,8 @@ an interior node to step, a leaf to enter, a triangle to test, or nothing):
   iteration on ``resident_warps`` warps sharing the batch's ray pool. The warp that has
   issued the fewest instructions so far runs its next iteration (ties: the lowest id),
   as the replay schedules it; before it, if fewer than ``threshold`` of its lanes hold a
-  ray, its idle lanes take the next rays (``pool_fetch``, ``ray_setup``); after it,
+  ray, its idle lanes take the next rays (``pool_fetch``, ``pool_claim``, ``ray_setup``;
+  a dry warp's last visit, ``pool_fetch`` alone); after it,
   ``finish`` with the lanes whose ray ended. Which rays share a warp follows the exact
   costs, so it may differ from the replay's.
 - ``packet`` (Aila & Laine's semantics of Günther et al.'s kernel): one shared stack per
@@ -155,6 +156,7 @@ from simt_sim.simt.engine import (
     LEAF_ENTRY,
     LOOP_CONTROL,
     N_BLOCKS,
+    POOL_CLAIM,
     POOL_FETCH,
     POOL_TAKE,
     POSTPONE,
@@ -1369,10 +1371,12 @@ def _execute_fetch(nodes, woop, tri_index, root, origin, direction, tmin, tmax, 
 
     The warp that has issued the fewest instructions (ties: the lowest id) runs next: if
     fewer than ``threshold`` of its lanes hold a ray and the pool is not empty, its idle
-    lanes take the next rays (``pool_fetch``, ``ray_setup``); a warp holding none then
-    retires; otherwise one speculative outer iteration, then ``finish`` with the lanes
-    whose ray ended. Returns the counters, each warp's instructions, the makespan, per-ray
-    hits and op counts, and whether a stack overflowed.
+    lanes take the next rays (``pool_fetch``, ``pool_claim``, ``ray_setup``); a warp
+    holding none then retires (a dry warp, one whose fetch emptied the pool, after
+    ``pool_fetch`` alone: its vote and exit test); otherwise one speculative outer
+    iteration, then ``finish`` with the lanes whose ray ended. Returns the counters, each
+    warp's instructions, the makespan, per-ray hits and op counts, and whether a stack
+    overflowed.
     """
     nodes_i = nodes.view(np.int32)
     woop_i = woop.view(np.int32)
@@ -1405,7 +1409,9 @@ def _execute_fetch(nodes, woop, tri_index, root, origin, direction, tmin, tmax, 
         held = 0
         for lane in range(warp_size):
             held += ray[w, lane] >= 0
-        if at_top[w] and not dry[w]:
+        if at_top[w] and dry[w]:  # its last visit: the vote and exit test alone
+            issued += charge(cnt, hist, costs, POOL_FETCH, warp_size)
+        elif at_top[w]:
             idle = warp_size - held
             fetched = 0
             for lane in range(warp_size):
@@ -1415,6 +1421,7 @@ def _execute_fetch(nodes, woop, tri_index, root, origin, direction, tmin, tmax, 
                     pool += 1
                     fetched += 1
             issued += charge(cnt, hist, costs, POOL_FETCH, idle)
+            issued += charge(cnt, hist, costs, POOL_CLAIM, idle)
             issued += charge(cnt, hist, costs, RAY_SETUP, fetched)
             dry[w] = pool == n
             held += fetched

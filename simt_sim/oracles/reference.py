@@ -465,10 +465,11 @@ def _fetch_launch(
 
     One event per inner iteration, the warp with the fewest instructions first. A warp
     at the top of its loop (no lane traces, or fewer than ``threshold``) that is not dry
-    fetches for its idle lanes (``pool_fetch``, a fetch that gets no ray too, and
-    ``ray_setup``); it is dry once a fetch empties the pool. Holding no ray it retires
-    (its last visit to the top, a dry warp's, uncharged), else the fetch goes on
-    (``pool_take``); idle lanes beside tracing ones wait (``idle_wait``). After an
+    fetches for its idle lanes (``pool_fetch`` and ``pool_claim``, a fetch that gets no
+    ray too, and ``ray_setup``); it is dry once a fetch empties the pool. Holding no ray
+    it retires, else the fetch goes on (``pool_take``); idle lanes beside tracing ones
+    wait (``idle_wait``). A dry warp's last visit to the top, every lane done, runs
+    ``pool_fetch`` alone (the vote and exit test; it claims nothing). After an
     iteration the lanes still tracing of a warp that is not dry test the threshold
     (``refill_test``) and, below it, break (``refill_break``)."""
     w = rec.warp_size
@@ -485,7 +486,9 @@ def _fetch_launch(
         issued_so_far, wid = heapq.heappop(heap)
         ray, cur = slots[wid], cursors[wid]
         issued = 0
-        if at_top[wid] and not dry[wid]:
+        if at_top[wid] and dry[wid]:  # its last visit: the vote and exit test alone
+            issued += rec.charge("pool_fetch", list(range(w)))
+        elif at_top[wid]:
             idle = [lane for lane in range(w) if ray[lane] is None]
             fetch = []
             for lane in idle:
@@ -493,7 +496,7 @@ def _fetch_launch(
                     ray[lane], cur[lane] = pool, 0
                     pool += 1
                     fetch.append(lane)
-            issued += rec.charge("pool_fetch", idle)
+            issued += rec.charge("pool_fetch", idle) + rec.charge("pool_claim", idle)
             issued += rec.charge("ray_setup", fetch)
             dry[wid] = pool == len(rays)
             waiting = [lane for lane in range(w) if ray[lane] is None]

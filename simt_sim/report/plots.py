@@ -35,6 +35,7 @@ from simt_sim.simt.result import INTERSECTION_BLOCKS, TRAVERSAL_BLOCKS, SimResul
 BLOCK_COLOURS = {
     "ray_setup": "#7f7f7f",
     "pool_fetch": "#17becf",
+    "pool_claim": "#5fd3e0",
     "pool_take": "#9edae5",
     "loop_control": "#bcbd22",
     "refill_test": "#dbdb8d",

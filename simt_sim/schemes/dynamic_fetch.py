@@ -5,11 +5,11 @@ kernel's loops (``kernels_ir/cuda/dynamic_fetch.cu``):
 
 - at the top of the warp loop, unless the warp's last fetch emptied the pool (it is
   *dry*), its lanes without a ray take the next rays of the pool in lane order:
-  ``pool_fetch`` with those lanes (one atomic per warp; a fetch that gets no ray too),
-  then ``ray_setup`` with the lanes that got one. A warp holding no ray then exits;
-  otherwise the fetch goes on (``pool_take``, the loop's code after the exit). A dry
-  warp's last visit to the top, with every lane done, is not charged (its ballot and
-  exit test: about a dozen instructions per warp, which no block holds apart);
+  ``pool_fetch`` and ``pool_claim`` with those lanes (one atomic per warp; a fetch that
+  gets no ray too), then ``ray_setup`` with the lanes that got one. A warp holding no ray
+  then exits; otherwise the fetch goes on (``pool_take``, the loop's code after the
+  exit). A dry warp's last visit to the top, with every lane done, runs ``pool_fetch``
+  alone (its vote and exit test; the kernel skips the claim once the pool is empty);
   lanes left without one while others trace go back to wait (``idle_wait``);
 - then inner iterations, each one while-while outer iteration (``loop_control``,
   traversal loop, intersection loop) with the lanes holding a ray, and ``finish`` with the
@@ -58,6 +58,7 @@ from simt_sim.simt.engine import (
     IDLE_WAIT,
     LOOP_CONTROL,
     N_BLOCKS,
+    POOL_CLAIM,
     POOL_FETCH,
     POOL_TAKE,
     RAY_SETUP,
@@ -172,7 +173,8 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, speculativ
             key[0] = key[size]
             wid[0] = wid[size]
             heap_sift_down(key, wid, size, 0)
-            if dry[w]:  # back at the top with every lane done: it retires
+            if dry[w]:  # back at the top with every lane done: it votes and retires
+                t[w] += charge(cnt[0], hist[0], costs, POOL_FETCH, warp_size)
                 continue
             h = held[w]
             idle = lanes & ~h
@@ -189,6 +191,7 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, speculativ
             # a fetch that gets no ray is charged too; with no lane left tracing the warp
             # exits there, so that fetch does not go on (``pool_take``)
             issued = charge(cnt[0], hist[0], costs, POOL_FETCH, popcount(idle))
+            issued += charge(cnt[0], hist[0], costs, POOL_CLAIM, popcount(idle))
             issued += charge(cnt[0], hist[0], costs, RAY_SETUP, k)
             dry[w] = pool == n_rays
             h |= new
@@ -236,6 +239,7 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, speculativ
                 op, cur[w], end[w], held[w], 0, pend[w], t[w], threshold, True, speculative,
                 acc[s], post[s], scratch[s], costs, cnt[s], hist[s],
             )  # fmt: skip
+            t[w] += charge(cnt[s], hist[s], costs, POOL_FETCH, warp_size)  # its last visit
     span = np.int64(0)
     for w in range(resident_warps):
         warp_totals[w] += t[w]

@@ -41,6 +41,7 @@ from simt_sim.types.optrace import (
 N_BLOCKS = len(BLOCKS)
 RAY_SETUP = BLOCKS.index("ray_setup")
 POOL_FETCH = BLOCKS.index("pool_fetch")
+POOL_CLAIM = BLOCKS.index("pool_claim")
 POOL_TAKE = BLOCKS.index("pool_take")
 LOOP_CONTROL = BLOCKS.index("loop_control")
 REFILL_TEST = BLOCKS.index("refill_test")

@@ -42,7 +42,7 @@ TRACE_BLOCKS = (
 )
 #: the blocks of a persistent kernel's fetches, and of a dynamic-fetch kernel's refills
 POOL_BLOCKS = ("pool_fetch", "pool_take", "idle_wait")
-FETCH_BLOCKS = (*POOL_BLOCKS, "refill_test", "refill_break")
+FETCH_BLOCKS = (*POOL_BLOCKS, "pool_claim", "refill_test", "refill_break")
 
 
 @dataclass(frozen=True, eq=False)

@@ -143,7 +143,8 @@ PACKET_ADDRS = [[1, 2, 10, 10, 13], [1, 3]]  # LEAF 10 and TRI 10 are different 
 #: CASE_A: the first step's two outcomes, lanes finishing in iterations 1 and 4; CASE_B:
 #: iteration 1's two outcomes, lane 0 alone entering its leaf and testing, iteration 2's
 #: step of lane 1 alone, its leaf entry alone, the u-rejected and hit lanes, lanes
-#: finishing in iterations 2 and 3.
+#: finishing in iterations 2 and 3. Dynamic fetch: the fetch that empties the pool makes
+#: the warp dry; its last visit to the loop's top claims nothing.
 BY_HAND = [
     ("while_while", CASE_A, None, 2, 4, {}, {
         "ray_setup": (1, 2), "loop_control": (2, 3), "trav_step": (3, 4), "trav_none": (2, 2),
@@ -182,25 +183,27 @@ BY_HAND = [
         "loop_control": (2, 3), "trav_step": (3, 4), "trav_none": (3, 3), "trav_one": (1, 1),
         "finish": (2, 3), "reconverge": (2, 0)}),
     # the second fetch is for both idle lanes, gets the last ray and leaves one lane idle;
-    # both go on past the exit test (pool_take); the dry warp's last visit is not charged
+    # both go on past the exit test (pool_take); the warp, dry, ends with a visit to the
+    # loop's top that claims nothing (pool_fetch alone, both lanes)
     ("dynamic_fetch", CASE_DYNAMIC, None, 2, 1, {"threshold": 2}, {
-        "pool_fetch": (2, 4), "pool_take": (2, 4), "ray_setup": (2, 3), "idle_wait": (1, 1),
-        "loop_control": (2, 3), "trav_step": (3, 4), "trav_none": (3, 3), "trav_one": (1, 1),
-        "finish": (2, 3), "reconverge": (2, 0)}),
-    # lane 1 traces on alone, below the threshold: it tests it and breaks for the refill
+        "pool_fetch": (3, 6), "pool_claim": (2, 4), "pool_take": (2, 4), "ray_setup": (2, 3),
+        "idle_wait": (1, 1), "loop_control": (2, 3), "trav_step": (3, 4), "trav_none": (3, 3),
+        "trav_one": (1, 1), "finish": (2, 3), "reconverge": (2, 0)}),
+    # lane 1 traces on alone, below the threshold: it tests it and breaks for the refill;
+    # the dry warp's last visit, both lanes done: pool_fetch alone
     ("dynamic_fetch", CASE_REFILL, None, 2, 1, {"threshold": 2}, {
-        "pool_fetch": (2, 3), "pool_take": (2, 3), "ray_setup": (2, 3), "loop_control": (2, 4),
-        "refill_test": (1, 1),
-        "refill_break": (1, 1), "trav_step": (2, 4), "trav_none": (2, 3), "trav_one": (1, 1),
-        "leaf_entry": (1, 1), "tri_test": (1, 1), "finish": (2, 3), "reconverge": (2, 0)}),
+        "pool_fetch": (3, 5), "pool_claim": (2, 3), "pool_take": (2, 3), "ray_setup": (2, 3),
+        "loop_control": (2, 4), "refill_test": (1, 1), "refill_break": (1, 1), "trav_step": (2, 4),
+        "trav_none": (2, 3), "trav_one": (1, 1), "leaf_entry": (1, 1), "tri_test": (1, 1),
+        "finish": (2, 3), "reconverge": (2, 0)}),
     # both lanes postpone their leaf and step on; the refilled ray steps alone (diverged).
     # Barriers reached apart: both steps' postpone tests (one lane postpones), the second
     # step's two outcomes, the triangle test (rejected at t, a hit)
     ("speculative_dynamic_fetch", CASE_SPECULATIVE_DYNAMIC, None, 2, 1, {"threshold": 2}, {
-        "pool_fetch": (2, 4), "pool_take": (2, 4), "idle_wait": (1, 1), "ray_setup": (2, 3),
-        "loop_control": (2, 3), "trav_step": (3, 5), "trav_none": (2, 2), "trav_one": (2, 3),
-        "trav_diverged": (1, 1), "postpone": (2, 2), "leaf_entry": (1, 2), "tri_test": (1, 2),
-        "tri_u": (1, 1), "tri_v": (1, 1), "tri_hit": (1, 1), "finish": (2, 3),
+        "pool_fetch": (3, 6), "pool_claim": (2, 4), "pool_take": (2, 4), "idle_wait": (1, 1),
+        "ray_setup": (2, 3), "loop_control": (2, 3), "trav_step": (3, 5), "trav_none": (2, 2),
+        "trav_one": (2, 3), "trav_diverged": (1, 1), "postpone": (2, 2), "leaf_entry": (1, 2),
+        "tri_test": (1, 2), "tri_u": (1, 1), "tri_v": (1, 1), "tri_hit": (1, 1), "finish": (2, 3),
         "reconverge": (4, 0)}),
     # each triangle test is closed apart by lane 1, rejecting it at t (it does not test
     # it), and by lane 0 (rejected at u; a hit)
@@ -513,10 +516,13 @@ def assert_conserved(r: SimResult, ops: list[list[int]], scheme: str) -> None:
     assert a["ray_setup"] == a["finish"] == r.rays == len(ops)
     kernel_blocks = SCHEMES[scheme].kernels.get(scheme, ())
     if "refill_test" in kernel_blocks:
-        # every idle lane asks, a warp's empty fetch included: at most once per lane and
-        # warp beyond the rays it takes; every fetch that got a ray goes on
-        assert 0 <= a["pool_fetch"] - len(ops) <= len(r.warp_totals) * 32
-        assert len(ops) <= a["pool_take"] <= a["pool_fetch"]
+        # every idle lane claims, a warp's empty fetch included: at most once per lane and
+        # warp beyond the rays it takes; every fetch that got a ray goes on; the warp that
+        # emptied the pool, and maybe others, end dry: a last visit, every lane, no claim
+        assert 0 <= a["pool_claim"] - len(ops) <= len(r.warp_totals) * 32
+        assert len(ops) <= a["pool_take"] <= a["pool_claim"]
+        dry_lanes = a["pool_fetch"] - a["pool_claim"]
+        assert dry_lanes % 32 == 0 and 32 <= dry_lanes <= len(r.warp_totals) * 32
     elif "pool_fetch" in kernel_blocks:
         # a group's lanes fetch and go on; each launched warp's last fetch, all lanes, exits
         launched = persistent_warps(-(-len(ops) // 32), len(r.warp_totals))

@@ -125,6 +125,21 @@ def test_dynamic_fetch_refills_are_charged_on_their_paths() -> None:
     assert abs(d.difference) < 0.01
 
 
+@pytest.mark.parametrize("kernel", ["dynamic_fetch", "speculative_dynamic_fetch"])
+def test_a_dry_warps_last_visit_runs_the_fetch_without_the_claim(kernel: str) -> None:
+    """The warp whose fetch empties the pool traces its lanes to the end, comes back to its
+    loop's top once more, votes, finds the pool empty and exits without claiming: the
+    replay charges that visit ``pool_fetch`` alone and every fetch ``pool_fetch`` and
+    ``pool_claim``. Both meet the walk of sm_80 code (no spin or divergent fallback at the
+    top there), one resident warp making one such visit."""
+    d = dyncount(kernel, "room", "diffuse", warps=4, resolution=(32, 24), gpu_id="a100")
+    fetch, claim = (d.table.loc[block] for block in ("pool_fetch", "pool_claim"))
+    assert fetch["walk"] == fetch["replay"] and claim["walk"] == claim["replay"] > 0
+    ir = load(kernel, "sm_80")
+    visits, fetches = fetch["walk"] / ir.cost("pool_fetch"), claim["walk"] / ir.cost("pool_claim")
+    assert visits == fetches + 1
+
+
 def test_every_instruction_the_ir_charges_runs_where_its_block_runs() -> None:
     """An instruction charged to a block must issue when the block does: one the walk
     never issues although its block ran is charged for nothing (as a spin's branch back
