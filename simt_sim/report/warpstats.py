@@ -202,10 +202,11 @@ def warp_timeline(
     if not 0 <= warp < n_warps:
         raise SimtSimError(f"warp {warp} does not exist; the rays form warps 0..{n_warps - 1}")
     r0, r1 = warp * warp_size, min((warp + 1) * warp_size, trace.n_rays)
-    off, op, addr = replay_arrays(trace)  # a wide tree's node steps as the kernel branches
-    check_streams(off[r0 : r1 + 1], op, r0)
-    streams = [op[off[r] : off[r + 1]].tolist() for r in range(r0, r1)]
-    addrs = [addr[off[r] : off[r + 1]].tolist() for r in range(r0, r1)]
+    # the warp's rays alone, a wide tree's node steps as the kernel branches
+    off, op, addr = replay_arrays(trace.slice(r0, r1))
+    check_streams(off, op, r0)
+    streams = [op[off[r] : off[r + 1]].tolist() for r in range(r1 - r0)]
+    addrs = [addr[off[r] : off[r + 1]].tolist() for r in range(r1 - r0)]
     log = _Log(warp_size, {b: executed.cost(b) for b in BLOCKS}, p.rounds)
     scheme.reference_warp(streams, addrs, log)
     return log.events
