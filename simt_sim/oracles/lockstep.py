@@ -175,6 +175,7 @@ from simt_sim.simt.engine import (
     charge,
     charge_apart,
     charge_tri,
+    chunk_bounds,
     class_mix,
     cost_vector,
     heap_sift_down,
@@ -207,6 +208,9 @@ WHILE_WHILE_BODY, IF_IF_BODY, SPECULATIVE_BODY, PACKET_BODY, SPECULATIVE_FETCH_B
 )
 MAX_WARP = 64
 """Largest warp size the executor accepts (lane masks are small boolean arrays)."""
+HIST_CHUNKS = 64
+"""Chunks of consecutive units an executor runs in parallel, each with one active-lanes
+histogram (fixed: the counts never depend on the thread count, nor on this number)."""
 
 # Lane integer state, one row per lane: position, triangle cursor, stack, hit, parked leaf,
 # and the node columns of the ray's near slab planes (``geometry.near_columns``).
@@ -1014,15 +1018,18 @@ def _wide_traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, width, tnea
 
 @njit(cache=True, nogil=True)
 def _unit_outputs(n, warp_size):
-    """The outputs of an executor over ``n`` rays in units of ``warp_size``: the unit count,
-    per-unit counters ``cnt`` (units, 2, N_BLOCKS) and ``hist`` (units, N_BLOCKS,
-    warp_size + 1), per-unit cost, per-ray op counts, hit triangle and ``t``, per-unit
-    stack overflow."""
+    """The outputs of an executor over ``n`` rays in units of ``warp_size``: the bounds of
+    the chunks of consecutive units the executor runs in parallel
+    (:data:`HIST_CHUNKS` at most), per-unit counters ``cnt`` (units, 2, N_BLOCKS), a
+    ``hist`` (chunks, N_BLOCKS, warp_size + 1) per chunk, per-unit cost, per-ray op counts,
+    hit triangle and ``t``, per-unit stack overflow. Histograms are integer sums, exact in
+    any grouping; one per unit would take 200 MB for a launch of 2^20 rays."""
     units = (n + warp_size - 1) // warp_size
+    bounds = chunk_bounds(units, max(1, min(units, HIST_CHUNKS)))
     return (
-        units,
+        bounds,
         np.zeros((units, 2, N_BLOCKS), np.int64),
-        np.zeros((units, N_BLOCKS, warp_size + 1), np.int64),
+        np.zeros((bounds.shape[0] - 1, N_BLOCKS, warp_size + 1), np.int64),
         np.zeros(units, np.int64),
         np.zeros((n, 3), np.int64),
         np.full(n, -1, np.int32),
@@ -1050,29 +1057,30 @@ def _execute_wide(persistent, nodes, width, woop, tri_index, root, origin, direc
     nodes_i = nodes.view(np.int32)
     woop_i = woop.view(np.int32)
     n = origin.shape[0]
-    units, cnt, hist, unit_cost, ops, out_tri, out_t, overflow = _unit_outputs(n, warp_size)
-    for u in prange(units):
-        base = u * warp_size
-        lanes = min(warp_size, n - base)
-        li = np.zeros((lanes, _N_INT), np.int32)
-        lf = np.zeros((lanes, _N_FLOAT), np.float32)
-        stack = np.empty((lanes, cap), np.int32)
-        for lane in range(lanes):
-            _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, root)
-            _wide_planes(li, lf, lane, width)
-        c = cnt[u]
-        h = hist[u]
-        cost = np.int64(0)
-        if persistent:
-            cost += charge(c, h, costs, POOL_FETCH, lanes)
-            cost += charge(c, h, costs, POOL_TAKE, lanes)
-            cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
-        cost += charge(c, h, costs, RAY_SETUP, lanes)
-        rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i,
-                                 any_hit, ops, base, c, h, costs)  # fmt: skip
-        overflow[u] = rest < 0
-        unit_cost[u] = cost + rest
-        _store_hits(li[:, _HIT], lf, lanes, base, tri_index, out_tri, out_t)
+    bounds, cnt, hist, unit_cost, ops, out_tri, out_t, overflow = _unit_outputs(n, warp_size)
+    for k in prange(bounds.shape[0] - 1):
+        h = hist[k]
+        for u in range(bounds[k], bounds[k + 1]):
+            base = u * warp_size
+            lanes = min(warp_size, n - base)
+            li = np.zeros((lanes, _N_INT), np.int32)
+            lf = np.zeros((lanes, _N_FLOAT), np.float32)
+            stack = np.empty((lanes, cap), np.int32)
+            for lane in range(lanes):
+                _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, root)
+                _wide_planes(li, lf, lane, width)
+            c = cnt[u]
+            cost = np.int64(0)
+            if persistent:
+                cost += charge(c, h, costs, POOL_FETCH, lanes)
+                cost += charge(c, h, costs, POOL_TAKE, lanes)
+                cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
+            cost += charge(c, h, costs, RAY_SETUP, lanes)
+            rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i,
+                                     any_hit, ops, base, c, h, costs)  # fmt: skip
+            overflow[u] = rest < 0
+            unit_cost[u] = cost + rest
+            _store_hits(li[:, _HIT], lf, lanes, base, tri_index, out_tri, out_t)
     return cnt, hist, unit_cost, out_tri, out_t, ops, overflow.any()
 
 
@@ -1292,28 +1300,29 @@ def _execute_cwbvh(nodes, woop, tri_index, origin, direction, tmin, tmax, any_hi
     nodes_f = nodes.view(np.float32)
     nodes_u = nodes.view(np.uint32)
     n = origin.shape[0]
-    units, cnt, hist, unit_cost, ops, out_tri, out_t, overflow = _unit_outputs(n, warp_size)
-    for u in prange(units):
-        base = u * warp_size
-        lanes = min(warp_size, n - base)
-        li = np.zeros((lanes, _N_INT), np.int32)
-        lf = np.zeros((lanes, _N_FLOAT), np.float32)
-        lc = np.zeros((lanes, _N_CW), np.int64)
-        stack = np.empty((lanes, cap, 3), np.int64)
-        for lane in range(lanes):
-            _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, 0)
-            _cw_init_lane(lc, lf, lane)
-        c = cnt[u]
-        h = hist[u]
-        cost = charge(c, h, costs, POOL_FETCH, lanes)
-        cost += charge(c, h, costs, POOL_TAKE, lanes)
-        cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
-        cost += charge(c, h, costs, RAY_SETUP, lanes)
-        rest = _cw_group(lc, lf, stack, lanes, nodes, nodes_f, nodes_u, woop, any_hit, ops,
-                         base, c, h, costs)  # fmt: skip
-        overflow[u] = rest < 0
-        unit_cost[u] = cost + rest
-        _store_hits(lc[:, _CHIT], lf, lanes, base, tri_index, out_tri, out_t)
+    bounds, cnt, hist, unit_cost, ops, out_tri, out_t, overflow = _unit_outputs(n, warp_size)
+    for k in prange(bounds.shape[0] - 1):
+        h = hist[k]
+        for u in range(bounds[k], bounds[k + 1]):
+            base = u * warp_size
+            lanes = min(warp_size, n - base)
+            li = np.zeros((lanes, _N_INT), np.int32)
+            lf = np.zeros((lanes, _N_FLOAT), np.float32)
+            lc = np.zeros((lanes, _N_CW), np.int64)
+            stack = np.empty((lanes, cap, 3), np.int64)
+            for lane in range(lanes):
+                _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, 0)
+                _cw_init_lane(lc, lf, lane)
+            c = cnt[u]
+            cost = charge(c, h, costs, POOL_FETCH, lanes)
+            cost += charge(c, h, costs, POOL_TAKE, lanes)
+            cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
+            cost += charge(c, h, costs, RAY_SETUP, lanes)
+            rest = _cw_group(lc, lf, stack, lanes, nodes, nodes_f, nodes_u, woop, any_hit, ops,
+                             base, c, h, costs)  # fmt: skip
+            overflow[u] = rest < 0
+            unit_cost[u] = cost + rest
+            _store_hits(lc[:, _CHIT], lf, lanes, base, tri_index, out_tri, out_t)
     return cnt, hist, unit_cost, out_tri, out_t, ops, overflow.any()
 
 
@@ -1329,38 +1338,39 @@ def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, 
     nodes_i = nodes.view(np.int32)
     woop_i = woop.view(np.int32)
     n = origin.shape[0]
-    units, cnt, hist, unit_cost, ops, out_tri, out_t, overflow = _unit_outputs(n, warp_size)
-    for u in prange(units):
-        base = u * warp_size
-        lanes = min(warp_size, n - base)
-        li = np.zeros((lanes, _N_INT), np.int32)
-        lf = np.zeros((lanes, _N_FLOAT), np.float32)
-        stack = np.empty((lanes, cap), np.int32)
-        for lane in range(lanes):
-            _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, root)
-        c = cnt[u]
-        h = hist[u]
-        cost = np.int64(0)
-        if persistent:
-            cost += charge(c, h, costs, POOL_FETCH, lanes)
-            cost += charge(c, h, costs, POOL_TAKE, lanes)
-            cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
-        cost += charge(c, h, costs, RAY_SETUP, lanes)
-        if body == WHILE_WHILE_BODY:
-            rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, 0, woop, woop_i, any_hit,
-                                ops, base, c, h, costs)  # fmt: skip
-        elif body == IF_IF_BODY:
-            rest = _if_if(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,
-                          ops, base, c, h, costs)  # fmt: skip
-        elif body == SPECULATIVE_BODY:
-            rest = _speculative(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,
-                                ops, base, c, h, costs, rounds)  # fmt: skip
-        else:
-            rest = _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i,
-                           any_hit, ops, base, c, h, costs)  # fmt: skip
-        overflow[u] = rest < 0
-        unit_cost[u] = cost + rest
-        _store_hits(li[:, _HIT], lf, lanes, base, tri_index, out_tri, out_t)
+    bounds, cnt, hist, unit_cost, ops, out_tri, out_t, overflow = _unit_outputs(n, warp_size)
+    for k in prange(bounds.shape[0] - 1):
+        h = hist[k]
+        for u in range(bounds[k], bounds[k + 1]):
+            base = u * warp_size
+            lanes = min(warp_size, n - base)
+            li = np.zeros((lanes, _N_INT), np.int32)
+            lf = np.zeros((lanes, _N_FLOAT), np.float32)
+            stack = np.empty((lanes, cap), np.int32)
+            for lane in range(lanes):
+                _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, root)
+            c = cnt[u]
+            cost = np.int64(0)
+            if persistent:
+                cost += charge(c, h, costs, POOL_FETCH, lanes)
+                cost += charge(c, h, costs, POOL_TAKE, lanes)
+                cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
+            cost += charge(c, h, costs, RAY_SETUP, lanes)
+            if body == WHILE_WHILE_BODY:
+                rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, 0, woop, woop_i,
+                                    any_hit, ops, base, c, h, costs)  # fmt: skip
+            elif body == IF_IF_BODY:
+                rest = _if_if(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,
+                              ops, base, c, h, costs)  # fmt: skip
+            elif body == SPECULATIVE_BODY:
+                rest = _speculative(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i,
+                                    any_hit, ops, base, c, h, costs, rounds)  # fmt: skip
+            else:
+                rest = _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop,
+                               woop_i, any_hit, ops, base, c, h, costs)  # fmt: skip
+            overflow[u] = rest < 0
+            unit_cost[u] = cost + rest
+            _store_hits(li[:, _HIT], lf, lanes, base, tri_index, out_tri, out_t)
     return cnt, hist, unit_cost, out_tri, out_t, ops, overflow.any()
 
 
