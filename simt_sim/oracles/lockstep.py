@@ -174,6 +174,7 @@ from simt_sim.simt.engine import (
     apart,
     charge,
     charge_apart,
+    charge_fetch,
     charge_tri,
     chunk_bounds,
     class_mix,
@@ -1072,9 +1073,7 @@ def _execute_wide(persistent, nodes, width, woop, tri_index, root, origin, direc
             c = cnt[u]
             cost = np.int64(0)
             if persistent:
-                cost += charge(c, h, costs, POOL_FETCH, lanes)
-                cost += charge(c, h, costs, POOL_TAKE, lanes)
-                cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
+                cost += charge_fetch(c, h, costs, lanes, warp_size)
             cost += charge(c, h, costs, RAY_SETUP, lanes)
             rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i,
                                      any_hit, ops, base, c, h, costs)  # fmt: skip
@@ -1314,9 +1313,7 @@ def _execute_cwbvh(nodes, woop, tri_index, origin, direction, tmin, tmax, any_hi
                 _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, 0)
                 _cw_init_lane(lc, lf, lane)
             c = cnt[u]
-            cost = charge(c, h, costs, POOL_FETCH, lanes)
-            cost += charge(c, h, costs, POOL_TAKE, lanes)
-            cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
+            cost = charge_fetch(c, h, costs, lanes, warp_size)
             cost += charge(c, h, costs, RAY_SETUP, lanes)
             rest = _cw_group(lc, lf, stack, lanes, nodes, nodes_f, nodes_u, woop, any_hit, ops,
                              base, c, h, costs)  # fmt: skip
@@ -1352,9 +1349,7 @@ def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, 
             c = cnt[u]
             cost = np.int64(0)
             if persistent:
-                cost += charge(c, h, costs, POOL_FETCH, lanes)
-                cost += charge(c, h, costs, POOL_TAKE, lanes)
-                cost += charge(c, h, costs, IDLE_WAIT, warp_size - lanes)
+                cost += charge_fetch(c, h, costs, lanes, warp_size)
             cost += charge(c, h, costs, RAY_SETUP, lanes)
             if body == WHILE_WHILE_BODY:
                 rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, 0, woop, woop_i,

@@ -27,17 +27,15 @@ from simt_sim.oracles.lockstep import CWBVH_BODY
 from simt_sim.oracles.reference import cwbvh_group
 from simt_sim.simt.engine import (
     FINISH,
-    IDLE_WAIT,
     LOOP_CONTROL,
     N_BLOCKS,
     N_CHUNKS,
-    POOL_FETCH,
-    POOL_TAKE,
     RAY_SETUP,
     TRAV_STEP,
     Counts,
     ReplayParams,
     charge,
+    charge_fetch,
     charge_tri,
     chunk_bounds,
     lanes_so_far,
@@ -128,9 +126,7 @@ def _tri_loop(op, cur, end, tri, acc, costs, cnt, hist):
 @njit(cache=True, nogil=True)
 def _group(offsets, op, r0, n, cur, end, acc, costs, cnt, hist):
     """One fetched group of ``n`` lanes (rays ``r0 ..``); returns its instructions."""
-    issued = charge(cnt, hist, costs, POOL_FETCH, n)
-    issued += charge(cnt, hist, costs, POOL_TAKE, n)
-    issued += charge(cnt, hist, costs, IDLE_WAIT, cur.shape[0] - n)
+    issued = charge_fetch(cnt, hist, costs, n, cur.shape[0])
     issued += charge(cnt, hist, costs, RAY_SETUP, n)
     alive = np.int64(0)
     for lane in range(n):

@@ -56,14 +56,11 @@ from simt_sim.schemes.while_while import (
 )
 from simt_sim.simt.engine import (
     FINISH,
-    IDLE_WAIT,
     LEAF_ENTRY,
     LOOP_CONTROL,
     N_BLOCKS,
     N_CHUNKS,
     NO_OP,
-    POOL_FETCH,
-    POOL_TAKE,
     POSTPONE,
     RAY_SETUP,
     TRAV_DIVERGED,
@@ -72,6 +69,7 @@ from simt_sim.simt.engine import (
     apart,
     charge,
     charge_apart,
+    charge_fetch,
     chunk_bounds,
     is_leaf,
     is_trav,
@@ -371,9 +369,7 @@ def _group(offsets, op, r0, n, cur, end, scratch, acc, post, costs, cnt, hist, r
         cur[lane] = offsets[r0 + lane]
         end[lane] = offsets[r0 + lane + 1]
         trav, leaf = classify(op, cur, end, lane, trav, leaf)
-    issued = charge(cnt, hist, costs, POOL_FETCH, n)
-    issued += charge(cnt, hist, costs, POOL_TAKE, n)
-    issued += charge(cnt, hist, costs, IDLE_WAIT, cur.shape[0] - n)
+    issued = charge_fetch(cnt, hist, costs, n, cur.shape[0])
     issued += charge(cnt, hist, costs, RAY_SETUP, n)
     if rounds:
         issued += spec_rounds(op, cur, end, trav, leaf, scratch, acc, costs, cnt, hist)

@@ -22,14 +22,11 @@ from simt_sim.oracles.lockstep import WHILE_WHILE_BODY
 from simt_sim.oracles.reference import persistent_group
 from simt_sim.schemes.while_while import WINDOW, warp_body
 from simt_sim.simt.engine import (
-    IDLE_WAIT,
     N_BLOCKS,
     N_CHUNKS,
-    POOL_FETCH,
-    POOL_TAKE,
     Counts,
     ReplayParams,
-    charge,
+    charge_fetch,
     chunk_bounds,
     lanes_so_far,
     no_per_warp,
@@ -45,9 +42,7 @@ def _group(offsets, op, r0, n, cur, end, acc, costs, cnt, hist):
     """One fetched group: ``pool_fetch`` and ``pool_take`` with its lanes (``idle_wait``
     with the lanes past the pool's end, in a launch's last group), then the while-while
     warp body."""
-    issued = charge(cnt, hist, costs, POOL_FETCH, n)
-    issued += charge(cnt, hist, costs, POOL_TAKE, n)
-    issued += charge(cnt, hist, costs, IDLE_WAIT, cur.shape[0] - n)
+    issued = charge_fetch(cnt, hist, costs, n, cur.shape[0])
     return issued + warp_body(offsets, op, r0, n, cur, end, acc, costs, cnt, hist)
 
 

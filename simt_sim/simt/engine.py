@@ -285,6 +285,16 @@ def charge(cnt, hist, costs, block, n):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def charge_fetch(cnt, hist, costs, n, warp_size):
+    """A persistent warp's fetch of a group of ``n`` rays, which goes on past the kernel's
+    exit test (``pool_fetch``, ``pool_take``), the lanes past the pool's end waiting
+    (``idle_wait``: a launch's last group); returns its cost."""
+    issued = charge(cnt, hist, costs, POOL_FETCH, n)
+    issued += charge(cnt, hist, costs, POOL_TAKE, n)
+    return issued + charge(cnt, hist, costs, IDLE_WAIT, warp_size - n)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def charge_apart(cnt, hist, costs, extra):
     """Charge ``extra`` issues of convergence barriers by groups of lanes that reached them
     apart from the first group of their region (``reconverge``; it costs nothing on a GPU
