@@ -187,6 +187,16 @@ class KernelIR:
         return frozenset(b for b in self.notes.get(ROUNDS, "").split(", ") if b)
 
 
+#: the kernels' launch facts (common.cuh and the ``.cu`` header comments); the CUDA tracer
+#: launches by them and the SIMT model counts by them
+WARP_SIZE = 32  # SIMT_WARP_SIZE of common.cuh
+STACK_SIZE = 64  # SIMT_STACK_SIZE of common.cuh: a ray's stack holds the sentinel + depth
+STACK_ENTRY_BYTES = 4  # a stack entry is an int node index
+BLOCK_THREADS = 128
+"""Default threads per block: 4 warps, a multiple of 32 as the persistent and packet
+kernels require, and small enough that a block never limits residency on its own."""
+
+
 @dataclass(frozen=True)
 class KernelLaunch:
     """How the CUDA tracer launches a scheme's kernel (its ``.cu`` header comment says so).
@@ -205,3 +215,10 @@ class KernelLaunch:
     kernel: str
     persistent: bool = False
     shared_stack: bool = False
+
+
+def persistent_warps(groups: int, resident_warps: int) -> int:
+    """Warps a persistent launch of ``groups`` warp-sized groups of rays runs: the resident
+    warps, but no more than the groups fill, since an extra warp would only find the pool
+    empty (the model charges each launched warp's last, empty fetch)."""
+    return min(resident_warps, groups)

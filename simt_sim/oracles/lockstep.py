@@ -106,7 +106,7 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
-from kernels_ir.kernel_ir import KernelIR
+from kernels_ir.kernel_ir import KernelIR, persistent_warps
 from simt_sim.bvh.cwbvh import META_INTERIOR_LOW, CwBVH
 from simt_sim.bvh.cwbvh import OFF_CHILD_BASE as CW_OFF_CHILD_BASE
 from simt_sim.bvh.cwbvh import OFF_E as CW_OFF_E
@@ -195,7 +195,6 @@ from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult, check_ir
 from simt_sim.simt.scheme import SchemeInfo
 from simt_sim.trace.record import record_all
-from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.hits import Hits
 from simt_sim.types.optrace import TRAV_BOTH, TRAV_NONE, TRAV_ONE, TRI_HIT
 from simt_sim.types.raybatch import RayBatch

@@ -14,10 +14,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from kernels_ir.kernel_ir import BLOCKS
+from kernels_ir.kernel_ir import BLOCKS, persistent_warps
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.scheme import SchemeInfo
-from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRI_HIT, is_tri, is_wide_trav, tri_stages
 
 _OUTCOME_BLOCK = ("trav_none", "trav_one", "trav_both")
@@ -461,7 +460,7 @@ def _fetch_launch(
 ) -> tuple[list[int], int]:
     """One dynamic-fetch launch whose warps run ``iteration`` between refills: each
     resident warp's instructions and the makespan. The launch runs no more warps than
-    its rays fill (:func:`~simt_sim.tracers.cuda_tracer.persistent_warps`).
+    its rays fill (:func:`~kernels_ir.kernel_ir.persistent_warps`).
 
     One event per inner iteration, the warp with the fewest instructions first. A warp
     at the top of its loop (no lane traces, or fewer than ``threshold``) that is not dry

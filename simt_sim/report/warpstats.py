@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kernels_ir.kernel_ir import BLOCKS, RECONVERGE, KernelIR
+from kernels_ir.kernel_ir import BLOCKS, RECONVERGE, KernelIR, persistent_warps
 from simt_sim.bvh.layouts import Tree
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.lockstep import execute
@@ -36,7 +36,6 @@ from simt_sim.simt.gpus import GpuConfig, executed_on
 from simt_sim.simt.replay import check_streams, trace_params
 from simt_sim.simt.result import check_ir
 from simt_sim.simt.scheme import SchemeInfo
-from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.optrace import OpTrace
 from simt_sim.types.raybatch import RayBatch
 

@@ -49,6 +49,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from kernels_ir.kernel_ir import persistent_warps
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.reference import dynamic_fetch_launch
 from simt_sim.schemes.persistent_speculative_while_while import SCRATCH_ROWS, spec_outer_step
@@ -74,7 +75,6 @@ from simt_sim.simt.engine import (
     popcount,
 )
 from simt_sim.simt.scheme import FETCH_BLOCKS, TRACE, TRACE_BLOCKS, KernelLaunch, SchemeInfo
-from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.optrace import TRAV_BOTH
 
 #: refill dead lanes when fewer than this many lanes hold a ray (the kernel's default)

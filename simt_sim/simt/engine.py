@@ -23,10 +23,9 @@ from llvmlite import ir as llvm_ir
 from numba import njit, prange, types
 from numba.extending import intrinsic
 
-from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR
+from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR, persistent_warps
 from kernels_ir.kernel_ir import RECONVERGE as RECONVERGE_BLOCK
 from simt_sim.errors import SimtSimError
-from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.optrace import (
     LEAF,
     TRAV_BOTH,
@@ -571,7 +570,7 @@ def with_exits(c: Counts, costs: np.ndarray, groups: int) -> Counts:
     with each launched warp's last fetch: the pool is empty and the warp exits, having
     issued ``pool_fetch`` up to its ``EXIT`` (``pool_take`` is what a fetch that goes on
     adds), every lane live. A launch runs no more warps than its groups fill
-    (:func:`~simt_sim.tracers.cuda_tracer.persistent_warps`); ideal scheduling gives the
+    (:func:`~kernels_ir.kernel_ir.persistent_warps`); ideal scheduling gives the
     first groups to the lowest warp ids, so those are the launched ones."""
     assert c.warp_totals is not None
     warps = persistent_warps(groups, c.warp_totals.shape[0])

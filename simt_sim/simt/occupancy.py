@@ -13,10 +13,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from kernels_ir.kernel_ir import KernelIR, KernelLaunch
+from kernels_ir.kernel_ir import (
+    BLOCK_THREADS,
+    STACK_ENTRY_BYTES,
+    STACK_SIZE,
+    KernelIR,
+    KernelLaunch,
+)
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.gpus import GpuConfig
-from simt_sim.tracers.cuda_tracer import BLOCK_THREADS, STACK_ENTRY_BYTES, STACK_SIZE
 
 
 @dataclass(frozen=True)

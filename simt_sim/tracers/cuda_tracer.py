@@ -29,7 +29,15 @@ from typing import Any, Protocol
 import numpy as np
 
 from kernels_ir.build import CUDA_DIR, HEADER, KERNELS, TEST_DEFINES, cubin_filename
-from kernels_ir.kernel_ir import DEFAULT_TESTS, KernelLaunch
+from kernels_ir.kernel_ir import (
+    BLOCK_THREADS,
+    DEFAULT_TESTS,
+    STACK_ENTRY_BYTES,
+    STACK_SIZE,
+    WARP_SIZE,
+    KernelLaunch,
+    persistent_warps,
+)
 from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
 from simt_sim.bvh.traverse import check_bvh, ray_arrays
 from simt_sim.errors import SimtSimError
@@ -43,15 +51,9 @@ KERNEL_PARAMS = (
 )  # fmt: skip
 POOL_PARAM = "pool_next"
 
-WARP_SIZE = 32  # SIMT_WARP_SIZE of common.cuh
-STACK_SIZE = 64  # SIMT_STACK_SIZE of common.cuh: a ray's stack holds the sentinel + depth
-STACK_ENTRY_BYTES = 4  # a stack entry is an int node index
 MAX_NODES = 2**29
 """Kernels address node ``i`` as float4 ``4 * i`` in int32 (and node indices must stay
 below SIMT_SENTINEL, 0x76543210, which this bound implies)."""
-BLOCK_THREADS = 128
-"""Default threads per block: 4 warps, a multiple of 32 as the persistent and packet
-kernels require, and small enough that a block never limits residency on its own."""
 MAX_RAYS = 2**30
 """Largest batch per launch: ray indices and the pool counter (which overshoots the ray
 count by up to 32 per resident warp) are int32 in the kernels."""
@@ -227,13 +229,6 @@ def check_block_threads(block_threads: int) -> None:
         raise SimtSimError(
             f"block size {block_threads} must be a multiple of {WARP_SIZE} up to 1024"
         )
-
-
-def persistent_warps(groups: int, resident_warps: int) -> int:
-    """Warps a persistent launch of ``groups`` warp-sized groups of rays runs: the resident
-    warps, but no more than the groups fill, since an extra warp would only find the pool
-    empty (the model charges each launched warp's last, empty fetch)."""
-    return min(resident_warps, groups)
 
 
 def launch_config(

@@ -18,7 +18,7 @@ import pytest
 from matplotlib.image import imread
 
 import kernels_ir
-from kernels_ir.kernel_ir import BLOCKS
+from kernels_ir.kernel_ir import BLOCKS, persistent_warps
 from simt_sim.errors import SimtSimError
 from simt_sim.report.plots import to_image
 from simt_sim.report.warpstats import timeline_schemes, warp_counts, warp_schemes, warp_timeline
@@ -28,7 +28,6 @@ from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.synth import trace_from_lists
 from simt_sim.study.workload import make_workload
 from simt_sim.trace.record import record_all
-from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.optrace import LEAF, TRAV_ONE, TRI_MISS
 
 #: one scheme with a timeline, one with per-pixel figures only, one with neither

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import kernels_ir
-from kernels_ir.kernel_ir import BLOCKS, KernelIR, kernel_layout
+from kernels_ir.kernel_ir import BLOCKS, KernelIR, kernel_layout, persistent_warps
 from simt_sim.bvh.build import build_bvh
 from simt_sim.bvh.layouts import make_tree
 from simt_sim.errors import SimtSimError
@@ -23,7 +23,6 @@ from simt_sim.simt.gpus import get_gpu, issue_limited
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.synth import trace_from_lists
 from simt_sim.trace.record import record_all
-from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.tracers.numba_tracer import trace
 from simt_sim.types.optrace import (
     LEAF,

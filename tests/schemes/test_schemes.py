@@ -9,7 +9,14 @@ import numpy as np
 import pytest
 
 import kernels_ir
-from kernels_ir.kernel_ir import BLOCKS, ROUNDS, SPIN_BLOCKS, KernelIR, kernel_layout
+from kernels_ir.kernel_ir import (
+    BLOCKS,
+    ROUNDS,
+    SPIN_BLOCKS,
+    KernelIR,
+    kernel_layout,
+    persistent_warps,
+)
 from simt_sim import schemes
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.reference import reference_replay
@@ -22,7 +29,6 @@ from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
 from simt_sim.simt.synth import synthetic_trace, trace_from_lists
 from simt_sim.study.run import run_study
 from simt_sim.study.spec import StudySpec
-from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.optrace import (
     LEAF,
     TRAV_BOTH,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import kernels_ir
-from kernels_ir.kernel_ir import BLOCKS, ROUNDS, KernelIR
+from kernels_ir.kernel_ir import BLOCKS, ROUNDS, KernelIR, persistent_warps
 from simt_sim.errors import SimtSimError
 from simt_sim.schemes import get_scheme, names
 from simt_sim.simt.engine import Counts, scan_trace
@@ -17,7 +17,6 @@ from simt_sim.simt.gpus import GpuConfig, get_gpu, issue_limited
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult, merge
 from simt_sim.simt.synth import synthetic_trace, trace_from_lists
-from simt_sim.tracers.cuda_tracer import persistent_warps
 from simt_sim.types.optrace import (
     LEAF,
     TRAV_NONE,

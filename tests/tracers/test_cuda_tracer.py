@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from kernels_ir.build import CUDA_DIR, HEADER, KERNELS
-from kernels_ir.kernel_ir import KernelLaunch
+from kernels_ir.kernel_ir import STACK_SIZE, WARP_SIZE, KernelLaunch
 from simt_sim.bvh.build import build_bvh
 from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
 from simt_sim.errors import SimtSimError
@@ -115,8 +115,8 @@ def sphere_bvh(sphere_mesh) -> BVH:
 
 
 def test_constants_match_the_header():
-    assert ct.STACK_SIZE == header_define("SIMT_STACK_SIZE")
-    assert ct.WARP_SIZE == header_define("SIMT_WARP_SIZE")
+    assert STACK_SIZE == header_define("SIMT_STACK_SIZE")
+    assert WARP_SIZE == header_define("SIMT_WARP_SIZE")
 
 
 def test_trace_kernels_are_ir_kernels_and_persistent_ones_take_the_pool():
