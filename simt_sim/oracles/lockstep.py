@@ -184,6 +184,7 @@ from simt_sim.simt.engine import (
     lane_traffic,
     outcome_groups,
     packet_tri_groups,
+    popcount,
     schedule_groups,
     tri_groups,
     tri_pack,
@@ -207,7 +208,7 @@ WHILE_WHILE_BODY, IF_IF_BODY, SPECULATIVE_BODY, PACKET_BODY, SPECULATIVE_FETCH_B
     range(6)
 )
 MAX_WARP = 64
-"""Largest warp size the executor accepts (lane masks are small boolean arrays)."""
+"""Largest warp size the executor accepts (the packet kernel's lane masks are uint64)."""
 HIST_CHUNKS = 64
 """Chunks of consecutive units an executor runs in parallel, each with one active-lanes
 histogram (fixed: the counts never depend on the thread count, nor on this number)."""
@@ -782,6 +783,13 @@ def _issue(cnt, hist, costs, block, n):
     return costs[block]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _count_lanes(counts, lanes_mask, lanes):
+    """Add 1 to ``counts[lane]`` of each lane in ``lanes_mask`` (bit ``lane``)."""
+    for lane in range(lanes):
+        counts[lane] += np.int64((lanes_mask >> np.uint64(lane)) & np.uint64(1))
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _packet_rays(li, lf, lanes):
     """The packet's lanes as :mod:`~simt_sim.oracles.packet_lanes` columns: the float32
@@ -815,15 +823,15 @@ def _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i, a
 
     The lanes' box and triangle tests run as vector loops over lane columns
     (:mod:`~simt_sim.oracles.packet_lanes`); the packet's own state (node, stack of nodes
-    and lane masks) is the kernel's.
+    and lane masks) is the kernel's. Lane masks are bits (``lane``) of a uint64, so that
+    pushing, popping and counting a packet's lanes costs no loop over them.
     """
     rays, tmax, neg = _packet_rays(li, lf, lanes)
+    every = ~np.uint64(0) >> np.uint64(64 - lanes)  # lane masks: bit ``lane``
     node_stack = np.empty(cap, np.int32)
-    mask_stack = np.zeros((cap, lanes), np.bool_)
-    mask = np.ones(lanes, np.bool_)  # useful lanes: their ray hit the node's box when pushed
-    m0 = np.empty(lanes, np.bool_)
-    m1 = np.empty(lanes, np.bool_)
-    done = np.zeros(lanes, np.bool_)
+    mask_stack = np.empty(cap, np.uint64)
+    mask = every  # useful lanes: their ray hit the node's box when pushed
+    done = np.uint64(0)
     hit = np.full(lanes, -1, np.int32)
     trav = np.zeros(lanes, np.int64)  # per lane: TRAV, LEAF, TRI ops while useful
     leaf = np.zeros(lanes, np.int64)
@@ -834,64 +842,61 @@ def _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i, a
     cost = np.int64(0)
     while True:
         cost += charge(cnt, hist, costs, LOOP_CONTROL, lanes)  # the whole warp runs the loop
-        useful = 0
-        for lane in range(lanes):
-            useful += mask[lane] & (not done[lane])
+        useful = mask & ~done
+        n_useful = popcount(useful)
         go_on = False  # whether the warp continues with a child instead of popping
         if node >= 0:
-            cost += _issue(cnt, hist, costs, TRAV_STEP, useful)
-            for lane in range(lanes):
-                trav[lane] += mask[lane] & (not done[lane])
-            any0, any1, near1 = box_votes(nodes, node, rays, tmax, neg, lanes, m0, m1)
+            cost += _issue(cnt, hist, costs, TRAV_STEP, n_useful)
+            _count_lanes(trav, useful, lanes)
+            m0, m1, near1 = box_votes(nodes, node, rays, tmax, neg, lanes)
             c0 = nodes_i[node, COL_CHILD0]
             c1 = nodes_i[node, COL_CHILD1]
-            if any0 > 0 and any1 > 0:
-                cost += _issue(cnt, hist, costs, TRAV_NONE_B + TRAV_BOTH, useful)
+            if m0 and m1:
+                cost += _issue(cnt, hist, costs, TRAV_NONE_B + TRAV_BOTH, n_useful)
                 if sp == cap:
                     return np.int64(-1)
                 near_is_1 = 2 * near1 > warp_size  # a majority of the whole warp
                 node_stack[sp] = c0 if near_is_1 else c1
-                for lane in range(lanes):
-                    mask_stack[sp, lane] = m0[lane] if near_is_1 else m1[lane]
-                    mask[lane] = m1[lane] if near_is_1 else m0[lane]
+                mask_stack[sp] = m0 if near_is_1 else m1
+                mask = m1 if near_is_1 else m0
                 sp += 1
                 node = c1 if near_is_1 else c0
                 go_on = True
-            elif any0 > 0 or any1 > 0:
-                cost += _issue(cnt, hist, costs, TRAV_NONE_B + TRAV_ONE, useful)
-                node = c0 if any0 > 0 else c1
-                for lane in range(lanes):
-                    mask[lane] = m0[lane] if any0 > 0 else m1[lane]
+            elif m0 or m1:
+                cost += _issue(cnt, hist, costs, TRAV_NONE_B + TRAV_ONE, n_useful)
+                node = c0 if m0 else c1
+                mask = m0 if m0 else m1
                 go_on = True
             else:
-                cost += _issue(cnt, hist, costs, TRAV_NONE_B + TRAV_NONE, useful)
+                cost += _issue(cnt, hist, costs, TRAV_NONE_B + TRAV_NONE, n_useful)
         else:
-            cost += _issue(cnt, hist, costs, LEAF_ENTRY, useful)
-            for lane in range(lanes):
-                leaf[lane] += mask[lane] & (not done[lane])
+            cost += _issue(cnt, hist, costs, LEAF_ENTRY, n_useful)
+            _count_lanes(leaf, useful, lanes)
             j = ~node
             while woop_i[j, 0] != SENTINEL_I32:  # every triangle of the leaf, as the kernel
                 # every lane still searching tests it, so any of them issues a stage; the
                 # useful ones (their ray hit the leaf's box) are the stage's active lanes
                 reached[:] = 0
-                testing = triangle_tests(woop, j, rays, tmax, lanes, done, mask, hit, tri,
-                                         any_hit, reached)  # fmt: skip
-                cost += _issue(cnt, hist, costs, TRI_TEST, testing)
+                live = every & ~done
+                hits = triangle_tests(woop, j, rays, tmax, lanes, live, live & mask, hit, tri,
+                                      reached)  # fmt: skip
+                if any_hit:
+                    done |= hits
+                cost += _issue(cnt, hist, costs, TRI_TEST, popcount(live & mask))
                 for k, block in enumerate((TRI_U, TRI_V, TRI_HIT_B)):
                     if reached[0, k]:
                         cost += _issue(cnt, hist, costs, block, reached[1, k])
                 groups = packet_tri_groups(warp_size, reached[0, 0], reached[0, 1])
                 cost += charge_apart(cnt, hist, costs, apart(groups))
                 j += 3
-            if any_hit and done.all():
+            if any_hit and done == every:
                 break
         if not go_on:
             if sp == 0:
                 break
             sp -= 1
             node = node_stack[sp]
-            for lane in range(lanes):
-                mask[lane] = mask_stack[sp, lane]
+            mask = mask_stack[sp]
     for lane in range(lanes):
         ops[base + lane, _C_TRAV] += trav[lane]
         ops[base + lane, _C_LEAF] += leaf[lane]

@@ -172,13 +172,15 @@ def test_identical_rays_replay_exact(bvh, scheme, query):
     assert ex.simd_efficiency_intersection == 1.0
 
 
+@pytest.mark.parametrize("warp_size", [32, 64])
 @pytest.mark.parametrize("query", ["closest", "any"])
-def test_identical_packet_does_while_while_work(bvh, query):
+def test_identical_packet_does_while_while_work(bvh, query, warp_size):
     """A packet of identical rays steps, enters and tests what while-while does (any-hit:
-    and the rest of the last leaf, with no lane searching)."""
+    and the rest of the last leaf, with no lane searching); 64 lanes fill the lane masks."""
     rays = make_rays(64, query, seed=6, identical=True)
-    _, ww = replayed(bvh, rays, "while_while")
-    pk = execute(bvh, rays, get_scheme("packet"), ir_for("packet"), GPU).result
+    gpu = replace(GPU, warp_size=warp_size)
+    _, ww = replayed(bvh, rays, "while_while", gpu)
+    pk = execute(bvh, rays, get_scheme("packet"), ir_for("packet"), gpu).result
     work = ("trav_step", "trav_none", "trav_one", "trav_both", "leaf_entry", "tri_test", "tri_hit")
     tail = {b: 0 for b in work}
     tail["tri_test"] = int(pk.counts.hist[BLOCKS.index("tri_test"), 0])

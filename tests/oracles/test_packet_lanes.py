@@ -51,6 +51,16 @@ def _lanes(rng: np.random.Generator, lanes: int) -> tuple[np.ndarray, np.ndarray
     return rays, rng.choice(F32([np.inf, 1.0, 3.0]), lanes), cols
 
 
+def _lanes_of(bits: np.uint64, lanes: int) -> np.ndarray:
+    """A lane mask (bit ``lane``) as one bool per lane; no bit past the last lane is set."""
+    assert int(bits) >> lanes == 0
+    return np.array([(int(bits) >> lane) & 1 for lane in range(lanes)], np.bool_)
+
+
+def _mask_of(lanes: np.ndarray) -> np.uint64:
+    return np.uint64(sum(1 << i for i, on in enumerate(lanes) if on))
+
+
 @njit(cache=True)
 def _scalar_boxes(nodes, k, rays, tmax, cols):
     """Each lane's hits of node ``k``'s children by the scalar test, and the vote counts."""
@@ -83,13 +93,11 @@ def test_lane_box_tests_decide_as_the_scalar_test(seed: int) -> None:
         rays, tmax, cols = _lanes(rng, lanes)
         neg = (cols & 1).astype(np.bool_)  # a near plane in the hi (odd) column
         for k in range(nodes.shape[0]):
-            m0 = np.empty(lanes, np.bool_)
-            m1 = np.empty(lanes, np.bool_)
-            any0, any1, near1 = P.box_votes(nodes, k, rays, tmax, neg, lanes, m0, m1)
+            bits0, bits1, near1 = P.box_votes(nodes, k, rays, tmax, neg, lanes)
             r0, r1, r_near1 = _scalar_boxes(nodes, k, rays, tmax, cols)
-            np.testing.assert_array_equal(m0, r0)
-            np.testing.assert_array_equal(m1, r1)
-            assert (any0, any1, near1) == (r0.sum(), r1.sum(), r_near1)
+            np.testing.assert_array_equal(_lanes_of(bits0, lanes), r0)
+            np.testing.assert_array_equal(_lanes_of(bits1, lanes), r1)
+            assert near1 == r_near1
             outcomes.update(zip(r0.tolist(), r1.tolist(), strict=True))
     assert outcomes == {(False, False), (False, True), (True, False), (True, True)}
 
@@ -123,10 +131,14 @@ def test_lane_triangle_tests_decide_as_the_scalar_test(seed: int, any_hit: bool)
         for j in range(0, woop.shape[0], 3):
             reached = np.zeros((2, 3), np.int64)
             want = np.zeros((2, 3), np.int64)
-            testing = P.triangle_tests(
-                woop, j, rays, tmax, lanes, done, mask, hit, tri, any_hit, reached
-            )
-            want_testing = 0
+            live = ~done
+            hits = P.triangle_tests(
+                woop, j, rays, tmax, lanes, _mask_of(live), _mask_of(live & mask), hit, tri,
+                reached,
+            )  # fmt: skip
+            if any_hit:
+                done |= _lanes_of(hits, lanes)
+            want_hits = np.zeros(lanes, np.bool_)
             for lane in range(lanes):
                 if ref_done[lane]:
                     continue
@@ -136,12 +148,12 @@ def test_lane_triangle_tests_decide_as_the_scalar_test(seed: int, any_hit: bool)
                 passed = np.array([stages >= 2, stages == 3, ok], np.int64)
                 want[0] += passed
                 want[1] += passed * mask[lane]
-                want_testing += mask[lane]
                 ref_tri[lane] += mask[lane]
                 if ok:
+                    want_hits[lane] = True
                     ref_hit[lane], ref_tmax[lane] = j, t
                     ref_done[lane] = any_hit
-            assert testing == want_testing
+            np.testing.assert_array_equal(_lanes_of(hits, lanes), want_hits)
             np.testing.assert_array_equal(reached, want)
             np.testing.assert_array_equal(hit, ref_hit)
             np.testing.assert_array_equal(tri, ref_tri)
