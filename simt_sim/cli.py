@@ -258,7 +258,7 @@ def cmd_trace(args: argparse.Namespace) -> int:
                 assert isinstance(tr, OpTrace)
                 if n == 0:
                     _check_trace_size(tr, len(wl.rays), args.out, args.quiet)
-                totals[:] += tr.counts().sum(axis=0)
+                totals[:] += tr.op_totals()
                 hits += int(np.count_nonzero(tr.hits.hit_mask))
                 n += tr.n_rays
                 bar.update(tr.n_rays)
