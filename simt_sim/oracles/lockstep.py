@@ -843,7 +843,7 @@ def _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i, a
     while True:
         cost += charge(cnt, hist, costs, LOOP_CONTROL, lanes)  # the whole warp runs the loop
         useful = mask & ~done
-        n_useful = popcount(useful)
+        n_useful = np.int64(popcount(useful))
         go_on = False  # whether the warp continues with a child instead of popping
         if node >= 0:
             cost += _issue(cnt, hist, costs, TRAV_STEP, n_useful)
@@ -882,7 +882,7 @@ def _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i, a
                                       reached)  # fmt: skip
                 if any_hit:
                     done |= hits
-                cost += _issue(cnt, hist, costs, TRI_TEST, popcount(live & mask))
+                cost += _issue(cnt, hist, costs, TRI_TEST, np.int64(popcount(live & mask)))
                 for k, block in enumerate((TRI_U, TRI_V, TRI_HIT_B)):
                     if reached[0, k]:
                         cost += _issue(cnt, hist, costs, block, reached[1, k])
