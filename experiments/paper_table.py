@@ -428,7 +428,12 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   {ww_trav} (its ballots' divergent-warp fallbacks never run, as every lane stays in the
   packet loop), and the paper's GT200 packet kernel (its own shared-stack code) may have
   paid more per node than its while-while; no GT200 compiler or GPU is at hand to count
-  it. To match the paper, our packet node visit would have to cost {packet_even}. What
+  it. To match the paper, our packet node visit would have to cost {packet_even}. Which
+  row carries the diffuse gap: ours over the paper's MRays/s (the first table's last
+  column) moves from AO to diffuse by {packet_level} for packet and by {per_ray_level}
+  for {per_ray_names}. The per-ray schemes move together, so the move cancels in their
+  ratios to while-while; packet / while-while carries the difference between packet's
+  move and while-while's. What
   a packet costs depends on how coherent a warp's rays are, and this ratio moves most with
   the protocol
   (docs/speed_accuracy.md: a lower resolution moves the packet figures most) and with the
@@ -483,9 +488,11 @@ def deviations(
     even: pd.DataFrame,
     bvh: str,
     packet: pd.DataFrame,
+    main_table: pd.DataFrame,
 ) -> str:
     """:data:`DEVIATIONS` with the block costs of ``arch`` as ``gpu`` runs them, the
-    measured figures, the BVH verdict ``bvh`` and the union replay's error ``packet``."""
+    measured figures, the BVH verdict ``bvh``, the union replay's error ``packet`` and
+    each row's level against the paper (``main_table``)."""
 
     def cost(kernel: str, block: str, target: str = arch) -> int:
         return executed_on(kernels_ir.load(kernel, target), gpu).cost(block)
@@ -505,6 +512,9 @@ def deviations(
     def even_text(label: str, block: str) -> str:
         return agreement(even.set_index(["ratio", "block"]).loc[(label, block)])
 
+    level = main_table.set_index(["scheme", "ray_type"])["ours / paper_sim"]
+    per_ray = [x for x in SCHEMES if x != "packet"]
+    diffuse_vs_ao = {x: level[(x, "diffuse")] / level[(x, "ao")] - 1 for x in SCHEMES}
     ii = calibrated[calibrated["scheme"] == "if_if"]["rel_error"].abs()
     ww_trav = cost("while_while", "trav_step")
     spec_trav = cost("persistent_speculative_while_while", "trav_step")
@@ -532,6 +542,10 @@ def deviations(
         ii_even=even_text("if_if / while_while", "loop_control"),
         spec_even=even_text("speculative / while_while", "trav_step"),
         packet_even=even_text("packet / while_while", "trav_step"),
+        packet_level=f"{diffuse_vs_ao['packet']:+.1%}",
+        per_ray_level=f"{min(diffuse_vs_ao[x] for x in per_ray):+.1%} to "
+        f"{max(diffuse_vs_ao[x] for x in per_ray):+.1%}",
+        per_ray_names=f"the {len(per_ray)} per-ray schemes ({', '.join(per_ray)})",
         packet_winstr=", ".join(
             f"{rt} {x - 1:+.1%}" for rt, x in zip(packet.ray_type, packet["union / kernel"],
                                                  strict=True)
@@ -657,6 +671,7 @@ def render(
             even,
             verdict,
             packet,
+            main_table,
         ),
     ]
     return "\n".join(lines)
