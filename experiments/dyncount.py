@@ -1,7 +1,8 @@
 """The replay's instruction count against the SASS walk, for every walked kernel.
 
 For each scene and ray type, camera 0 at 256x192 with 4 secondary rays per primary hit,
-16 warps spread over the image: every binary-tree trace kernel's SASS (sm_75) is run
+16 warps spread over the image: every walked trace kernel's SASS (sm_75; the binary-tree
+kernels and the bvh4 ones, over the 4-wide tree collapsed from the same BVH) is run
 lane by lane on those warps (``python -m kernels_ir dyncount`` does one of them) and set
 beside the replay of the same rays on the RTX 2080 Ti, and beside the lockstep executor's
 run of the kernel's control flow where the scheme has one. Replaces the generated blocks of
@@ -21,10 +22,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from simt_sim import schemes
 from simt_sim.atomic import write_atomic
 from simt_sim.report.markdown import splice
-from simt_sim.study.dyncount import compare_counts, pick_warps
+from simt_sim.study.dyncount import compare_counts, pick_warps, walked_schemes
 from simt_sim.study.workload import make_workload
 from simt_sim.types.raybatch import TRACE_RAY_TYPES
 
@@ -33,6 +33,7 @@ DOC = REPO / "docs" / "kernels_ir.md"
 KERNELS = (
     "while_while", "if_if", "persistent_while_while", "dynamic_fetch",
     "persistent_speculative_while_while", "speculative_dynamic_fetch", "packet",
+    "bvh4_while_while", "bvh4_persistent_while_while",
 )  # fmt: skip
 #: the paper table's ratios (docs/paper_table.md): scheme kernel -> label
 RATIOS = {
@@ -65,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warps", type=int, default=16)
     ap.add_argument("--no-write", action="store_true", help="print only")
     args = ap.parse_args(argv)
-    names = {schemes.get_scheme(n).kernel: n for n in schemes.names("trace", layout="bvh2")}
+    walked = walked_schemes()
     rows, blocks = [], []
     t0 = time.perf_counter()
     for scene in args.scenes.split(","):
@@ -73,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
             wl = make_workload(scene, ray_type, cameras="0", resolution=(256, 192), spp=4)
             rays = wl.rays.take(pick_warps(len(wl.rays.tmin), args.warps))
             for kernel in KERNELS:
-                d = compare_counts(names[kernel], scene, wl.bvh, rays)
+                d = compare_counts(walked[kernel], scene, wl.bvh, rays)
                 print(d.summary(), flush=True)
                 rows.append({
                     "kernel": kernel, "scene": scene, "rays": ray_type,

@@ -71,7 +71,11 @@ def main(argv: list[str] | None = None) -> int:
         help="walk a kernel's SASS on real warps and compare its instruction count with "
         "the replay's",
     )
-    d.add_argument("--kernel", required=True, help="a binary-tree trace kernel: while_while, ...")
+    d.add_argument(
+        "--kernel",
+        required=True,
+        help="a trace kernel over a binary or 4-wide tree: while_while, bvh4_while_while, ...",
+    )
     d.add_argument("--scene", default="room", help="scene name or mesh path (default room)")
     d.add_argument("--rays", default="primary", help="primary, ao or diffuse")
     d.add_argument("--warps", type=int, default=16, help="warps, spread over the image")

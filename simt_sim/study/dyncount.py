@@ -6,6 +6,8 @@ lane, on the same BVH bytes and rays, and counts every warp instruction it issue
 no block map or op stream involved. Here both count the same warps; the walk's count per
 instruction is grouped by the block the IR charges it to, so a difference points at the
 block (and the source lines) that cause it. ``python -m kernels_ir dyncount`` prints it.
+The walked kernels are the trace kernels over binary trees and their ``bvh4`` versions
+(:data:`WALKED_LAYOUTS`).
 """
 
 from __future__ import annotations
@@ -26,16 +28,21 @@ from kernels_ir.kernel_ir import BLOCKS, RECONVERGE
 from kernels_ir.sass import SassInstruction, base_opcode
 from simt_sim import schemes
 from simt_sim.bvh.layout import BVH
+from simt_sim.bvh.layouts import Tree, make_tree
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.lockstep import execute
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.replay import simulate_traces
+from simt_sim.simt.scheme import TRACE, SchemeInfo
 from simt_sim.study.workload import make_workload
 from simt_sim.trace.record import record_all
-from simt_sim.tracers.cuda_tracer import POOL_PARAM, pack_bvh, pack_rays
+from simt_sim.tracers.cuda_tracer import POOL_PARAM, pack_bvh, pack_rays, pack_wide
 from simt_sim.types.raybatch import RayBatch
 
 WARP = 32
+WALKED_LAYOUTS = ("bvh2", "bvh4")
+"""Tree layouts whose trace kernels the walk runs (cwbvh's SASS has opcodes the walker
+does not model)."""
 DEFAULT_GPU = "rtx2080ti"
 """A GPU with independent thread scheduling whose IR is sm_75: the walk runs Volta-style
 code, divergent-warp fallbacks included, which the replay charges on such GPUs only."""
@@ -54,6 +61,7 @@ class DynCount:
     the walk's own correctness check."""
 
     scheme: str
+    kernel: str
     scene: str
     ray_type: str
     arch: str
@@ -86,22 +94,34 @@ class DynCount:
             else f"; lockstep executor {self.exact} ({100 * (self.exact / self.walk - 1):+.2f}%)"
         )
         return (
-            f"{self.scheme} on {self.scene} {self.ray_type}, {self.warps} warps "
+            f"{self.kernel} on {self.scene} {self.ray_type}, {self.warps} warps "
             f"({self.rays} rays), {self.arch} / {self.gpu}: SASS walk {self.walk} warp "
             f"instructions, replay {self.replay}, difference {100 * self.difference:+.2f}%"
             f"{exact} (hits agree on {100 * self.hits_agree:.2f}% of rays)"
         )
 
 
-def scheme_of_kernel(kernel: str) -> str:
-    """The binary-tree trace scheme that replays ``kernel`` (the walker's kernels)."""
-    for name in schemes.names("trace", layout="bvh2"):
-        if schemes.get_scheme(name).kernel == kernel:
-            return name
-    known = sorted({schemes.get_scheme(n).kernel for n in schemes.names("trace", layout="bvh2")})
-    raise SimtSimError(
-        f"no binary-tree trace scheme runs kernel {kernel!r}; kernels: {', '.join(known)}"
-    )
+def walked_schemes() -> dict[str, SchemeInfo]:
+    """Kernel -> the trace scheme record that replays it, for every walked kernel: the
+    binary-tree trace schemes and their records for the other :data:`WALKED_LAYOUTS`."""
+    out = {}
+    for name in schemes.names(TRACE, layout="bvh2"):
+        scheme = schemes.get_scheme(name)
+        for layout in WALKED_LAYOUTS:
+            if layout == "bvh2" or layout in scheme.wide:
+                record = scheme if layout == "bvh2" else scheme.for_layout(layout)
+                out[record.kernel] = record
+    return out
+
+
+def scheme_of_kernel(kernel: str) -> SchemeInfo:
+    """The trace scheme record that replays ``kernel`` (one of the walker's kernels)."""
+    walked = walked_schemes()
+    if kernel not in walked:
+        raise SimtSimError(
+            f"the walk runs no kernel {kernel!r}; kernels: {', '.join(sorted(walked))}"
+        )
+    return walked[kernel]
 
 
 def pick_warps(n_rays: int, warps: int) -> np.ndarray:
@@ -171,22 +191,24 @@ def compiled(kernel: str, arch: str) -> Program:
 
 
 def walk_kernel(
-    kernel: str, arch: str, bvh: BVH, rays: RayBatch, *, persistent: bool, merge: bool = True
+    kernel: str, arch: str, tree: Tree, rays: RayBatch, *, persistent: bool, merge: bool = True
 ) -> Walk:
-    """Run ``kernel``'s ``arch`` SASS over ``bvh`` on ``rays`` (whole warps, in order):
+    """Run ``kernel``'s ``arch`` SASS over ``tree`` (a BVH, or a 4-wide tree for a ``bvh4``
+    kernel) on ``rays`` (whole warps, in order):
     one block per warp, or for a persistent kernel one warp that fetches every ray from
     the pool. ``merge``: the walk's schedule (:func:`kernels_ir.emulate.run_warp`)."""
     try:
         program = compiled(kernel, arch)
     except KernelIRError as exc:
         raise SimtSimError(str(exc)) from exc
-    packed, tree = pack_rays(rays), pack_bvh(bvh)
+    packed = pack_rays(rays)
+    arrays = pack_bvh(tree) if isinstance(tree, BVH) else pack_wide(tree)
     n = packed.shape[1]
     if n % WARP:
         raise SimtSimError(f"the walk runs whole warps; got {n} rays")
     params: dict[str, np.ndarray | int] = {
-        "nodes": tree["nodes"], "woop": tree["woop"], "tri_index": tree["tri_index"],
-        "root": int(tree["root"]), "ray_o": packed[0], "ray_d": packed[1], "num_rays": n,
+        "nodes": arrays["nodes"], "woop": arrays["woop"], "tri_index": arrays["tri_index"],
+        "root": int(arrays["root"]), "ray_o": packed[0], "ray_d": packed[1], "num_rays": n,
         "any_hit": int(rays.query == "any"), "hit_tri": np.full(n, -7, np.int32),
         "hit_t": np.zeros(n, np.float32),
     }  # fmt: skip
@@ -206,7 +228,7 @@ def walk_kernel(
 
 
 def dyncount(
-    scheme_name: str,
+    scheme: str | SchemeInfo,
     scene: str,
     ray_type: str,
     *,
@@ -218,15 +240,15 @@ def dyncount(
     merge: bool = True,
 ) -> DynCount:
     """Count ``warps`` warps of ``scene``'s ``ray_type`` rays (camera ``camera``, spread
-    over the image) with the SASS walk and with the replay of ``scheme_name`` on
-    ``gpu_id`` (:func:`compare_counts`)."""
+    over the image) with the SASS walk and with the replay of ``scheme`` (a name, or a
+    record such as :func:`scheme_of_kernel` gives) on ``gpu_id`` (:func:`compare_counts`)."""
     wl = make_workload(scene, ray_type, cameras=str(camera), resolution=resolution, spp=spp)
     rays = wl.rays.take(pick_warps(len(wl.rays.tmin), warps))
-    return compare_counts(scheme_name, wl.scene.name, wl.bvh, rays, gpu_id=gpu_id, merge=merge)
+    return compare_counts(scheme, wl.scene.name, wl.bvh, rays, gpu_id=gpu_id, merge=merge)
 
 
 def compare_counts(
-    scheme_name: str,
+    scheme: str | SchemeInfo,
     scene: str,
     bvh: BVH,
     rays: RayBatch,
@@ -234,8 +256,9 @@ def compare_counts(
     gpu_id: str = DEFAULT_GPU,
     merge: bool = True,
 ) -> DynCount:
-    """Walk ``scheme_name``'s kernel over ``bvh`` on ``rays`` (whole warps) and replay the
-    recorded traces of the same rays on ``gpu_id``, whose IR architecture the walk runs.
+    """Walk ``scheme``'s kernel over ``bvh`` (in the record's layout) on ``rays`` (whole
+    warps) and replay the recorded traces of the same rays on ``gpu_id``, whose IR
+    architecture the walk runs.
 
     Persistent kernels run as one resident warp that fetches the rays from the pool in
     order, and the replay is given one resident warp to match. ``merge``: the walk's
@@ -244,9 +267,13 @@ def compare_counts(
     groups that arrive apart) are left out; without it lanes issue apart until a barrier
     joins them, as a GPU with independent thread scheduling may run them.
     """
-    scheme = schemes.get_scheme(scheme_name)
-    if scheme.layout != "bvh2" or scheme.kind != "trace":
-        raise SimtSimError(f"dyncount walks the binary-tree trace kernels, not {scheme_name!r}")
+    if not isinstance(scheme, SchemeInfo):
+        scheme = schemes.get_scheme(scheme)
+    if scheme.layout not in WALKED_LAYOUTS or scheme.kind != TRACE:
+        raise SimtSimError(
+            f"dyncount walks the trace kernels over {', '.join(WALKED_LAYOUTS)} trees, not "
+            f"{scheme.kernel!r}"
+        )
     gpu = get_gpu(gpu_id)
     arch = gpu.ir_arch
     if arch not in PARAM_BASE or not gpu.independent_thread_scheduling:
@@ -257,18 +284,19 @@ def compare_counts(
             "--gpu (rtx2080ti, a100, rtx4090)"
         )
     kernel = scheme.kernel
-    run = walk_kernel(kernel, arch, bvh, rays, persistent=scheme.launch.persistent, merge=merge)
-    trace = record_all(bvh, rays)
+    tree = make_tree(bvh, scheme.layout)
+    run = walk_kernel(kernel, arch, tree, rays, persistent=scheme.persistent, merge=merge)
+    trace = record_all(tree, rays)
     if rays.query == "any":  # any hit will do: agreeing is agreeing on occlusion
         agree = float(np.mean((run.hit_tri >= 0) == (trace.hits.tri >= 0)))
     else:
         agree = float(np.mean(run.hit_tri == trace.hits.tri))
     ir = load_ir(kernel, arch)
-    resident = 1 if scheme.launch.persistent else None
+    resident = 1 if scheme.persistent else None
     result = simulate_traces([trace], scheme, ir, gpu, scene=scene, resident_warps=resident)
     exact = None
     if scheme.lockstep is not None:
-        run_exact = execute(bvh, rays, scheme, ir, gpu, scene=scene, resident_warps=resident)
+        run_exact = execute(tree, rays, scheme, ir, gpu, scene=scene, resident_warps=resident)
         exact = run_exact.result.warp_instructions
         if merge:
             exact -= run_exact.result.block_instructions[RECONVERGE]
@@ -282,6 +310,6 @@ def compare_counts(
     table = table.loc[order + [b for b in table.index if b not in order]]
     table["replay - walk"] = table["replay"] - table["walk"]
     return DynCount(
-        scheme_name, scene, rays.ray_type, arch, gpu_id, run.warps, len(rays.tmin), table, agree,
-        exact,
+        scheme.name, kernel, scene, rays.ray_type, arch, gpu_id, run.warps, len(rays.tmin),
+        table, agree, exact,
     )  # fmt: skip

@@ -40,6 +40,9 @@ from kernels_ir.kernel_ir import (
 )
 from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
 from simt_sim.bvh.traverse import check_bvh, ray_arrays
+from simt_sim.bvh.wide import WideBVH
+from simt_sim.bvh.wide_traverse import check_wide
+from simt_sim.bvh.wide_traverse import stack_size as wide_stack_size
 from simt_sim.errors import SimtSimError
 from simt_sim.types.hits import Hits
 from simt_sim.types.raybatch import RayBatch
@@ -51,6 +54,7 @@ KERNEL_PARAMS = (
 )  # fmt: skip
 POOL_PARAM = "pool_next"
 
+BVH4_STACK_SIZE = 3 * STACK_SIZE  # SIMT_BVH4_STACK_SIZE of bvh4.cuh
 MAX_NODES = 2**29
 """Kernels address node ``i`` as float4 ``4 * i`` in int32 (and node indices must stay
 below SIMT_SENTINEL, 0x76543210, which this bound implies)."""
@@ -202,6 +206,40 @@ def pack_bvh(bvh: BVH) -> dict[str, np.ndarray]:
         "woop": woop,
         "tri_index": tri_index,
         "root": np.array(root, dtype=np.int32),
+    }
+
+
+def pack_wide(tree: WideBVH) -> dict[str, np.ndarray]:
+    """A 4-wide tree's bytes as the ``bvh4`` kernels read them (``bvh4.cuh``), checked.
+
+    Returns the arrays of :func:`pack_bvh`: ``nodes`` float32 (7 n_nodes, 4), node ``i``
+    the seven float4 from ``7i`` (a byte copy of :mod:`~simt_sim.bvh.wide`'s layout);
+    the leaves' ``woop`` and ``tri_index`` are the binary tree's.
+
+    Raises
+    ------
+    SimtSimError
+        Not a 4-wide tree, or one deeper than the kernels' stack (3 x 64 entries).
+    """
+    check_wide(tree)
+    if tree.width != 4:
+        raise SimtSimError(f"the bvh4 kernels read 4-wide trees, not {tree.width}-wide ones")
+    if wide_stack_size(tree) > BVH4_STACK_SIZE:
+        raise SimtSimError(
+            f"wide BVH depth {tree.stats.depth} needs a {wide_stack_size(tree)}-entry stack; "
+            f"the bvh4 kernels hold {BVH4_STACK_SIZE}: rebuild with larger leaves"
+        )
+    nodes = _aligned_empty((tree.nodes.size // 4, 4), np.float32)
+    nodes.reshape(tree.nodes.shape)[...] = tree.nodes  # float32 -> float32: a byte copy
+    woop = _aligned_empty(tree.woop.shape, np.float32)
+    woop[...] = tree.woop
+    tri_index = _aligned_empty(tree.tri_index.shape, np.int32)
+    tri_index[...] = tree.tri_index
+    return {
+        "nodes": nodes,
+        "woop": woop,
+        "tri_index": tri_index,
+        "root": np.array(int(tree.root), dtype=np.int32),
     }
 
 

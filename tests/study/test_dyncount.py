@@ -16,6 +16,7 @@ from kernels_ir.build import place_kernel, toolchain_available
 from kernels_ir.kernel_ir import SPIN_BLOCKS
 from kernels_ir.sass import base_opcode
 from simt_sim import schemes
+from simt_sim.bvh.layouts import make_tree
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.lockstep import execute
 from simt_sim.simt.gpus import get_gpu
@@ -25,6 +26,7 @@ from simt_sim.study.dyncount import (
     pick_warps,
     scheme_of_kernel,
     walk_kernel,
+    walked_schemes,
 )
 from simt_sim.study.workload import make_workload
 
@@ -45,20 +47,23 @@ EXACT = ("trav_both", "trav_one", "ray_setup", "loop_control", "leaf_entry", "tr
          "tri_u", "tri_v", "tri_hit", "finish")  # fmt: skip
 
 
-@pytest.mark.parametrize("kernel", ["while_while", "if_if", "persistent_while_while"])
+@pytest.mark.parametrize(
+    "kernel",
+    [
+        "while_while", "if_if", "persistent_while_while", "bvh4_while_while",
+        "bvh4_persistent_while_while",
+    ],
+)  # fmt: skip
 def test_walk_meets_the_replay_where_the_replay_is_exact(kernel: str) -> None:
+    """The bvh4 kernels walk the 4-wide tree collapsed from the scene's BVH, as their
+    replay records it."""
     d = dyncount(scheme_of_kernel(kernel), "room", "diffuse", warps=4, resolution=(32, 24))
+    assert d.kernel == kernel
     assert d.hits_agree == 1.0
     assert d.warps == 4 and d.rays == 128
     # if-if's BSYNC that closes the hit's `if` is a basic block of its own, run with every
     # v stage, not only on hits
-    inexact = (
-        {"finish"}
-        if kernel.startswith("persistent")
-        else {"tri_hit"}
-        if kernel == "if_if"
-        else set()
-    )
+    inexact = {"finish"} if "persistent" in kernel else {"tri_hit"} if kernel == "if_if" else set()
     for block in set(EXACT) - inexact:
         assert d.table.loc[block, "walk"] == d.table.loc[block, "replay"], block
     assert d.walk == d.table["walk"].sum() > 0
@@ -149,16 +154,12 @@ def test_every_instruction_the_ir_charges_runs_where_its_block_runs() -> None:
         make_workload("room", rays, cameras="0", resolution=(32, 24), spp=2)
         for rays in ("ao", "diffuse")
     ]
-    kernels = ("while_while", "if_if", "persistent_while_while", "dynamic_fetch",
-               "persistent_speculative_while_while", "speculative_dynamic_fetch",
-               "packet")  # fmt: skip
-    for name in kernels:
-        scheme = schemes.get_scheme(name)
+    for kernel, scheme in walked_schemes().items():
         issued = 0
         for wl in workloads:
             rays = wl.rays.take(pick_warps(len(wl.rays.tmin), 4))
-            run = walk_kernel(scheme.kernel, "sm_75", wl.bvh, rays,
-                              persistent=scheme.launch.persistent)  # fmt: skip
+            tree = make_tree(wl.bvh, scheme.layout)
+            run = walk_kernel(kernel, "sm_75", tree, rays, persistent=scheme.persistent)
             issued = issued + run.issued.astype(np.int64)
         placed = place_kernel(scheme.kernel, run.instructions)
         ran = pd.Series(issued).groupby(pd.Series(placed.block)).sum()
@@ -170,7 +171,7 @@ def test_every_instruction_the_ir_charges_runs_where_its_block_runs() -> None:
             and i not in placed.fallback and i not in placed.full_warp
             and base_opcode(run.instructions[i].opcode) != "NOP"
         ]  # fmt: skip
-        assert never == [], name
+        assert never == [], kernel
 
 
 def test_a_warp_of_identical_rays_issues_every_instruction_with_all_lanes() -> None:
@@ -197,7 +198,8 @@ def test_command_prints_both_counts_and_refuses_bad_input(capsys) -> None:
     assert "SASS walk" in out and "replay" in out and "tri_test" in out
     assert main(["dyncount", "--kernel", "no_such_kernel"]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("error: no binary-tree trace scheme runs kernel") and "\n" == err[-1]
+    assert err.startswith("error: the walk runs no kernel") and "\n" == err[-1]
+    assert "bvh4_while_while" in err  # the list names the kernels it runs
     for gpu in ("h100", "gtx285"):  # sm_90 code; no independent thread scheduling
         assert main(["dyncount", "--kernel", "while_while", "--gpu", gpu]) == 2
         assert "pick another --gpu" in capsys.readouterr().err

@@ -15,6 +15,7 @@ from kernels_ir.build import CUDA_DIR, HEADER, KERNELS
 from kernels_ir.kernel_ir import STACK_SIZE, WARP_SIZE, KernelLaunch
 from simt_sim.bvh.build import build_bvh
 from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
+from simt_sim.bvh.layouts import make_tree
 from simt_sim.errors import SimtSimError
 from simt_sim.schemes import SCHEMES
 from simt_sim.simt.gpus import get_gpu
@@ -30,6 +31,7 @@ from simt_sim.tracers.cuda_tracer import (
     launch_config,
     pack_bvh,
     pack_rays,
+    pack_wide,
 )
 from simt_sim.tracers.numba_tracer import trace as numba_trace
 from simt_sim.tracers.reference import trace_reference
@@ -254,6 +256,23 @@ def test_pack_bvh_copies_the_layout_bytes(sphere_bvh):
     n3 = p["nodes"].view(np.int32)[3::4]
     assert np.array_equal(n3[:, :2], sphere_bvh.children)
     assert not n3[:, 2:].any()
+
+
+def test_pack_wide_copies_the_bvh4_layout_bytes_and_refuses_other_widths(sphere_bvh):
+    """The bvh4 kernels read node ``i`` as the seven float4 from ``7i`` (bvh4.cuh): the
+    wide layout's bytes; an 8-wide tree is not theirs."""
+    wide = make_tree(sphere_bvh, "bvh4")
+    p = pack_wide(wide)
+    n = wide.nodes.shape[0]
+    assert p["nodes"].dtype == np.float32 and p["nodes"].shape == (7 * n, 4)
+    for key in ("nodes", "woop", "tri_index"):
+        assert_aligned(p[key])
+    assert p["nodes"].tobytes() == wide.nodes.tobytes()
+    assert p["woop"].tobytes() == sphere_bvh.woop.tobytes()
+    assert np.array_equal(p["tri_index"], sphere_bvh.tri_index)
+    assert p["root"].dtype == np.int32 and p["root"] == wide.root
+    with pytest.raises(SimtSimError, match="4-wide"):
+        pack_wide(make_tree(sphere_bvh, "bvh8"))
 
 
 def test_pack_bvh_keeps_child_bits_that_are_not_normal_floats():
