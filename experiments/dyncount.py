@@ -2,7 +2,7 @@
 
 For each scene and ray type, camera 0 at 256x192 with 4 secondary rays per primary hit,
 16 warps spread over the image: every walked trace kernel's SASS (sm_75; the binary-tree
-kernels and the bvh4 ones, over the 4-wide tree collapsed from the same BVH) is run
+kernels, and the bvh4 and cwbvh ones over the trees collapsed from the same BVH) is run
 lane by lane on those warps (``python -m kernels_ir dyncount`` does one of them) and set
 beside the replay of the same rays on the RTX 2080 Ti, and beside the lockstep executor's
 run of the kernel's control flow where the scheme has one. Replaces the generated blocks of
@@ -33,7 +33,7 @@ DOC = REPO / "docs" / "kernels_ir.md"
 KERNELS = (
     "while_while", "if_if", "persistent_while_while", "dynamic_fetch",
     "persistent_speculative_while_while", "speculative_dynamic_fetch", "packet",
-    "bvh4_while_while", "bvh4_persistent_while_while",
+    "bvh4_while_while", "bvh4_persistent_while_while", "cwbvh_persistent_while_while",
 )  # fmt: skip
 #: the paper table's ratios (docs/paper_table.md): scheme kernel -> label
 RATIOS = {

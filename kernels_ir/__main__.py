@@ -74,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument(
         "--kernel",
         required=True,
-        help="a trace kernel over a binary or 4-wide tree: while_while, bvh4_while_while, ...",
+        help="a trace kernel over a binary, bvh4 or cwbvh tree: while_while, "
+        "bvh4_while_while, cwbvh_persistent_while_while, ...",
     )
     d.add_argument("--scene", default="room", help="scene name or mesh path (default room)")
     d.add_argument("--rays", default="primary", help="primary, ao or diffuse")

@@ -516,6 +516,17 @@ def _prmt(s, opc, o, m):
     write(s, o[0], out, m)
 
 
+def _i2f(s, opc, o, m):
+    """``I2F.U8`` Rd, Rs[.Bk]: byte ``k`` of Rs (byte 0 without a selector), unsigned, as a
+    float32 (exact: every byte value is one). Other sources and roundings are refused."""
+    if opc != "I2F.U8":
+        raise KernelIRError(f"{opc} is not modelled")
+    sel = re.search(r"\.B(\d)", o[1].text)
+    byte = int(sel.group(1)) if sel else 0
+    v = (read_bits(s, o[1]).astype(np.int64) >> (8 * byte)) & 0xFF
+    write(s, o[0], v.astype(np.float32), m)
+
+
 def _popc(s, opc, o, m):
     v = read_int(s, o[1]) & _MASK32
     write(s, o[0], np.array([bin(int(x)).count("1") for x in v], np.int64), m)
@@ -648,6 +659,7 @@ SEMANTICS: dict[str, Semantics] = {
     "FSETP": _fsetp, "MUFU": _mufu, "ISETP": _isetp, "IADD3": _iadd3, "IMAD": _imad,
     "LEA": _lea, "SHF": _shf, "LOP3": _lop3, "MOV": _mov, "SEL": _sel, "PRMT": _prmt,
     "POPC": _popc, "FLO": _flo, "BREV": _brev, "S2R": _s2r, "CS2R": _cs2r, "ULDC": _uldc,
+    "I2F": _i2f,
     "LDG": _loader("global"), "STG": _storer("global"), "LDL": _loader("local"),
     "STL": _storer("local"), "LDS": _loader("shared"), "STS": _storer("shared"),
     "ATOMG": _atomg, "VOTE": _vote, "VOTEU": _vote, "SHFL": _shfl,

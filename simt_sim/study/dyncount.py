@@ -6,8 +6,8 @@ lane, on the same BVH bytes and rays, and counts every warp instruction it issue
 no block map or op stream involved. Here both count the same warps; the walk's count per
 instruction is grouped by the block the IR charges it to, so a difference points at the
 block (and the source lines) that cause it. ``python -m kernels_ir dyncount`` prints it.
-The walked kernels are the trace kernels over binary trees and their ``bvh4`` versions
-(:data:`WALKED_LAYOUTS`).
+The walked kernels are the trace kernels over binary trees, their ``bvh4`` versions and
+the cwbvh kernel (:data:`WALKED_LAYOUTS`).
 """
 
 from __future__ import annotations
@@ -36,13 +36,12 @@ from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.scheme import TRACE, SchemeInfo
 from simt_sim.study.workload import make_workload
 from simt_sim.trace.record import record_all
-from simt_sim.tracers.cuda_tracer import POOL_PARAM, pack_bvh, pack_rays, pack_wide
+from simt_sim.tracers.cuda_tracer import POOL_PARAM, pack_rays, pack_tree
 from simt_sim.types.raybatch import RayBatch
 
 WARP = 32
-WALKED_LAYOUTS = ("bvh2", "bvh4")
-"""Tree layouts whose trace kernels the walk runs (cwbvh's SASS has opcodes the walker
-does not model)."""
+WALKED_LAYOUTS = ("bvh2", "bvh4", "cwbvh")
+"""Tree layouts whose trace kernels the walk runs."""
 DEFAULT_GPU = "rtx2080ti"
 """A GPU with independent thread scheduling whose IR is sm_75: the walk runs Volta-style
 code, divergent-warp fallbacks included, which the replay charges on such GPUs only."""
@@ -102,15 +101,14 @@ class DynCount:
 
 
 def walked_schemes() -> dict[str, SchemeInfo]:
-    """Kernel -> the trace scheme record that replays it, for every walked kernel: the
-    binary-tree trace schemes and their records for the other :data:`WALKED_LAYOUTS`."""
+    """Kernel -> the trace scheme record that replays it, for every trace scheme's kernel
+    over each of the :data:`WALKED_LAYOUTS` (a wide layout's record from ``for_layout``)."""
     out = {}
-    for name in schemes.names(TRACE, layout="bvh2"):
-        scheme = schemes.get_scheme(name)
-        for layout in WALKED_LAYOUTS:
-            if layout == "bvh2" or layout in scheme.wide:
-                record = scheme if layout == "bvh2" else scheme.for_layout(layout)
-                out[record.kernel] = record
+    for layout in WALKED_LAYOUTS:
+        for name in schemes.names(TRACE, layout=layout):
+            scheme = schemes.get_scheme(name)
+            record = scheme if scheme.layout == layout else scheme.for_layout(layout)
+            out[record.kernel] = record
     return out
 
 
@@ -193,8 +191,8 @@ def compiled(kernel: str, arch: str) -> Program:
 def walk_kernel(
     kernel: str, arch: str, tree: Tree, rays: RayBatch, *, persistent: bool, merge: bool = True
 ) -> Walk:
-    """Run ``kernel``'s ``arch`` SASS over ``tree`` (a BVH, or a 4-wide tree for a ``bvh4``
-    kernel) on ``rays`` (whole warps, in order):
+    """Run ``kernel``'s ``arch`` SASS over ``tree`` (in the kernel's layout:
+    :func:`~simt_sim.tracers.cuda_tracer.pack_tree`) on ``rays`` (whole warps, in order):
     one block per warp, or for a persistent kernel one warp that fetches every ray from
     the pool. ``merge``: the walk's schedule (:func:`kernels_ir.emulate.run_warp`)."""
     try:
@@ -202,7 +200,7 @@ def walk_kernel(
     except KernelIRError as exc:
         raise SimtSimError(str(exc)) from exc
     packed = pack_rays(rays)
-    arrays = pack_bvh(tree) if isinstance(tree, BVH) else pack_wide(tree)
+    arrays = pack_tree(tree)
     n = packed.shape[1]
     if n % WARP:
         raise SimtSimError(f"the walk runs whole warps; got {n} rays")

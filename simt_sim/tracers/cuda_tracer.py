@@ -38,7 +38,11 @@ from kernels_ir.kernel_ir import (
     KernelLaunch,
     persistent_warps,
 )
+from simt_sim.bvh.cwbvh import CwBVH
+from simt_sim.bvh.cwbvh_traverse import check_cwbvh
+from simt_sim.bvh.cwbvh_traverse import stack_size as cwbvh_stack_size
 from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
+from simt_sim.bvh.layouts import Tree
 from simt_sim.bvh.traverse import check_bvh, ray_arrays
 from simt_sim.bvh.wide import WideBVH
 from simt_sim.bvh.wide_traverse import check_wide
@@ -209,28 +213,37 @@ def pack_bvh(bvh: BVH) -> dict[str, np.ndarray]:
     }
 
 
-def pack_wide(tree: WideBVH) -> dict[str, np.ndarray]:
-    """A 4-wide tree's bytes as the ``bvh4`` kernels read them (``bvh4.cuh``), checked.
-
-    Returns the arrays of :func:`pack_bvh`: ``nodes`` float32 (7 n_nodes, 4), node ``i``
-    the seven float4 from ``7i`` (a byte copy of :mod:`~simt_sim.bvh.wide`'s layout);
-    the leaves' ``woop`` and ``tri_index`` are the binary tree's.
+def pack_tree(tree: Tree) -> dict[str, np.ndarray]:
+    """Any layout's tree as its kernels read it, checked: :func:`pack_bvh` for a binary
+    tree; a 4-wide tree for the ``bvh4`` kernels (``bvh4.cuh``: node ``i`` is the seven
+    float4 from ``7i``) or a compressed 8-wide one for the cwbvh kernel (``cwbvh.cuh``:
+    five float4 from ``5i``), node rows copied byte for byte, the leaves' ``woop`` and
+    ``tri_index`` as they are.
 
     Raises
     ------
     SimtSimError
-        Not a 4-wide tree, or one deeper than the kernels' stack (3 x 64 entries).
+        A wide tree that is not 4-wide, or any tree deeper than its kernels' stack.
     """
-    check_wide(tree)
-    if tree.width != 4:
-        raise SimtSimError(f"the bvh4 kernels read 4-wide trees, not {tree.width}-wide ones")
-    if wide_stack_size(tree) > BVH4_STACK_SIZE:
+    if isinstance(tree, BVH):
+        return pack_bvh(tree)
+    if isinstance(tree, WideBVH):
+        check_wide(tree)
+        if tree.width != 4:
+            raise SimtSimError(f"the bvh4 kernels read 4-wide trees, not {tree.width}-wide ones")
+        entries, room = wide_stack_size(tree), BVH4_STACK_SIZE
+    elif isinstance(tree, CwBVH):
+        check_cwbvh(tree)
+        entries, room = cwbvh_stack_size(tree), STACK_SIZE
+    else:
+        raise SimtSimError(f"no kernel reads a {type(tree).__name__}; pass a BVH, WideBVH or CwBVH")
+    if entries > room:
         raise SimtSimError(
-            f"wide BVH depth {tree.stats.depth} needs a {wide_stack_size(tree)}-entry stack; "
-            f"the bvh4 kernels hold {BVH4_STACK_SIZE}: rebuild with larger leaves"
+            f"{tree.stats.layout} depth {tree.stats.depth} needs a {entries}-entry stack; its "
+            f"kernels hold {room}: rebuild with larger leaves"
         )
-    nodes = _aligned_empty((tree.nodes.size // 4, 4), np.float32)
-    nodes.reshape(tree.nodes.shape)[...] = tree.nodes  # float32 -> float32: a byte copy
+    nodes = _aligned_empty((tree.nodes.nbytes // 16, 4), np.float32)
+    nodes.view(np.uint8).reshape(-1)[...] = tree.nodes.view(np.uint8).reshape(-1)
     woop = _aligned_empty(tree.woop.shape, np.float32)
     woop[...] = tree.woop
     tri_index = _aligned_empty(tree.tri_index.shape, np.int32)

@@ -212,3 +212,18 @@ def test_votes_moves_and_packed_constants() -> None:
     assert (s.r[4] == 0x3C000000).all()
     _exec(s, "R2UR UR5, R3")
     assert int(s.ur[5]) == 0x10
+
+
+def test_i2f_u8_converts_the_selected_byte() -> None:
+    """cwbvh's quantised boxes: ``I2F.U8`` takes byte 0 of its source, or the byte a
+    ``.Bk`` selector names, as an unsigned value (every byte value is a float32)."""
+    s = LaneState(bytes(512), GlobalMemory(), 16)
+    s.r[2][:] = (np.arange(LANES, dtype=np.uint32) * 8) | 0xFE00C700
+    _exec(s, "I2F.U8 R4, R2")
+    np.testing.assert_array_equal(s.r[4].view(np.float32), (np.arange(LANES) * 8) & 0xFF)
+    _exec(s, "I2F.U8 R5, R2.B3")
+    assert (s.r[5].view(np.float32) == 254.0).all()
+    _exec(s, "I2F.U8 R6, R2.B1")
+    assert (s.r[6].view(np.float32) == 199.0).all()
+    with pytest.raises(KernelIRError, match="not modelled"):
+        _exec(s, "I2F.S16 R7, R2")

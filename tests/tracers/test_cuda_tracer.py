@@ -31,7 +31,7 @@ from simt_sim.tracers.cuda_tracer import (
     launch_config,
     pack_bvh,
     pack_rays,
-    pack_wide,
+    pack_tree,
 )
 from simt_sim.tracers.numba_tracer import trace as numba_trace
 from simt_sim.tracers.reference import trace_reference
@@ -258,21 +258,28 @@ def test_pack_bvh_copies_the_layout_bytes(sphere_bvh):
     assert not n3[:, 2:].any()
 
 
-def test_pack_wide_copies_the_bvh4_layout_bytes_and_refuses_other_widths(sphere_bvh):
-    """The bvh4 kernels read node ``i`` as the seven float4 from ``7i`` (bvh4.cuh): the
-    wide layout's bytes; an 8-wide tree is not theirs."""
-    wide = make_tree(sphere_bvh, "bvh4")
-    p = pack_wide(wide)
-    n = wide.nodes.shape[0]
-    assert p["nodes"].dtype == np.float32 and p["nodes"].shape == (7 * n, 4)
+@pytest.mark.parametrize(("layout", "float4_per_node"), [("bvh4", 7), ("cwbvh", 5)])
+def test_pack_tree_copies_each_layouts_bytes(sphere_bvh, layout, float4_per_node):
+    """The bvh4 kernels read node ``i`` as the seven float4 from ``7i`` (bvh4.cuh), the
+    cwbvh kernel as the five from ``5i`` (cwbvh.cuh): the layouts' own bytes."""
+    tree = make_tree(sphere_bvh, layout)
+    p = pack_tree(tree)
+    n = tree.nodes.shape[0]
+    assert p["nodes"].dtype == np.float32 and p["nodes"].shape == (float4_per_node * n, 4)
     for key in ("nodes", "woop", "tri_index"):
         assert_aligned(p[key])
-    assert p["nodes"].tobytes() == wide.nodes.tobytes()
-    assert p["woop"].tobytes() == sphere_bvh.woop.tobytes()
-    assert np.array_equal(p["tri_index"], sphere_bvh.tri_index)
-    assert p["root"].dtype == np.int32 and p["root"] == wide.root
+    assert p["nodes"].tobytes() == tree.nodes.tobytes()
+    assert p["woop"].tobytes() == tree.woop.tobytes()
+    assert np.array_equal(p["tri_index"], tree.tri_index)
+    assert p["root"].dtype == np.int32 and p["root"] == tree.root
+    assert pack_tree(sphere_bvh)["nodes"].tobytes() == pack_bvh(sphere_bvh)["nodes"].tobytes()
+
+
+def test_pack_tree_refuses_a_tree_no_kernel_reads(sphere_bvh):
     with pytest.raises(SimtSimError, match="4-wide"):
-        pack_wide(make_tree(sphere_bvh, "bvh8"))
+        pack_tree(make_tree(sphere_bvh, "bvh8"))
+    with pytest.raises(SimtSimError, match="no kernel reads"):
+        pack_tree(sphere_bvh.nodes)
 
 
 def test_pack_bvh_keeps_child_bits_that_are_not_normal_floats():
