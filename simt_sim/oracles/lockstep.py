@@ -1054,39 +1054,6 @@ def _store_hits(hit, lf, lanes, base, tri_index, out_tri, out_t):
             out_t[base + lane] = lf[lane, _TMAX]
 
 
-@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _execute_wide(persistent, nodes, width, woop, tri_index, root, origin, direction, tmin,
-                  tmax, any_hit, cap, warp_size, costs):  # fmt: skip
-    """:func:`_execute` for the wide while-while kernels: every warp (or fetched group) of
-    the batch over a ``width``-wide tree, in parallel; returns what :func:`_execute` does."""
-    nodes_i = nodes.view(np.int32)
-    woop_i = woop.view(np.int32)
-    n = origin.shape[0]
-    bounds, cnt, hist, unit_cost, ops, out_tri, out_t, overflow = _unit_outputs(n, warp_size)
-    for k in prange(bounds.shape[0] - 1):
-        h = hist[k]
-        for u in range(bounds[k], bounds[k + 1]):
-            base = u * warp_size
-            lanes = min(warp_size, n - base)
-            li = np.zeros((lanes, _N_INT), np.int32)
-            lf = np.zeros((lanes, _N_FLOAT), np.float32)
-            stack = np.empty((lanes, cap), np.int32)
-            for lane in range(lanes):
-                _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, root)
-                _wide_planes(li, lf, lane, width)
-            c = cnt[u]
-            cost = np.int64(0)
-            if persistent:
-                cost += charge_fetch(c, h, costs, lanes, warp_size)
-            cost += charge(c, h, costs, RAY_SETUP, lanes)
-            rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i,
-                                     any_hit, ops, base, c, h, costs)  # fmt: skip
-            overflow[u] = rest < 0
-            unit_cost[u] = cost + rest
-            _store_hits(li[:, _HIT], lf, lanes, base, tri_index, out_tri, out_t)
-    return cnt, hist, unit_cost, out_tri, out_t, ops, overflow.any()
-
-
 # ---------------------------------------------------------------------------------------
 # The compressed 8-wide BVH (cwbvh): Ylitie, Karras & Laine's trace loop on persistent
 # warps. A lane's float state is the binary executor's ``lf`` row; its integer state is
@@ -1328,9 +1295,10 @@ def _execute_cwbvh(nodes, woop, tri_index, origin, direction, tmin, tmax, any_hi
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, tmin, tmax, any_hit,
-             cap, warp_size, costs, rounds):  # fmt: skip
+def _execute(body, persistent, nodes, width, woop, tri_index, root, origin, direction, tmin,
+             tmax, any_hit, cap, warp_size, costs, rounds):  # fmt: skip
     """Run every warp (or fetched group) of the batch; parallel over independent units.
+    ``width`` is 0 for a binary tree, else the wide tree's (the while-while body only).
 
     Returns per-unit counters ``cnt`` (units, 2, N_BLOCKS), ``hist`` (units, N_BLOCKS,
     warp_size + 1), per-unit cost, per-ray hit triangle, ``t`` and op counts, and whether
@@ -1350,13 +1318,15 @@ def _execute(body, persistent, nodes, woop, tri_index, root, origin, direction, 
             stack = np.empty((lanes, cap), np.int32)
             for lane in range(lanes):
                 _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, root)
+                if width:
+                    _wide_planes(li, lf, lane, width)
             c = cnt[u]
             cost = np.int64(0)
             if persistent:
                 cost += charge_fetch(c, h, costs, lanes, warp_size)
             cost += charge(c, h, costs, RAY_SETUP, lanes)
             if body == WHILE_WHILE_BODY:
-                rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, 0, woop, woop_i,
+                rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i,
                                     any_hit, ops, base, c, h, costs)  # fmt: skip
             elif body == IF_IF_BODY:
                 rest = _if_if(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,
@@ -1645,11 +1615,6 @@ def execute(
             bvh.nodes, *args[1:3], *args[4:], g.warp_size, costs
         )
         counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0, costs)
-    elif width != 2:  # the wide while-while kernels (checked by _tree_width)
-        cnt, hist, unit_cost, tri, t, ops, overflow = _execute_wide(
-            persistent, bvh.nodes, width, *args[1:], g.warp_size, costs
-        )
-        counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0, costs)
     elif scheme.lockstep == SPECULATIVE_FETCH_BODY:
         threshold = int(values["threshold"])
         if threshold < 1:
@@ -1662,8 +1627,9 @@ def execute(
         counts = Counts(cnt[0], cnt[1], hist, totals, int(span))
     else:
         rounds = runs_in_rounds(ir, g)
+        wide = 0 if width == 2 else width  # the wide while-while kernels (_tree_width)
         cnt, hist, unit_cost, tri, t, ops, overflow = _execute(
-            scheme.lockstep, persistent, *args, g.warp_size, costs, rounds
+            scheme.lockstep, persistent, bvh.nodes, wide, *args[1:], g.warp_size, costs, rounds
         )
         counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0, costs)
     # each fixed warp's counters, costed; speculative dynamic fetch's lanes refill instead
