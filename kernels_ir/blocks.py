@@ -491,17 +491,43 @@ def _branch_block(
     """The block of the branch that a conditional preheader ``i`` runs in: of the
     instructions in its basic block, then in those dominating it within its loop, the
     first whose marker block is conditional there (packet's ``leaf_entry`` before its
-    triangle loop)."""
+    triangle loop); failing that, where ``i`` is on the inner loop's way in (its basic
+    block falls into the header) or its way out past a latch (not a ``break``'s), the
+    marker block of the conditional branch that enters that loop, where that block is at
+    home in ``i``'s loop and runs on every iteration (an ``if`` holding nothing but the
+    inner loop: cwbvh's ``leaf_entry`` around its triangle loop, whose exit code runs once
+    per entry)."""
     loop = cfg.loop_of(i)
-    for j in cfg.dominating(i):
-        if loop is not None and cfg.block_of[j] not in cfg.loops[loop].body:
-            return None
+    inside = [
+        j for j in cfg.dominating(i)
+        if loop is None or cfg.block_of[j] in cfg.loops[loop].body
+    ]  # fmt: skip
+    for j in inside:
         block = line_blocks[j]
         if (
             block is not None
             and home.get(block) == loop
             and loop in conditional.get(block, set())
             and not cfg.runs_every_iteration(j)
+        ):
+            return block
+    inner = home.get(line_blocks[i])  # the loop whose exit (or preheader) ``i`` is
+    if inner is None:
+        return None
+    bi = cfg.block_of[i]
+    way_in = cfg.loops[inner].header in cfg.successors[bi]
+    if not way_in and not any(bi in cfg.successors[b] for b in cfg.loops[inner].latches):
+        return None
+    for j in inside:
+        b = cfg.block_of[j]
+        block = line_blocks[j]
+        if (
+            j == cfg.last(b)
+            and cfg.loops[inner].header in cfg.successors[b]
+            and len(cfg.successors[b]) > 1
+            and block is not None
+            and home.get(block) == loop
+            and block not in conditional
         ):
             return block
     return None

@@ -16,6 +16,8 @@ pool_take          ... a fetch that goes on: the fetch loop's code after the exi
                    lanes' ray indices, the loop's barrier and branch back; made by the
                    build, no marker)
 loop_control       one iteration of the outer trace loop (termination checks)
+stack_pop          ... an iteration after which the loop goes on: cwbvh's branch-free pop of
+                   a node group, past the loop's exit test (the last iteration skips it)
 refill_test        dynamic fetch: the lanes still tracing, while the warp's pool has rays,
                    count themselves against the refill threshold
 refill_break       ... fewer than the threshold trace: they leave for the refill (the
@@ -33,6 +35,8 @@ trav_diverged      ... taken by a diverged warp: the divergent-warp fallback of 
                    warp vote (sm_75..sm_89 speculative; made by the build, no marker)
 postpone           speculative: a lane parks the leaf it found and keeps traversing
 leaf_entry         a leaf is entered (LEAF)
+                   (cwbvh: a node step's triangle group ends, not on an any-hit break:
+                   the triangle loop's exit)
 tri_test           one triangle test: its t stage (TRI_*; in a kernel without the
                    stage blocks below, the whole test)
 tri_u              ... the u stage, for a t in range (TRI_MISS_U, TRI_MISS, TRI_HIT)
@@ -61,6 +65,7 @@ BLOCKS = (
     "pool_claim",
     "pool_take",
     "loop_control",
+    "stack_pop",
     "refill_test",
     "refill_break",
     "idle_wait",

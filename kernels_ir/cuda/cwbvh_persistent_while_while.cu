@@ -9,8 +9,10 @@
 // the ray ends when it is empty and the stack too (any_hit != 0: at the first hit).
 // Push and pop are branch free (a store or load every iteration, the stack pointer moved by
 // the predicate), so an iteration's instructions depend only on the size of its triangle
-// group: the op stream says that much (the leaf children hit are its LEAF ops), not which
-// hit children are interior.
+// group, how its triangle loop ends and whether the ray goes on: the op stream says that
+// much (the leaf children hit are its LEAF ops), not which hit children are interior.
+// The triangle loop sits in an `if` of its own (leaf_entry) so that the build charges its
+// exit once per loop run, not per triangle; the pop past the exit test is stack_pop.
 // Launch: blockDim.x a multiple of 32, any grid; *pool_next = 0 before the launch.
 // The tree's WideStats.depth must be < 64 (SIMT_CWBVH_STACK_SIZE node groups per ray).
 #include "common.cuh"
@@ -65,41 +67,46 @@ extern "C" __global__ void cwbvh_persistent_while_while(const float4* __restrict
                 g.base = h.base;
                 g.bits = (h.imask << 8) | h.node_hits;
                 unsigned tri_hits = h.tri_hits;
-                // @block tri_test
+                // @block leaf_entry
+                if (tri_hits != 0u) {
+                    // @block tri_test
 #pragma unroll 1
-                while (tri_hits != 0u) {
-                    const int b = __ffs(tri_hits) - 1;
-                    tri_hits &= tri_hits - 1u;
-                    const int tri = 3 * ((int)h.tri_base + b);
-                    const float4 w0 = __ldg(woop + tri);
-                    SimtWoop s;
-                    bool hit = simt_woop_t(w0, r, t_best, &s);
-                    if (hit) {
-                        // @block tri_u
-                        hit = simt_woop_u(woop, tri, w0, r, &s);
+                    do {
+                        const int b = __ffs(tri_hits) - 1;
+                        tri_hits &= tri_hits - 1u;
+                        const int tri = 3 * ((int)h.tri_base + b);
+                        const float4 w0 = __ldg(woop + tri);
+                        SimtWoop s;
+                        bool hit = simt_woop_t(w0, r, t_best, &s);
                         if (hit) {
-                            // @block tri_v
-                            hit = simt_woop_v(woop, tri, r, &s);
                             // @block tri_u
+                            hit = simt_woop_u(woop, tri, w0, r, &s);
+                            if (hit) {
+                                // @block tri_v
+                                hit = simt_woop_v(woop, tri, r, &s);
+                                // @block tri_u
+                            }
+                            // @block tri_test
+                        }
+                        const float t = s.t;
+                        // @block tri_hit
+                        if (hit) {
+                            t_best = t;
+                            hit_addr = tri;
+                            if (simt_opaque(any_hit)) {
+                                g.bits = 0u;
+                                sp = 0;
+                                break;
+                            }
                         }
                         // @block tri_test
-                    }
-                    const float t = s.t;
-                    // @block tri_hit
-                    if (hit) {
-                        t_best = t;
-                        hit_addr = tri;
-                        if (simt_opaque(any_hit)) {
-                            g.bits = 0u;
-                            sp = 0;
-                            break;
-                        }
-                    }
-                    // @block tri_test
+                    } while (tri_hits != 0u);
+                    // @block leaf_entry
                 }
                 // @block loop_control
                 const bool pop = (g.bits & 0xffu) == 0u;
                 if (pop && sp == 0) break;
+                // @block stack_pop
                 sp -= pop ? 1 : 0;
                 const CwGroup e = stack[sp];
                 g.base = pop ? e.base : g.base;

@@ -93,7 +93,9 @@ group's lowest bit, pushes the rest if any, and tests that node's 8 decoded chil
 its node group, leaf children hit its triangle group), the triangle loop (``tri_test``
 while a lane that stepped has a triangle of its group left, lowest bit first, with
 ``tri_hit`` for the accepted hits: a closest-hit lane shrinks ``tmax``, an any-hit lane
-ends) and ``loop_control``; finally ``finish``. Groups go to resident warps by the
+ends), the loop's exit (``leaf_entry``, with the lanes that tested a group but did not
+end on an any-hit break, which skips it), ``loop_control``, and ``stack_pop`` with the
+lanes that go on; finally ``finish``. Groups go to resident warps by the
 replay's ideal scheduling, as persistent while-while. A LEAF op (per-ray counts) is a hit
 leaf child's first triangle reached in the loop; it costs no block.
 """
@@ -163,6 +165,7 @@ from simt_sim.simt.engine import (
     RAY_SETUP,
     REFILL_BREAK,
     REFILL_TEST,
+    STACK_POP,
     TRAV_DIVERGED,
     TRAV_NONE_B,
     TRAV_STEP,
@@ -1229,24 +1232,26 @@ def _cw_group(lc, lf, stack, lanes, nodes, nodes_f, nodes_u, woop, any_hit, ops,
     """The trace loop of one fetched group after ``pool_fetch``/``ray_setup``: while a lane
     is alive, ``trav_step`` (each alive lane one node), the triangle loop (``tri_test``
     while a lane that stepped has a triangle of its group left, ``tri_hit`` with the
-    accepted hits) and ``loop_control``; then ``finish``. Returns the cost, -1 on a stack
-    overflow."""
+    accepted hits), its exit (``leaf_entry``: the lanes that tested a group and did not
+    end on an any-hit break), ``loop_control``, and ``stack_pop`` with the lanes still
+    alive; then ``finish``. Returns the cost, -1 on a stack overflow."""
     sel = np.empty(lanes, np.int64)
     cost = np.int64(0)
-    while True:
-        n = 0
-        for lane in range(lanes):
-            if _cw_alive(lc, lane):
-                sel[n] = lane
-                n += 1
-        if n == 0:
-            break
+    n = 0
+    for lane in range(lanes):
+        if _cw_alive(lc, lane):
+            sel[n] = lane
+            n += 1
+    while n:
         cost += charge(cnt, hist, costs, TRAV_STEP, n)
+        tested = np.int64(0)
         for k in range(n):
             lane = sel[k]
             if _cw_step(lc, lf, stack, lane, nodes, nodes_f, nodes_u) < 0:
                 return np.int64(-1)
             ops[base + lane, _C_TRAV] += 1
+            if lc[lane, _T_HITS] != 0:
+                tested |= np.int64(1) << k
         while True:
             a = np.int64(0)
             for k in range(n):
@@ -1257,7 +1262,18 @@ def _cw_group(lc, lf, stack, lanes, nodes, nodes_f, nodes_u, woop, any_hit, ops,
             if a == 0:
                 break
             cost += charge_tri(cnt, hist, costs, a)
+        exits = 0
+        for k in range(n):
+            if (tested >> k) & 1 and lc[sel[k], _CEND] == 0:
+                exits += 1
+        cost += charge(cnt, hist, costs, LEAF_ENTRY, exits)
         cost += charge(cnt, hist, costs, LOOP_CONTROL, n)
+        n = 0
+        for lane in range(lanes):
+            if _cw_alive(lc, lane):
+                sel[n] = lane
+                n += 1
+        cost += charge(cnt, hist, costs, STACK_POP, n)
     return cost + charge(cnt, hist, costs, FINISH, lanes)
 
 

@@ -25,7 +25,8 @@ _OUTCOME_BLOCK = ("trav_none", "trav_one", "trav_both")
 @dataclass
 class RefCounts:
     """Counters of a reference replay, by block name; ``rounds``: the traversal loop runs
-    in rounds (``ReplayParams.rounds``)."""
+    in rounds (``ReplayParams.rounds``); ``any_hit``: the rays end at their first hit
+    (``ReplayParams.any_hit``)."""
 
     warp_size: int
     costs: dict[str, int]
@@ -35,6 +36,7 @@ class RefCounts:
     warp_totals: list[int] | None = None
     makespan: int = 0
     rounds: bool = False
+    any_hit: bool = False
 
     def __post_init__(self) -> None:
         for b in BLOCKS:
@@ -372,9 +374,11 @@ def cwbvh_group(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts
     then, while a lane has ops left, one iteration of the trace loop for those lanes: its
     ``trav_step`` (one TRAV op each), the triangle loop over each lane's triangle group
     (its TRI ops up to the next TRAV, LEAF ops skipped: ``tri_test`` while a lane has a
-    triangle left, the stages and ``tri_hit`` as :func:`_tri_charge`) and
-    ``loop_control``; finally ``finish``. A stream must start with a TRAV op (the root);
-    wide TRAV codes (3 or more children hit) count as TRAV ops."""
+    triangle left, the stages and ``tri_hit`` as :func:`_tri_charge`), the loop's exit
+    (``leaf_entry``) with the lanes that tested a group, but for an any-hit lane that
+    ended on its hit (it breaks out), ``loop_control``, and ``stack_pop`` with the lanes
+    that go on; finally ``finish``. A stream must start with a TRAV op (the root); wide
+    TRAV codes (3 or more children hit) count as TRAV ops."""
 
     def node_step(o: int) -> bool:
         return _is_trav(o) or bool(is_wide_trav(o))
@@ -409,7 +413,16 @@ def cwbvh_group(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts
                 break
             issued += _tri_charge({i: iterations[i][j][k] for i in x}, rec)
             k += 1
+        tested = [lane for lane in alive if iterations[lane][j]]
+        exits = [
+            lane
+            for lane in tested
+            if not (rec.any_hit and iterations[lane][j][-1] == TRI_HIT
+                    and j == len(iterations[lane]) - 1)
+        ]  # fmt: skip
+        issued += rec.charge("leaf_entry", exits)
         issued += rec.charge("loop_control", alive)
+        issued += rec.charge("stack_pop", [lane for lane in alive if j + 1 < len(iterations[lane])])
         j += 1
     return issued + rec.charge("finish", everyone)
 
@@ -561,6 +574,7 @@ def reference_replay(
     resident_warps: int = 1,
     launch_size: int | None = None,
     rounds: bool = False,
+    any_hit: bool = False,
     **params: Any,
 ) -> RefCounts:
     """Replay per-ray op lists (and their addresses) under trace scheme ``scheme``, slowly
@@ -568,12 +582,13 @@ def reference_replay(
 
     ``launch_size`` splits the rays into launches for the persistent schemes (default:
     all rays one launch); ``rounds``: the traversal loop runs in rounds
-    (``ReplayParams.rounds``); ``params`` are the scheme's own (``scheme.params``).
+    (``ReplayParams.rounds``); ``any_hit``: the rays end at their first hit
+    (``ReplayParams.any_hit``); ``params`` are the scheme's own (``scheme.params``).
     """
     if scheme.reference_warp is None and scheme.reference is None:
         raise SimtSimError(f"scheme {scheme.name!r} has no plain-Python reference replay")
     values = scheme.with_params(params)
-    rec = RefCounts(warp_size, dict(costs), rounds=rounds)
+    rec = RefCounts(warp_size, dict(costs), rounds=rounds, any_hit=any_hit)
     n = len(streams)
     if not scheme.persistent:
         for r0 in range(0, n, warp_size):

@@ -38,6 +38,7 @@ BLOCK_COLOURS = {
     "pool_claim": "#5fd3e0",
     "pool_take": "#9edae5",
     "loop_control": "#bcbd22",
+    "stack_pop": "#e7e49b",
     "refill_test": "#dbdb8d",
     "refill_break": "#8c6d31",
     "idle_wait": "#c7c7c7",

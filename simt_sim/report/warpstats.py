@@ -21,7 +21,7 @@ of the lanes' nodes, does not.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -138,7 +138,7 @@ def warp_counts(
             )
         run = execute(tree, rays, scheme, ir, gpu)
         return WarpCounts(run.per_warp[:, 0].copy(), run.per_warp[:, 1].copy(), gpu.warp_size)
-    executed, p = _as_run(scheme, ir, gpu)
+    executed, p = _as_run(scheme, ir, gpu, trace)
     offsets, op, addr = replay_arrays(trace)
     check_streams(offsets, op)
     costs = cost_vector(executed)
@@ -149,12 +149,14 @@ def warp_counts(
     return WarpCounts(out[:, 0].copy(), out[:, 1].copy(), p.warp_size, exits, exits * p.warp_size)
 
 
-def _as_run(scheme: SchemeInfo, ir: KernelIR, gpu: GpuConfig) -> tuple[KernelIR, ReplayParams]:
-    """``ir`` as ``gpu`` runs it and the replay's params there, as ``simulate_traces`` takes
-    them, so the per-warp views add up to its counts."""
+def _as_run(
+    scheme: SchemeInfo, ir: KernelIR, gpu: GpuConfig, trace: OpTrace
+) -> tuple[KernelIR, ReplayParams]:
+    """``ir`` as ``gpu`` runs it and the replay's params there for ``trace``, as
+    ``simulate_traces`` takes them, so the per-warp views add up to its counts."""
     check_ir(ir, scheme.kernel, scheme.kernels[scheme.kernel])
     executed = executed_on(ir, gpu)
-    return executed, trace_params(scheme, executed, gpu)
+    return executed, replace(trace_params(scheme, executed, gpu), any_hit=trace.query == "any")
 
 
 def _check_layout(scheme: SchemeInfo, trace: OpTrace) -> None:
@@ -168,8 +170,8 @@ def _check_layout(scheme: SchemeInfo, trace: OpTrace) -> None:
 class _Log(RefCounts):
     """Reference counters that also log each issued block and its active lanes, in order."""
 
-    def __init__(self, warp_size: int, costs: dict[str, int], rounds: bool) -> None:
-        super().__init__(warp_size, costs, rounds=rounds)
+    def __init__(self, warp_size: int, costs: dict[str, int], rounds: bool, any_hit: bool) -> None:
+        super().__init__(warp_size, costs, rounds=rounds, any_hit=any_hit)
         self.events: list[tuple[str, int]] = []
 
     def charge(self, block: str, lanes: Sequence[int]) -> int:
@@ -195,7 +197,7 @@ def warp_timeline(
     """
     _check_scheme(scheme, has_timeline(scheme), timeline_schemes(trace.layout), "issue timeline")
     _check_layout(scheme, trace)
-    executed, p = _as_run(scheme, ir, gpu)
+    executed, p = _as_run(scheme, ir, gpu, trace)
     warp_size = p.warp_size
     n_warps = -(-trace.n_rays // warp_size)
     if not 0 <= warp < n_warps:
@@ -206,6 +208,6 @@ def warp_timeline(
     check_streams(off, op, r0)
     streams = [op[off[r] : off[r + 1]].tolist() for r in range(r1 - r0)]
     addrs = [addr[off[r] : off[r + 1]].tolist() for r in range(r1 - r0)]
-    log = _Log(warp_size, {b: executed.cost(b) for b in BLOCKS}, p.rounds)
+    log = _Log(warp_size, {b: executed.cost(b) for b in BLOCKS}, p.rounds, p.any_hit)
     scheme.reference_warp(streams, addrs, log)
     return log.events

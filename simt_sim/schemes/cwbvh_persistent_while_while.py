@@ -6,9 +6,12 @@ lane; an iteration takes the next child of the current node group (pushing the r
 the group), tests that node's 8 child boxes (``trav_step``: one TRAV op), tests the
 triangles of the leaf children hit in a triangle loop (``tri_test`` per TRI op,
 ``tri_hit`` per TRI_HIT; LEAF ops, which mark where a leaf child's triangles start, cost
-nothing: the loop walks the group's bit mask, not leaves) and pops a node group when
-the current one is empty (``loop_control``; push and pop are branch free, so no block
-depends on which hit children were interior, which the trace does not say). A lane's
+nothing: the loop walks the group's bit mask, not leaves), leaves that loop
+(``leaf_entry``: the loop's exit, with the lanes whose group ran out; a lane that ends
+on an any-hit break skips it) and tests whether the ray is done (``loop_control``); the
+lanes that go on pop a node group when the current one is empty (``stack_pop``, past the
+exit test: a warp's last iteration skips it). Push and pop are branch free, so no block
+depends on which hit children were interior, which the trace does not say. A lane's
 iterations are its TRAV ops; the warp iterates until all of its lanes are done, and
 within an iteration the triangle loop runs until every lane has tested its group. Per
 fetched group of ``warp_size`` consecutive rays: ``pool_fetch``, ``pool_take`` and
@@ -27,10 +30,12 @@ from simt_sim.oracles.lockstep import CWBVH_BODY
 from simt_sim.oracles.reference import cwbvh_group
 from simt_sim.simt.engine import (
     FINISH,
+    LEAF_ENTRY,
     LOOP_CONTROL,
     N_BLOCKS,
     N_CHUNKS,
     RAY_SETUP,
+    STACK_POP,
     TRAV_STEP,
     Counts,
     ReplayParams,
@@ -47,17 +52,19 @@ from simt_sim.simt.engine import (
     tri_pack,
 )
 from simt_sim.simt.scheme import TRACE, SchemeInfo
-from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_LAST, TRAV_WIDE, is_trav
+from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_LAST, TRAV_WIDE, TRI_HIT, is_trav
 
 #: the blocks the kernel has and the replay charges (no outcome blocks: the 8 box tests
-#: end in bit masks, not branches; no leaf_entry: the triangle loop walks a bit mask)
+#: end in bit masks, not branches)
 BLOCKS_CHARGED = (
     "ray_setup",
     "pool_fetch",
     "pool_take",
     "idle_wait",
     "loop_control",
+    "stack_pop",
     "trav_step",
+    "leaf_entry",
     "tri_test",
     "tri_u",
     "tri_v",
@@ -124,7 +131,22 @@ def _tri_loop(op, cur, end, tri, acc, costs, cnt, hist):
 
 
 @njit(cache=True, nogil=True)
-def _group(offsets, op, r0, n, cur, end, acc, costs, cnt, hist):
+def _loop_exits(op, cur, end, tri, any_hit):
+    """The lanes of mask ``tri`` that left their triangle loop by its exit, cursors past
+    their group: all of them, but for an any-hit lane that ended on its hit (the break)."""
+    n = 0
+    m = tri
+    while m:
+        lane = lowest_lane(m)
+        m &= m - 1
+        broke = any_hit and cur[lane] == end[lane] and op[np.uint64(end[lane] - 1)] == TRI_HIT
+        if not broke:
+            n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _group(offsets, op, r0, n, cur, end, acc, costs, cnt, hist, any_hit):
     """One fetched group of ``n`` lanes (rays ``r0 ..``); returns its instructions."""
     issued = charge_fetch(cnt, hist, costs, n, cur.shape[0])
     issued += charge(cnt, hist, costs, RAY_SETUP, n)
@@ -148,20 +170,24 @@ def _group(offsets, op, r0, n, cur, end, acc, costs, cnt, hist):
                 tri |= np.int64(1) << lane
         issued += charge(cnt, hist, costs, TRAV_STEP, k)
         issued += _tri_loop(op, cur, end, tri, acc, costs, cnt, hist)
+        issued += charge(cnt, hist, costs, LEAF_ENTRY, _loop_exits(op, cur, end, tri, any_hit))
         issued += charge(cnt, hist, costs, LOOP_CONTROL, k)
         nxt = np.int64(0)
+        k = 0
         m = alive
         while m:
             lane = lowest_lane(m)
             m &= m - 1
             if cur[lane] < end[lane]:
                 nxt |= np.int64(1) << lane
+                k += 1
+        issued += charge(cnt, hist, costs, STACK_POP, k)
         alive = nxt
     return issued + charge(cnt, hist, costs, FINISH, n)
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _replay(offsets, op, costs, warp_size, per_warp):
+def _replay(offsets, op, costs, warp_size, any_hit, per_warp):
     """Groups in parallel chunks; each group's totals go to ``per_warp`` if it has rows."""
     n_rays = offsets.shape[0] - 1
     n_groups = (n_rays + warp_size - 1) // warp_size
@@ -178,7 +204,9 @@ def _replay(offsets, op, costs, warp_size, per_warp):
             r0 = g * warp_size
             n = min(warp_size, n_rays - r0)
             before = lanes_so_far(per_warp, cnt[c], costs)
-            group_cost[g] = _group(offsets, op, r0, n, cur, end, acc, costs, cnt[c], hist[c])
+            group_cost[g] = _group(
+                offsets, op, r0, n, cur, end, acc, costs, cnt[c], hist[c], any_hit
+            )
             record_warp(per_warp, g, group_cost[g], before, cnt[c], costs)
     return cnt, hist, group_cost
 
@@ -202,7 +230,9 @@ def replay(
     """Replay one launch: groups in parallel, then ideal assignment to resident warps."""
     _check_streams(offsets, op)
     return persistent_counts(
-        *_replay(offsets, op, costs, p.warp_size, no_per_warp()), p.resident_warps, costs
+        *_replay(offsets, op, costs, p.warp_size, p.any_hit, no_per_warp()),
+        p.resident_warps,
+        costs,
     )
 
 
@@ -213,7 +243,7 @@ def warp_counts(
     (int64 (n_groups, 2)), as ``replay`` counts them (the scheduling aside)."""
     _check_streams(offsets, op)
     per_warp = per_warp_table(offsets, p.warp_size)
-    _replay(offsets, op, costs, p.warp_size, per_warp)
+    _replay(offsets, op, costs, p.warp_size, p.any_hit, per_warp)
     return per_warp
 
 

@@ -43,6 +43,7 @@ POOL_FETCH = BLOCKS.index("pool_fetch")
 POOL_CLAIM = BLOCKS.index("pool_claim")
 POOL_TAKE = BLOCKS.index("pool_take")
 LOOP_CONTROL = BLOCKS.index("loop_control")
+STACK_POP = BLOCKS.index("stack_pop")
 REFILL_TEST = BLOCKS.index("refill_test")
 REFILL_BREAK = BLOCKS.index("refill_break")
 IDLE_WAIT = BLOCKS.index("idle_wait")
@@ -601,12 +602,16 @@ class ReplayParams:
         The traversal loop goes round through a convergence barrier the lanes outside it
         also reach, so the warp runs it in rounds (``KernelIR.rounds`` holds
         ``trav_step``, on a GPU with independent thread scheduling).
+    any_hit : bool
+        The launch's rays end at their first hit (an ``"any"`` query), leaving their loops
+        by the kernel's break on a hit, not by its loop exit (the cwbvh triangle loop's).
     """
 
     warp_size: int
     resident_warps: int
     scheme: Mapping[str, Any] = field(default_factory=dict)
     rounds: bool = False
+    any_hit: bool = False
 
 
 def kernel_outcomes(op: np.ndarray) -> np.ndarray:

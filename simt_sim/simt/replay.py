@@ -16,7 +16,7 @@ scheme. Schemes come as :class:`~simt_sim.simt.scheme.SchemeInfo` records
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -175,7 +175,7 @@ def simulate_traces(
         )
     costs = cost_vector(ir)
     totals = np.zeros(3, np.int64)
-    state: dict[str, Any] = {"rays": 0, "ray_type": None, "short": None}
+    state: dict[str, Any] = {"rays": 0, "ray_type": None, "query": None, "short": None}
 
     def batches() -> Iterator[Arrays]:
         for trace in traces:
@@ -194,6 +194,12 @@ def simulate_traces(
                     "simulate each ray type separately"
                 )
             state["ray_type"] = trace.ray_type
+            if state["query"] not in (None, trace.query):
+                raise SimtSimError(
+                    f"batches mix queries {state['query']!r} and {trace.query!r}; "
+                    "simulate each query separately"
+                )
+            state["query"] = trace.query
             if trace.layout != scheme.layout:
                 raise SimtSimError(
                     f"{scheme.name} is costed with {scheme.kernel} ({scheme.layout}), not for "
@@ -211,7 +217,8 @@ def simulate_traces(
     launches = 0
     for offsets, op, addr in units:
         if offsets.shape[0] > 1:
-            counts = counts + scheme.replay(offsets, op, addr, costs, replay_params)
+            p = replace(replay_params, any_hit=state["query"] == "any")
+            counts = counts + scheme.replay(offsets, op, addr, costs, p)
             launches += 1
     extra: dict[str, Any] = {}
     if scheme.persistent:

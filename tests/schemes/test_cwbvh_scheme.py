@@ -89,18 +89,21 @@ CASE_B = [
 # u-stage miss, lane 1's miss; tri_v: lane 0's hit, lane 1's miss.
 # CASE_B: iteration 0: trav_step {0,1}; triangle 0 {0,1} (hit: 1; lane 0 stops at t),
 # triangle 1 {0} (hit: 0); iteration 1: trav_step {0,1}; triangle 0 {0} (stops at u).
+# The triangle loop's exit (leaf_entry) runs with the lanes that tested a group: CASE_A
+# lane 0 in iteration 0, lane 1 in 1; CASE_B both in 0, lane 0 in 1. The pop past the exit
+# test (stack_pop) with the lanes that go on: CASE_A {0,1}, then {0}; CASE_B {0,1}.
 # Both: the one resident warp's last fetch finds the pool empty (pool_fetch, both lanes).
 BY_HAND = [
     (CASE_A, {
         "pool_fetch": (2, 4), "pool_take": (1, 2), "ray_setup": (1, 2), "trav_step": (3, 5),
-        "tri_test": (4, 4),
+        "tri_test": (4, 4), "leaf_entry": (2, 2),
         "tri_u": (3, 3), "tri_v": (2, 2), "tri_hit": (1, 1),
-        "loop_control": (3, 5), "finish": (1, 2)}),
+        "loop_control": (3, 5), "stack_pop": (2, 3), "finish": (1, 2)}),
     (CASE_B, {
         "pool_fetch": (2, 4), "pool_take": (1, 2), "ray_setup": (1, 2), "trav_step": (2, 4),
-        "tri_test": (3, 4),
+        "tri_test": (3, 4), "leaf_entry": (2, 3),
         "tri_u": (3, 3), "tri_v": (2, 2), "tri_hit": (2, 2),
-        "loop_control": (2, 4), "finish": (1, 2)}),
+        "loop_control": (2, 4), "stack_pop": (1, 2), "finish": (1, 2)}),
 ]  # fmt: skip
 
 
@@ -113,6 +116,33 @@ def test_by_hand(ops, table) -> None:
     assert {b: (ref.executions[b], ref.active[b]) for b in BLOCKS if ref.executions[b]} == table
     want = sum(COSTS[b] * n for b, (n, _) in table.items())
     assert r.warp_instructions == r.makespan == int(r.warp_totals.sum()) == want
+
+
+#: an any-hit warp: lane 0 misses its first group, then ends on a hit that is not its
+#: group's last triangle; lane 1 ends on the last triangle of its first group; lane 2 tests
+#: one group and misses.
+ANY_HIT = [
+    [TRAV_BOTH, LEAF, TRI_MISS, TRAV_ONE, LEAF, TRI_HIT],
+    [TRAV_ONE, LEAF, TRI_MISS_T, TRI_HIT],
+    [TRAV_ONE, LEAF, TRI_MISS_U, TRAV_NONE],
+]
+
+
+def test_an_any_hit_lane_that_ends_on_its_hit_skips_the_loop_exit() -> None:
+    """The kernel's any-hit break leaves the triangle loop past its exit: iteration 0's
+    exit runs with lanes 0 and 2 (lane 1 broke), iteration 1's with none (lane 0 broke,
+    lane 2 tested nothing), so the warp skips it. The same streams as closest-hit rays
+    leave by the exit each time."""
+    for query, exits in (("any", (1, 2)), ("closest", (2, 4))):
+        r = run(dataclasses.replace(cw_trace(ANY_HIT), query=query), 4, resident=1)
+        assert (r.executions["leaf_entry"], r.active_sum["leaf_entry"]) == exits, query
+        ref = reference_replay(
+            ANY_HIT, [list(range(len(o))) for o in ANY_HIT], get_scheme(NAME), COSTS, 4,
+            any_hit=query == "any",
+        )  # fmt: skip
+        assert counters(r) == ref_counters(ref), query
+        # the pop runs with the lanes that go on: {0, 2} after iteration 0, none after 1
+        assert (r.executions["stack_pop"], r.active_sum["stack_pop"]) == (1, 2)
 
 
 def test_two_groups_are_scheduled_on_the_least_loaded_warp() -> None:
@@ -158,10 +188,12 @@ def test_numba_replay_matches_reference_on_random_streams(warp_size: int, any_hi
     ops = random_cw_streams(rng, 150 * warp_size + 3, any_hit)
     addrs = [list(range(len(o))) for o in ops]
     launch = 40 * warp_size
-    r = run(cw_trace(ops, addrs), warp_size, resident=3, launch_size=launch)
+    query = "any" if any_hit else "closest"
+    r = run(dataclasses.replace(cw_trace(ops, addrs), query=query), warp_size, resident=3,
+            launch_size=launch)  # fmt: skip
     ref = reference_replay(
         [list(kernel_outcomes(np.array(o, np.uint8))) for o in ops], addrs, get_scheme(NAME),
-        COSTS, warp_size, resident_warps=3, launch_size=launch,
+        COSTS, warp_size, resident_warps=3, launch_size=launch, any_hit=any_hit,
     )  # fmt: skip
     assert counters(r) == ref_counters(ref)
     assert r.warp_totals.tolist() == ref.warp_totals and r.makespan == ref.makespan
@@ -214,6 +246,15 @@ def test_each_lane_work_is_conserved() -> None:
     assert a["tri_u"] == int(np.isin(flat, (TRI_MISS_U, TRI_MISS, TRI_HIT)).sum())
     assert a["tri_v"] == int(np.isin(flat, (TRI_MISS, TRI_HIT)).sum())
     assert a["tri_hit"] == int((flat == TRI_HIT).sum())
+    # every iteration whose node step found triangles leaves the loop by its exit (no
+    # any-hit break); every iteration but a ray's last pops
+    steps = [int(is_trav(np.asarray(o, np.int64)).sum()) for o in ops]
+    tested = sum(
+        int((is_trav(f[:-1]) & ~is_trav(f[1:])).sum())
+        for f in (np.asarray(o, np.int64) for o in ops if o)
+    )
+    assert a["leaf_entry"] == tested
+    assert a["stack_pop"] == sum(steps) - sum(n > 0 for n in steps)
     assert a["ray_setup"] == a["finish"] == a["pool_take"] == r.rays == len(ops)
     # each launched warp's last fetch, with every lane, finds the pool empty
     launched = persistent_warps(-(-len(ops) // 32), len(r.warp_totals))
@@ -248,7 +289,10 @@ def test_numba_replay_of_cwbvh_traces_is_the_plain_reference(cwbvh_traces) -> No
         streams = [op[a:b].tolist() for a, b in bounds]
         addrs = [tr.addr[a:b].tolist() for a, b in bounds]
         assert all(s and s[0] <= TRAV_BOTH for s in streams), rt  # the root is always tested
-        ref = reference_replay(streams, addrs, scheme, costs, gpu.warp_size, resident_warps=3)
+        ref = reference_replay(
+            streams, addrs, scheme, costs, gpu.warp_size, resident_warps=3,
+            any_hit=tr.query == "any",
+        )  # fmt: skip
         assert counters(r) == ref_counters(ref), rt
         assert r.warp_totals.tolist() == ref.warp_totals and r.makespan == ref.makespan, rt
         assert r.active_sum["trav_step"] == r.n_trav and r.active_sum["tri_test"] == r.n_tri
@@ -277,9 +321,10 @@ def test_a_stream_must_start_at_the_root() -> None:
 # ---- the kernel's IR -------------------------------------------------------------------------
 @pytest.mark.parametrize("arch", kernels_ir.ARCHS)
 def test_the_kernel_has_exactly_the_blocks_it_is_charged(arch: str) -> None:
-    """Every charged block issues instructions; the outcome and leaf blocks of the binary
-    kernels do not exist (the 8 box tests end in bit masks, the triangle loop walks one);
-    push and pop are branch free, one local store per step and one load per iteration."""
+    """Every charged block issues instructions; the outcome blocks of the binary kernels do
+    not exist (the 8 box tests end in bit masks); push and pop are branch free, one local
+    store per step and one load per iteration that goes on; the triangle loop's exit is a
+    couple of moves (and a branch)."""
     for tests in kernels_ir.kernel_ir.TESTS:
         ir = kernels_ir.load(NAME, arch, tests=tests)
         charged = {b for b in BLOCKS if ir.cost(b) > 0}
@@ -287,5 +332,6 @@ def test_the_kernel_has_exactly_the_blocks_it_is_charged(arch: str) -> None:
         # build has convergence barriers, whose per-group issues this replay leaves out
         assert charged | {"idle_wait"} == {*BLOCKS_CHARGED, "reconverge"}, (arch, tests)
         assert ("idle_wait" in charged) == (arch == "sm_75"), (arch, tests)
-        assert ir.blocks["trav_step"]["local"] >= 1 and ir.blocks["loop_control"]["local"] >= 1
+        assert ir.blocks["trav_step"]["local"] >= 1 and ir.blocks["stack_pop"]["local"] >= 1
+        assert 2 <= ir.cost("leaf_entry") <= 4 and ir.blocks["leaf_entry"]["fp32"] == 0
         assert ir.blocks["trav_step"]["ld_global"] >= 5  # the 80-byte node, 5 x 16 bytes
