@@ -432,6 +432,10 @@ def test_bad_requests_say_what_to_do() -> None:
     ao = OpTrace(t.offsets, t.op, t.addr, t.hits, "any", "ao")
     with pytest.raises(SimtSimError, match="mix ray types"):
         simulate_traces([t, ao], get_scheme("while_while"), ir, gpu_for())
+    # the replay learns the query from the trace (an any-hit lane's break), one per run
+    occluded = OpTrace(t.offsets, t.op, t.addr, t.hits, "any", t.ray_type)
+    with pytest.raises(SimtSimError, match="mix queries"):
+        simulate_traces([t, occluded], get_scheme("while_while"), ir, gpu_for())
 
 
 def test_empty_input_gives_an_empty_result() -> None:
