@@ -74,12 +74,14 @@ def measure(
     count: int,
     ray_types: tuple[str, ...] = RAY_TYPES,
     orders: dict[str, int | None] = ORDERS,
+    build: str = "binned",
 ) -> pd.DataFrame:
     """One row per ray type x order x scheme: MRays/s of the replay (and the exact packet)
-    on ``count`` windows of the protocol's stream. Primary rays keep their pixel order
-    whatever ``orders`` says (the paper sorts only secondary rays)."""
+    on ``count`` windows of the protocol's stream, over the tree ``build_bvh`` makes with
+    method ``build``. Primary rays keep their pixel order whatever ``orders`` says (the
+    paper sorts only secondary rays)."""
     scene = load_scene(scene_name)
-    bvh = build_bvh(scene.vertices, scene.triangles)
+    bvh = build_bvh(scene.vertices, scene.triangles, method=build)
     gpu = get_gpu(gpu_id)
     irs = {s: kernels_ir.load(s, gpu.ir_arch) for s in (BASE, *SCHEMES)}
     rows = []

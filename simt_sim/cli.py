@@ -24,6 +24,7 @@ from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 from simt_sim import __version__, progress
 from simt_sim.atomic import write_atomic
+from simt_sim.bvh.build import METHODS as BUILD_METHODS
 from simt_sim.errors import SimtSimError
 from simt_sim.report.tables import (
     FORMATS,
@@ -122,6 +123,14 @@ def _add_workload_args(
         help="BVH builder: SAH cost of a node step relative to a triangle test; higher "
         "makes larger leaves (default: %(default)s)",
     )
+    p.add_argument(
+        "--bvh-build",
+        choices=BUILD_METHODS,
+        default="binned",
+        help="BVH builder: binned SAH, a full SAH sweep, or binned with spatial splits "
+        "(Stich et al. 2009; a triangle a plane crosses sits in both children, as in the "
+        "paper's trees) (default: %(default)s)",
+    )
 
 
 def _add_output_args(p: argparse.ArgumentParser) -> None:
@@ -175,6 +184,7 @@ def _workload(args: argparse.Namespace, ray_type: str):
         seed=args.seed,
         max_leaf=args.max_leaf,
         node_cost=args.node_cost,
+        build=args.bvh_build,
         up=_up(args),
         camera_file=args.camera_file,
         layout=args.bvh,
@@ -302,6 +312,7 @@ def _spec(args: argparse.Namespace, **fields: object):
         seed=args.seed,
         max_leaf=args.max_leaf,
         node_cost=args.node_cost,
+        build=args.bvh_build,
         tests=args.tests,
         up=_up(args),
         camera_file=args.camera_file,

@@ -28,7 +28,7 @@ from simt_sim.bvh.layout import (
 from simt_sim.bvh.woop import woop_transform
 from simt_sim.errors import SimtSimError
 
-METHODS = ("binned", "sweep")
+METHODS = ("binned", "sweep", "spatial")
 WIDEN = np.float32(2.0**-38)
 """Relative growth of the stored boxes (see :func:`widened`)."""
 WOOP_CHUNK = 1 << 20
@@ -384,6 +384,366 @@ def _build(tlo, thi, cen, sweep, max_leaf, bins, node_cost):
     return idx, child[:n_int], nbox[:n_int], leaf_start[:n_leaf], root, depth, sah, hist
 
 
+# ---- spatial splits ---------------------------------------------------------------------------
+SPATIAL_ALPHA = 1e-5
+"""Stich et al.'s threshold: a node tries spatial splits only where its best object split's
+children overlap by more than this share of the root's surface area."""
+SPATIAL_BUDGET = 1.0
+"""References a spatial build may add, as a share of the triangles (then it splits objects
+only): a bound on the tree's memory and a guarantee that the build ends."""
+
+
+@njit(cache=True, nogil=True)
+def _outward(x, up):
+    """``x`` (float64) as the float32 on its outer side: a box rounded so it still holds it."""
+    y = np.float32(x)
+    if up and np.float64(y) < x:
+        y = np.nextafter(y, _F32_INF)
+    elif not up and np.float64(y) > x:
+        y = np.nextafter(y, _F32_NEG_INF)
+    return y
+
+
+@njit(cache=True, nogil=True)
+def _clip_bounds(p, axis, below, above, rlo, rhi, out):
+    """Bounds of the part of triangle ``p`` (float64 (3, 3)) between the planes ``below``
+    and ``above`` on ``axis`` (either may be infinite), within the reference box ``rlo`` ..
+    ``rhi``, rounded outward to float32 into ``out`` (lo xyz, hi xyz). Returns False when
+    that part is empty."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for e in range(3):
+        a = p[e]
+        b = p[(e + 1) % 3]
+        if below <= a[axis] <= above:
+            for j in range(3):
+                lo[j] = min(lo[j], a[j])
+                hi[j] = max(hi[j], a[j])
+        for plane in (below, above):
+            if (a[axis] - plane) * (b[axis] - plane) < 0.0:  # the edge crosses the plane
+                s = (plane - a[axis]) / (b[axis] - a[axis])
+                for j in range(3):
+                    x = plane if j == axis else a[j] + s * (b[j] - a[j])
+                    lo[j] = min(lo[j], x)
+                    hi[j] = max(hi[j], x)
+    lo[axis] = max(lo[axis], below)
+    hi[axis] = min(hi[axis], above)
+    for j in range(3):
+        out[j] = max(_outward(lo[j], False), rlo[j])
+        out[j + 3] = min(_outward(hi[j], True), rhi[j])
+        if out[j] > out[j + 3]:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _corners(v, tri, t, p):
+    for k in range(3):
+        for j in range(3):
+            p[k, j] = np.float64(v[tri[t, k], j])
+
+
+@njit(cache=True, nogil=True)
+def spatial_best_split(idx, start, end, v, tri, rtri, rlo, rhi, nbox, bins, slo, shi, sin,
+                       sout, rarea):  # fmt: skip
+    """Best binned spatial split of the references ``idx[start:end]`` in the node box
+    ``nbox``: ``bins`` equal slabs per axis, each reference's clipped part in every slab it
+    spans (Stich et al. 2009). Returns ``(cost, axis, plane, crossing)``: the cost ``A_L N_L
+    + A_R N_R`` with the ``crossing`` references, those the plane cuts, counted on both
+    sides (``inf``, -1 when no plane leaves both sides smaller than the node)."""
+    n = end - start
+    p = np.empty((3, 3), np.float64)
+    piece = np.empty(6, np.float32)
+    box = np.empty(6, np.float32)
+    best = np.inf
+    best_axis = -1
+    best_plane = 0.0
+    best_crossing = 0
+    for a in range(3):
+        lo_a = np.float64(nbox[a])
+        width = (np.float64(nbox[a + 3]) - lo_a) / bins
+        if not width > 0.0:
+            continue
+        for k in range(bins):
+            sin[k] = 0
+            sout[k] = 0
+            for j in range(3):
+                slo[k, j] = _F32_INF
+                shi[k, j] = -_F32_INF
+        for i in range(start, end):
+            r = idx[i]
+            b0 = _bin_of(rlo[r, a], lo_a, 1.0 / width, bins)
+            b1 = _bin_of(rhi[r, a], lo_a, 1.0 / width, bins)
+            sin[b0] += 1
+            sout[b1] += 1
+            _corners(v, tri, rtri[r], p)
+            for k in range(b0, b1 + 1):
+                below = -np.inf if k == 0 else lo_a + k * width
+                above = np.inf if k == bins - 1 else lo_a + (k + 1) * width
+                if _clip_bounds(p, a, below, above, rlo[r], rhi[r], piece):
+                    for j in range(3):
+                        slo[k, j] = min(slo[k, j], piece[j])
+                        shi[k, j] = max(shi[k, j], piece[j + 3])
+        # Right-to-left: rarea[k] = area(slabs k..) * references ending in them.
+        _empty_box(box)
+        count = 0
+        for k in range(bins - 1, 0, -1):
+            count += sout[k]
+            for j in range(3):
+                box[j] = min(box[j], slo[k, j])
+                box[j + 3] = max(box[j + 3], shi[k, j])
+            rarea[k] = _box_area(box) * count if count > 0 else -1.0
+        _empty_box(box)
+        left = 0
+        right = n
+        for k in range(bins - 1):
+            left += sin[k]
+            right -= sout[k]
+            for j in range(3):
+                box[j] = min(box[j], slo[k, j])
+                box[j + 3] = max(box[j + 3], shi[k, j])
+            if left == 0 or right == 0 or left >= n or right >= n or rarea[k + 1] < 0.0:
+                continue
+            cost = _box_area(box) * left + rarea[k + 1]
+            if cost < best:
+                best = cost
+                best_axis = a
+                best_plane = lo_a + (k + 1) * width
+                best_crossing = left + right - n
+    return best, best_axis, best_plane, best_crossing
+
+
+@njit(cache=True, nogil=True)
+def _set_reference(rtri, rlo, rhi, rcen, q, t, box):
+    rtri[q] = t
+    for j in range(3):
+        rlo[q, j] = box[j]
+        rhi[q, j] = box[j + 3]
+        rcen[q, j] = (box[j] + box[j + 3]) * _F32_HALF
+
+
+@njit(cache=True, nogil=True)
+def _spatial_partition(idx, start, end, v, tri, rtri, rlo, rhi, rcen, used, axis, plane,
+                       scratch):  # fmt: skip
+    """Split the references ``idx[start:end]`` at ``plane`` on ``axis``: one wholly below
+    goes left, one wholly above right, one the plane cuts becomes two, each with its part's
+    bounds (the left part keeps the reference's slot, the right one takes the pool's next,
+    ``used``). The right side is written to ``idx[start:]``, then the left; returns
+    ``(right end, left end, used)``."""
+    p = np.empty((3, 3), np.float64)
+    below = np.empty(6, np.float32)
+    above = np.empty(6, np.float32)
+    nl = 0
+    nr = 0
+    n = end - start
+    # scratch[0:n] collects left references, scratch[n:2n] right ones
+    for i in range(start, end):
+        r = idx[i]
+        if rhi[r, axis] <= plane:
+            scratch[nl] = r
+            nl += 1
+            continue
+        if rlo[r, axis] >= plane:
+            scratch[n + nr] = r
+            nr += 1
+            continue
+        _corners(v, tri, rtri[r], p)
+        has_below = _clip_bounds(p, axis, -np.inf, plane, rlo[r], rhi[r], below)
+        has_above = _clip_bounds(p, axis, plane, np.inf, rlo[r], rhi[r], above)
+        if has_below and has_above:
+            _set_reference(rtri, rlo, rhi, rcen, used, rtri[r], above)
+            _set_reference(rtri, rlo, rhi, rcen, r, rtri[r], below)
+            scratch[nl] = r
+            nl += 1
+            scratch[n + nr] = used
+            nr += 1
+            used += 1
+        elif has_above:
+            _set_reference(rtri, rlo, rhi, rcen, r, rtri[r], above)
+            scratch[n + nr] = r
+            nr += 1
+        else:  # below only, or neither (rounding): the reference stays whole on the left
+            if has_below:
+                _set_reference(rtri, rlo, rhi, rcen, r, rtri[r], below)
+            scratch[nl] = r
+            nl += 1
+    for i in range(nr):
+        idx[start + i] = scratch[n + i]
+    for i in range(nl):
+        idx[start + nr + i] = scratch[i]
+    return start + nr, start + nr + nl, used
+
+
+@njit(cache=True, nogil=True)
+def _build_spatial(v, tri, max_leaf, bins, node_cost, alpha, budget):
+    """:func:`_build` with spatial splits: the work stack over references (a triangle and
+    the box of its part) instead of triangles. Returns what :func:`_build` does, ``idx``
+    the leaves' triangles in leaf order (a triangle split by a plane sits in each leaf
+    that holds a part of it)."""
+    m = tri.shape[0]
+    cap = m + int(budget * m) + 2
+    rtri = np.empty(cap, np.int32)
+    rlo = np.empty((cap, 3), np.float32)
+    rhi = np.empty((cap, 3), np.float32)
+    rcen = np.empty((cap, 3), np.float32)
+    for t in range(m):
+        rtri[t] = t
+        for j in range(3):
+            a = v[tri[t, 0], j]
+            b = v[tri[t, 1], j]
+            c = v[tri[t, 2], j]
+            rlo[t, j] = min(a, min(b, c))
+            rhi[t, j] = max(a, max(b, c))
+            rcen[t, j] = (rlo[t, j] + rhi[t, j]) * _F32_HALF
+    used = m
+    idx = np.arange(cap).astype(np.int32)  # the live references, one segment per task
+    out = np.empty(cap, np.int32)
+    n_out = 0
+    child = np.zeros((cap, 2), np.int32)
+    nbox = np.zeros((cap, 12), np.float32)
+    hist = np.zeros(max_leaf + 1, np.int64)
+    leaf_start = np.empty(cap, np.int64)
+    stack = np.empty((cap + 1, 5), np.int64)
+    sbox = np.empty((cap + 1, 6), np.float32)
+    blo = np.empty((3, bins, 3), np.float32)
+    bhi = np.empty((3, bins, 3), np.float32)
+    bcnt = np.empty((3, bins), np.int64)
+    slo = np.empty((bins, 3), np.float32)
+    shi = np.empty((bins, 3), np.float32)
+    sin = np.empty(bins, np.int64)
+    sout = np.empty(bins, np.int64)
+    rarea = np.empty(bins, np.float64)
+    cbox = np.empty((2, 6), np.float32)
+    scratch = np.empty(2 * cap, np.int32)
+
+    _range_box(sbox[0], idx, 0, m, rlo, rhi)
+    root_area = _box_area(sbox[0])
+    stack[0, _T_START] = 0
+    stack[0, _T_END] = m
+    stack[0, _T_PARENT] = -1
+    stack[0, _T_SLOT] = 0
+    stack[0, _T_DEPTH] = 0
+    top = 1
+    n_int = 0
+    n_leaf = 0
+    depth = 0
+    sah_int = 0.0
+    sah_leaf = 0.0
+    root = 0
+    while top > 0:
+        top -= 1
+        start = stack[top, _T_START]
+        end = stack[top, _T_END]
+        parent = stack[top, _T_PARENT]
+        slot = stack[top, _T_SLOT]
+        d = stack[top, _T_DEPTH]
+        area = _box_area(sbox[top])
+        n = end - start
+        make_leaf = n == 1
+        right_end = start
+        left_end = end
+        if not make_leaf:
+            cost, axis, sbin, cmin, scale = binned_best_split(
+                idx, start, end, rlo, rhi, rcen, bins, blo, bhi, bcnt, rarea, cbox
+            )
+            overlap = 0.0
+            if axis >= 0:
+                lo0 = max(cbox[0, 0], cbox[1, 0])
+                lo1 = max(cbox[0, 1], cbox[1, 1])
+                lo2 = max(cbox[0, 2], cbox[1, 2])
+                hi0 = min(cbox[0, 3], cbox[1, 3])
+                hi1 = min(cbox[0, 4], cbox[1, 4])
+                hi2 = min(cbox[0, 5], cbox[1, 5])
+                if lo0 <= hi0 and lo1 <= hi1 and lo2 <= hi2:
+                    overlap = _area(lo0, lo1, lo2, hi0, hi1, hi2)
+            s_cost = np.inf
+            s_axis = -1
+            plane = 0.0
+            crossing = 0
+            if axis < 0 or overlap > alpha * root_area:
+                s_cost, s_axis, plane, crossing = spatial_best_split(
+                    idx, start, end, v, tri, rtri, rlo, rhi, sbox[top], bins, slo, shi,
+                    sin, sout, rarea,
+                )  # fmt: skip
+            spatial = s_axis >= 0 and s_cost < cost and used + crossing <= cap
+            best = s_cost if spatial else cost
+            if n <= max_leaf and (best == np.inf or area * n <= node_cost * area + best):
+                make_leaf = True
+            elif spatial:
+                right_end, left_end, used = _spatial_partition(
+                    idx, start, end, v, tri, rtri, rlo, rhi, rcen, used, s_axis, plane,
+                    scratch,
+                )  # fmt: skip
+            else:
+                if axis >= 0:
+                    mid = _binned_partition(idx, start, end, rcen, axis, sbin, cmin, scale, bins)
+                else:  # all centroids coincide on every axis: split the range in the middle
+                    mid = start + n // 2
+                # the right side first, so the left child sits on top of the live references
+                for i in range(start, end):
+                    scratch[i - start] = idx[i]
+                nr = end - mid
+                for i in range(nr):
+                    idx[start + i] = scratch[mid - start + i]
+                for i in range(mid - start):
+                    idx[start + nr + i] = scratch[i]
+                right_end = start + nr
+                left_end = end
+        if make_leaf:
+            woop_start = WOOP_FLOAT4_PER_TRI * n_out + n_leaf  # one sentinel per earlier leaf
+            if parent >= 0:
+                child[parent, slot] = ~woop_start
+            else:
+                root = ~woop_start
+            leaf_start[n_leaf] = n_out
+            for i in range(start, end):
+                out[n_out] = rtri[idx[i]]
+                n_out += 1
+            n_leaf += 1
+            hist[n] += 1
+            depth = max(depth, d)
+            sah_leaf += area * n
+            continue
+        # children: right [start, right_end), left [right_end, left_end)
+        _range_box(cbox[0], idx, right_end, left_end, rlo, rhi)
+        _range_box(cbox[1], idx, start, right_end, rlo, rhi)
+        node = n_int
+        n_int += 1
+        if parent >= 0:
+            child[parent, slot] = node
+        sah_int += area
+        b0 = cbox[0]
+        b1 = cbox[1]
+        row = nbox[node]
+        row[0] = b0[0]
+        row[1] = b0[3]
+        row[2] = b0[1]
+        row[3] = b0[4]
+        row[4] = b1[0]
+        row[5] = b1[3]
+        row[6] = b1[1]
+        row[7] = b1[4]
+        row[8] = b0[2]
+        row[9] = b0[5]
+        row[10] = b1[2]
+        row[11] = b1[5]
+        # Push right first so the left child, on top of the live references, is next.
+        for side in (1, 0):
+            stack[top, _T_START] = start if side == 1 else right_end
+            stack[top, _T_END] = right_end if side == 1 else left_end
+            stack[top, _T_PARENT] = node
+            stack[top, _T_SLOT] = side
+            stack[top, _T_DEPTH] = d + 1
+            for j in range(6):
+                sbox[top, j] = cbox[side, j]
+            top += 1
+    if root_area > 0.0:
+        sah = (sah_int + sah_leaf) / root_area
+    else:
+        sah = np.float64(n_int + n_out)
+    return out[:n_out], child[:n_int], nbox[:n_int], leaf_start[:n_leaf], root, depth, sah, hist
+
+
 def widened(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Boxes grown on every side by :data:`WIDEN` times their largest coordinate magnitude,
     then rounded outward (so by at least one float32 step).
@@ -453,16 +813,22 @@ def build_bvh(
         the same float32 coordinates the GPU sees, so boxes contain triangles exactly.
     triangles : int (m, 3)
         Vertex indices; ``m >= 1``.
-    method : {"binned", "sweep"}
+    method : {"binned", "sweep", "spatial"}
         ``"binned"``: SAH over ``bins`` centroid bins per axis (fast, the default).
         ``"sweep"``: SAH at every plane between distinct centroids on each axis (slower;
         per node never worse than binning, a reference for the binned tree's quality).
+        ``"spatial"``: binned, and where the best object split's children overlap (more
+        than :data:`SPATIAL_ALPHA` of the root's area) also ``bins`` spatial splits per
+        axis, which cut the triangles a plane crosses into two references with their
+        parts' bounds (Stich et al. 2009, as Aila & Laine's trees were built; no
+        reference unsplitting; at most :data:`SPATIAL_BUDGET` x the triangles added). A
+        split triangle then sits in every leaf holding a part of it.
         All centroids equal on every axis: the index range is split in the middle.
     max_leaf : int
         Largest leaf. A node with more triangles is always split; a smaller one becomes a
         leaf when its cost (its triangle count) is not above the best split's cost.
     bins : int
-        Bins per axis for ``"binned"``; ignored by ``"sweep"``.
+        Bins per axis for ``"binned"`` and ``"spatial"``; ignored by ``"sweep"``.
     node_cost : float
         SAH cost of a node step relative to a triangle test (Aila & Laine's framework
         uses 1, as here). Higher values make fewer, larger leaves; the split chosen at
@@ -484,11 +850,16 @@ def build_bvh(
     tlo = np.minimum(np.minimum(p0, p1), p2)
     thi = np.maximum(np.maximum(p0, p1), p2)
     cen = (tlo + thi) * _F32_HALF
-    idx, child, nbox, leaf_start, root, depth, sah, hist = _build(
-        tlo, thi, cen, method == "sweep", int(max_leaf), int(bins), float(node_cost)
-    )
+    if method == "spatial":
+        idx, child, nbox, leaf_start, root, depth, sah, hist = _build_spatial(
+            v, tri, int(max_leaf), int(bins), float(node_cost), SPATIAL_ALPHA, SPATIAL_BUDGET
+        )
+    else:
+        idx, child, nbox, leaf_start, root, depth, sah, hist = _build(
+            tlo, thi, cen, method == "sweep", int(max_leaf), int(bins), float(node_cost)
+        )
     del tlo, thi, cen  # only the split search needs them: free them before the Woop rows
-    m = tri.shape[0]
+    m = idx.shape[0]  # leaf entries: the triangles, and the parts of split ones
     n_int = child.shape[0]
     n_leaf = leaf_start.shape[0]
     nodes = np.zeros((n_int, NODE_FLOATS), dtype=np.float32)

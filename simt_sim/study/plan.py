@@ -122,7 +122,11 @@ def plan_study(spec: StudySpec) -> StudyPlan:
     progress.checkpoint()  # Ctrl-C during the load stops before the BVH build
     cameras = parse_cameras(spec.cameras, scene)
     bvh = build_bvh(
-        scene.vertices, scene.triangles, max_leaf=spec.max_leaf, node_cost=spec.node_cost
+        scene.vertices,
+        scene.triangles,
+        method=spec.build,
+        max_leaf=spec.max_leaf,
+        node_cost=spec.node_cost,
     )
     announce(scene, bvh)
     tree = make_tree(bvh, spec.bvh)

@@ -64,6 +64,7 @@ def saved_spec(paths: Sequence[str], **fields: Any) -> StudySpec:
         seed=int(first["seed"]),
         max_leaf=int(tree["max_leaf"]),
         node_cost=float(tree["node_cost"]),
+        build=str(tree.get("method", "binned")),
         bvh=tree.get("layout", "bvh2"),
         **fields,
     )

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 from simt_sim import schemes
+from simt_sim.bvh.build import METHODS as BUILD_METHODS
 from simt_sim.bvh.layouts import NODE_BYTES_OF
 from simt_sim.errors import SimtSimError
 from simt_sim.rays.generate import LAUNCH_SIZE
@@ -39,6 +40,9 @@ class StudySpec:
     max_bounces: int = 8
     max_leaf: int = 8
     node_cost: float = 1.0
+    build: str = "binned"
+    """The BVH builder's method (``--bvh-build``; :data:`simt_sim.bvh.build.METHODS`):
+    ``spatial`` adds spatial splits, as the paper's trees had."""
     launch_size: int = LAUNCH_SIZE
     actual: bool = False
     sample: float = 1.0
@@ -66,6 +70,10 @@ class StudySpec:
                 raise SimtSimError(f"unknown ray type {rt!r}; use any of {', '.join(RAY_TYPES)}")
         if self.bvh not in LAYOUTS:
             raise SimtSimError(f"unknown BVH layout {self.bvh!r}; use one of {', '.join(LAYOUTS)}")
+        if self.build not in BUILD_METHODS:
+            raise SimtSimError(
+                f"unknown BVH build {self.build!r}; use one of {', '.join(BUILD_METHODS)}"
+            )
         if self.memory == "on" and self.bvh not in NODE_BYTES_OF:
             raise SimtSimError(
                 f"the memory model reads leaves ended by a sentinel, which {self.bvh} has not; "

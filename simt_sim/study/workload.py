@@ -94,6 +94,7 @@ def make_workload(
     bvh: BVH | None = None,
     max_leaf: int = 8,
     node_cost: float = 1.0,
+    build: str = "binned",
     up: str | None = None,
     camera_file: str | None = None,
     layout: str = DEFAULT_LAYOUT,
@@ -115,9 +116,9 @@ def make_workload(
         Seed of the per-pixel sample rotation.
     bvh : BVH, optional
         A BVH already built for this scene.
-    max_leaf, node_cost
-        The builder's largest leaf and SAH node cost (:func:`~simt_sim.bvh.build.build_bvh`)
-        when ``bvh`` is not given.
+    max_leaf, node_cost, build
+        The builder's largest leaf, SAH node cost and method
+        (:func:`~simt_sim.bvh.build.build_bvh`) when ``bvh`` is not given.
     up, camera_file
         The scene's up axis and a camera file (:func:`~simt_sim.scene.load.load_scene`) when
         ``scene`` is a name or path. A scene loaded here is announced
@@ -138,7 +139,9 @@ def make_workload(
     cams = parse_cameras(cameras, sc)
     tree = bvh
     if tree is None:
-        tree = build_bvh(sc.vertices, sc.triangles, max_leaf=max_leaf, node_cost=node_cost)
+        tree = build_bvh(
+            sc.vertices, sc.triangles, method=build, max_leaf=max_leaf, node_cost=node_cost
+        )
         progress.checkpoint()
     if loaded:
         announce(sc, tree)

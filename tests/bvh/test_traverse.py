@@ -113,11 +113,12 @@ def assert_matches_bruteforce(v, t, bvh, rays, rare: float = 1e-3):
     return hits
 
 
+@pytest.mark.parametrize("method", ["binned", "spatial"])
 @pytest.mark.parametrize("query", ["closest", "any"])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_soup_matches_bruteforce(seed, query):
+def test_soup_matches_bruteforce(seed, query, method):
     v, t = soup(seed)
-    bvh = build_bvh(v, t, max_leaf=4)
+    bvh = build_bvh(v, t, max_leaf=4, method=method)
     hits = assert_matches_bruteforce(v, t, bvh, rays_at(seed + 10, 3000, query))
     assert 0.2 < hits.hit_mask.mean() < 1.0  # the rays exercise both outcomes
 

@@ -93,3 +93,18 @@ def test_plot_draws_saved_traces_as_it_draws_recorded_rays(tmp_path: Path) -> No
                    "--out", str(several)).returncode == 0  # fmt: skip
     assert_clean_error(run_cli("plot", "--trace", str(several), "--out", str(tmp_path / "x")),
                        "one view")  # fmt: skip
+
+
+def test_a_trace_of_a_spatial_split_tree_replays_as_that_tree(tmp_path: Path) -> None:
+    """The builder's method travels with a saved trace: its table is the table of a fresh
+    run with ``--bvh-build spatial``, not of the binned tree."""
+    path = tmp_path / "ao.trace"
+    small = ("--rays", "ao", "--resolution", "64x48", "--spp", "2", "--quiet")
+    proc = run_cli("trace", *small, "--bvh-build", "spatial", "--out", str(path))
+    assert proc.returncode == 0, proc.stderr
+    assert read_meta(path)["meta"]["bvh"]["method"] == "spatial"
+    saved = run_cli("table", "--trace", str(path), "--format", "csv")
+    fresh = run_cli("table", *small, "--bvh-build", "spatial", "--format", "csv")
+    binned = run_cli("table", *small, "--format", "csv")
+    assert saved.returncode == fresh.returncode == binned.returncode == 0, saved.stderr
+    assert saved.stdout == fresh.stdout != binned.stdout
