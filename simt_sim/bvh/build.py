@@ -523,16 +523,56 @@ def _set_reference(rtri, rlo, rhi, rcen, q, t, box):
 
 
 @njit(cache=True, nogil=True)
+def _grow_box(box, part):
+    for j in range(3):
+        box[j] = min(box[j], part[j])
+        box[j + 3] = max(box[j + 3], part[j + 3])
+
+
+@njit(cache=True, nogil=True)
+def _union_area(box, rlo, rhi, r):
+    """Surface area of ``box`` grown by reference ``r``'s box."""
+    return _area(
+        min(box[0], rlo[r, 0]), min(box[1], rlo[r, 1]), min(box[2], rlo[r, 2]),
+        max(box[3], rhi[r, 0]), max(box[4], rhi[r, 1]), max(box[5], rhi[r, 2]),
+    )  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
 def _spatial_partition(idx, start, end, v, tri, rtri, rlo, rhi, rcen, used, axis, plane,
                        scratch):  # fmt: skip
     """Split the references ``idx[start:end]`` at ``plane`` on ``axis``: one wholly below
     goes left, one wholly above right, one the plane cuts becomes two, each with its part's
     bounds (the left part keeps the reference's slot, the right one takes the pool's next,
-    ``used``). The right side is written to ``idx[start:]``, then the left; returns
-    ``(right end, left end, used)``."""
+    ``used``), unless keeping it whole on one side costs less by the SAH (Stich et al.'s
+    reference unsplitting, against the children as the split makes them). The right side
+    is written to ``idx[start:]``, then the left; returns ``(right end, left end, used)``."""
     p = np.empty((3, 3), np.float64)
     below = np.empty(6, np.float32)
     above = np.empty(6, np.float32)
+    left = np.empty(6, np.float32)
+    right = np.empty(6, np.float32)
+    # the children as the split makes them: boxes and counts
+    _empty_box(left)
+    _empty_box(right)
+    n_left = 0
+    n_right = 0
+    for i in range(start, end):
+        r = idx[i]
+        if rhi[r, axis] <= plane:
+            _grow(left, rlo, rhi, r)
+            n_left += 1
+        elif rlo[r, axis] >= plane:
+            _grow(right, rlo, rhi, r)
+            n_right += 1
+        else:
+            _corners(v, tri, rtri[r], p)
+            if _clip_bounds(p, axis, -np.inf, plane, rlo[r], rhi[r], below):
+                _grow_box(left, below)
+                n_left += 1
+            if _clip_bounds(p, axis, plane, np.inf, rlo[r], rhi[r], above):
+                _grow_box(right, above)
+                n_right += 1
     nl = 0
     nr = 0
     n = end - start
@@ -551,6 +591,21 @@ def _spatial_partition(idx, start, end, v, tri, rtri, rlo, rhi, rcen, used, axis
         has_below = _clip_bounds(p, axis, -np.inf, plane, rlo[r], rhi[r], below)
         has_above = _clip_bounds(p, axis, plane, np.inf, rlo[r], rhi[r], above)
         if has_below and has_above:
+            split = _box_area(left) * n_left + _box_area(right) * n_right
+            whole_left = _union_area(left, rlo, rhi, r) * n_left + _box_area(right) * (n_right - 1)
+            whole_right = _box_area(left) * (n_left - 1) + _union_area(right, rlo, rhi, r) * n_right
+            if whole_left < split and whole_left <= whole_right:
+                _grow(left, rlo, rhi, r)
+                n_right -= 1
+                has_above = False
+                has_below = False  # whole, on the left: the reference as it is
+            elif whole_right < split:
+                _grow(right, rlo, rhi, r)
+                n_left -= 1
+                scratch[n + nr] = r
+                nr += 1
+                continue
+        if has_below and has_above:
             _set_reference(rtri, rlo, rhi, rcen, used, rtri[r], above)
             _set_reference(rtri, rlo, rhi, rcen, r, rtri[r], below)
             scratch[nl] = r
@@ -562,7 +617,7 @@ def _spatial_partition(idx, start, end, v, tri, rtri, rlo, rhi, rcen, used, axis
             _set_reference(rtri, rlo, rhi, rcen, r, rtri[r], above)
             scratch[n + nr] = r
             nr += 1
-        else:  # below only, or neither (rounding): the reference stays whole on the left
+        else:  # below only, whole, or neither (rounding): on the left
             if has_below:
                 _set_reference(rtri, rlo, rhi, rcen, r, rtri[r], below)
             scratch[nl] = r
