@@ -71,8 +71,7 @@ def test_every_point_of_every_triangle_is_in_a_leaf_whose_boxes_hold_it() -> Non
     for tri in range(len(t)):
         for q in p[tri]:
             assert any(
-                all((lo <= q).all() and (q <= hi).all() for lo, hi in path)
-                for path in holders[tri]
+                all((lo <= q).all() and (q <= hi).all() for lo, hi in path) for path in holders[tri]
             ), (tri, q)
 
 
