@@ -259,6 +259,54 @@ def sweep_best_split(idx, start, end, tlo, thi, cen, keys, order, rarea, cbox):
 
 
 @njit(cache=True, nogil=True)
+def _push_task(stack, sbox, top, start, end, parent, slot, depth, box):
+    """Push the task of items ``start:end`` (a child ``slot`` of node ``parent``, -1 for
+    the root) with its box; returns the new top."""
+    stack[top, _T_START] = start
+    stack[top, _T_END] = end
+    stack[top, _T_PARENT] = parent
+    stack[top, _T_SLOT] = slot
+    stack[top, _T_DEPTH] = depth
+    for j in range(6):
+        sbox[top, j] = box[j]
+    return top + 1
+
+
+@njit(cache=True, nogil=True)
+def _pop_task(stack, sbox, top):
+    """The task at ``top``: its start, end, parent, slot, depth and box area."""
+    t = stack[top]
+    return t[_T_START], t[_T_END], t[_T_PARENT], t[_T_SLOT], t[_T_DEPTH], _box_area(sbox[top])
+
+
+@njit(cache=True, nogil=True)
+def _link(child, parent, slot, node, root):
+    """Make ``node`` (``~woop_start`` for a leaf) child ``slot`` of ``parent``, or the root
+    when ``parent`` is -1; returns the root."""
+    if parent >= 0:
+        child[parent, slot] = node
+        return root
+    return node
+
+
+@njit(cache=True, nogil=True)
+def _node_row(row, b0, b1):
+    """Write child boxes ``b0``, ``b1`` (lo xyz, hi xyz) to a node row's layout columns."""
+    row[0] = b0[0]
+    row[1] = b0[3]
+    row[2] = b0[1]
+    row[3] = b0[4]
+    row[4] = b1[0]
+    row[5] = b1[3]
+    row[6] = b1[1]
+    row[7] = b1[4]
+    row[8] = b0[2]
+    row[9] = b0[5]
+    row[10] = b1[2]
+    row[11] = b1[5]
+
+
+@njit(cache=True, nogil=True)
 def _build(tlo, thi, cen, sweep, max_leaf, bins, node_cost):
     """The work-stack build loop.
 
@@ -287,12 +335,7 @@ def _build(tlo, thi, cen, sweep, max_leaf, bins, node_cost):
 
     _range_box(sbox[0], idx, 0, m, tlo, thi)
     root_area = _box_area(sbox[0])
-    stack[0, _T_START] = 0
-    stack[0, _T_END] = m
-    stack[0, _T_PARENT] = -1
-    stack[0, _T_SLOT] = 0
-    stack[0, _T_DEPTH] = 0
-    top = 1
+    top = _push_task(stack, sbox, 0, 0, m, -1, 0, 0, sbox[0])
     n_int = 0
     n_leaf = 0
     depth = 0
@@ -301,12 +344,7 @@ def _build(tlo, thi, cen, sweep, max_leaf, bins, node_cost):
     root = 0
     while top > 0:
         top -= 1
-        start = stack[top, _T_START]
-        end = stack[top, _T_END]
-        parent = stack[top, _T_PARENT]
-        slot = stack[top, _T_SLOT]
-        d = stack[top, _T_DEPTH]
-        area = _box_area(sbox[top])
+        start, end, parent, slot, d, area = _pop_task(stack, sbox, top)
         n = end - start
         make_leaf = n == 1
         mid = -1
@@ -336,10 +374,7 @@ def _build(tlo, thi, cen, sweep, max_leaf, bins, node_cost):
                 _range_box(cbox[1], idx, mid, end, tlo, thi)
         if make_leaf:
             woop_start = WOOP_FLOAT4_PER_TRI * start + n_leaf  # one sentinel per earlier leaf
-            if parent >= 0:
-                child[parent, slot] = ~woop_start
-            else:
-                root = ~woop_start
+            root = _link(child, parent, slot, ~woop_start, root)
             leaf_start[n_leaf] = start
             n_leaf += 1
             hist[n] += 1
@@ -348,34 +383,12 @@ def _build(tlo, thi, cen, sweep, max_leaf, bins, node_cost):
             continue
         node = n_int
         n_int += 1
-        if parent >= 0:
-            child[parent, slot] = node
+        root = _link(child, parent, slot, node, root)
         sah_int += area
-        b0 = cbox[0]
-        b1 = cbox[1]
-        row = nbox[node]
-        row[0] = b0[0]
-        row[1] = b0[3]
-        row[2] = b0[1]
-        row[3] = b0[4]
-        row[4] = b1[0]
-        row[5] = b1[3]
-        row[6] = b1[1]
-        row[7] = b1[4]
-        row[8] = b0[2]
-        row[9] = b0[5]
-        row[10] = b1[2]
-        row[11] = b1[5]
+        _node_row(nbox[node], cbox[0], cbox[1])
         # Push right first so the left child is popped (and numbered) next.
-        for side, s0, s1 in ((1, mid, end), (0, start, mid)):
-            stack[top, _T_START] = s0
-            stack[top, _T_END] = s1
-            stack[top, _T_PARENT] = node
-            stack[top, _T_SLOT] = side
-            stack[top, _T_DEPTH] = d + 1
-            for j in range(6):
-                sbox[top, j] = cbox[side, j]
-            top += 1
+        top = _push_task(stack, sbox, top, mid, end, node, 1, d + 1, cbox[1])
+        top = _push_task(stack, sbox, top, start, mid, node, 0, d + 1, cbox[0])
     if root_area > 0.0:
         sah = (sah_int + sah_leaf) / root_area
     else:
@@ -673,12 +686,7 @@ def _build_spatial(v, tri, max_leaf, bins, node_cost, alpha, budget):
 
     _range_box(sbox[0], idx, 0, m, rlo, rhi)
     root_area = _box_area(sbox[0])
-    stack[0, _T_START] = 0
-    stack[0, _T_END] = m
-    stack[0, _T_PARENT] = -1
-    stack[0, _T_SLOT] = 0
-    stack[0, _T_DEPTH] = 0
-    top = 1
+    top = _push_task(stack, sbox, 0, 0, m, -1, 0, 0, sbox[0])
     n_int = 0
     n_leaf = 0
     depth = 0
@@ -687,12 +695,7 @@ def _build_spatial(v, tri, max_leaf, bins, node_cost, alpha, budget):
     root = 0
     while top > 0:
         top -= 1
-        start = stack[top, _T_START]
-        end = stack[top, _T_END]
-        parent = stack[top, _T_PARENT]
-        slot = stack[top, _T_SLOT]
-        d = stack[top, _T_DEPTH]
-        area = _box_area(sbox[top])
+        start, end, parent, slot, d, area = _pop_task(stack, sbox, top)
         n = end - start
         make_leaf = n == 1
         right_end = start
@@ -746,10 +749,7 @@ def _build_spatial(v, tri, max_leaf, bins, node_cost, alpha, budget):
                 left_end = end
         if make_leaf:
             woop_start = WOOP_FLOAT4_PER_TRI * n_out + n_leaf  # one sentinel per earlier leaf
-            if parent >= 0:
-                child[parent, slot] = ~woop_start
-            else:
-                root = ~woop_start
+            root = _link(child, parent, slot, ~woop_start, root)
             leaf_start[n_leaf] = n_out
             for i in range(start, end):
                 out[n_out] = rtri[idx[i]]
@@ -764,34 +764,12 @@ def _build_spatial(v, tri, max_leaf, bins, node_cost, alpha, budget):
         _range_box(cbox[1], idx, start, right_end, rlo, rhi)
         node = n_int
         n_int += 1
-        if parent >= 0:
-            child[parent, slot] = node
+        root = _link(child, parent, slot, node, root)
         sah_int += area
-        b0 = cbox[0]
-        b1 = cbox[1]
-        row = nbox[node]
-        row[0] = b0[0]
-        row[1] = b0[3]
-        row[2] = b0[1]
-        row[3] = b0[4]
-        row[4] = b1[0]
-        row[5] = b1[3]
-        row[6] = b1[1]
-        row[7] = b1[4]
-        row[8] = b0[2]
-        row[9] = b0[5]
-        row[10] = b1[2]
-        row[11] = b1[5]
+        _node_row(nbox[node], cbox[0], cbox[1])
         # Push right first so the left child, on top of the live references, is next.
-        for side in (1, 0):
-            stack[top, _T_START] = start if side == 1 else right_end
-            stack[top, _T_END] = right_end if side == 1 else left_end
-            stack[top, _T_PARENT] = node
-            stack[top, _T_SLOT] = side
-            stack[top, _T_DEPTH] = d + 1
-            for j in range(6):
-                sbox[top, j] = cbox[side, j]
-            top += 1
+        top = _push_task(stack, sbox, top, start, right_end, node, 1, d + 1, cbox[1])
+        top = _push_task(stack, sbox, top, right_end, left_end, node, 0, d + 1, cbox[0])
     if root_area > 0.0:
         sah = (sah_int + sah_leaf) / root_area
     else:
