@@ -66,9 +66,7 @@ BREAK_EVEN_BLOCKS = {
 
 BINNED = "no spatial splits"
 """The label of :data:`BVH_VARIANTS`' tree without spatial splits."""
-PROTOCOL_BUILD = "spatial"
-"""The protocol's tree: the paper's builder (SAH, node and triangle cost 1, leaves of at
-most 8) used spatial splits (docs/BACKGROUND.md), so ours does too (``--bvh-build``)."""
+PROTOCOL_BUILD = secondary_order.PROTOCOL_BUILD
 #: trees the ratios are re-measured on, each in a sampled run: leaves smaller and larger
 #: than the protocol's (the paper's tree had 164K nodes for 282K triangles, seed lecture),
 #: and the tree without spatial splits (simt-sim's default build)

@@ -56,6 +56,9 @@ WINDOW = 1 << 21
 ORDERS = {"pixel": None, "morton 2^16": 1 << 16, "morton 2^20": LAUNCH_SIZE,
           "morton 2^21": WINDOW}  # fmt: skip
 DEFAULT = "morton 2^20"
+PROTOCOL_BUILD = "spatial"
+"""The protocol's tree: the paper's builder (SAH, node and triangle cost 1, leaves of at
+most 8) used spatial splits (docs/BACKGROUND.md), so ours does too (``--bvh-build``)."""
 RAY_TYPES = ("ao", "diffuse")
 
 
@@ -74,7 +77,7 @@ def measure(
     count: int,
     ray_types: tuple[str, ...] = RAY_TYPES,
     orders: dict[str, int | None] = ORDERS,
-    build: str = "binned",
+    build: str = PROTOCOL_BUILD,
 ) -> pd.DataFrame:
     """One row per ray type x order x scheme: MRays/s of the replay (and the exact packet)
     on ``count`` windows of the protocol's stream, over the tree ``build_bvh`` makes with
@@ -152,7 +155,8 @@ def render(args, df: pd.DataFrame, t: pd.DataFrame, seconds: float) -> str:
             f"primary hit of a {args.resolution} image (the paper's protocol), of which "
             f"{args.windows} windows of 2^21 consecutive rays, spread evenly over the "
             f"stream and aligned to its launches ({df.rays.iloc[0]:,} AO and "
-            f"{df.rays.iloc[-1]:,} diffuse rays); GPU `{args.gpu}` with its IR costs. "
+            f"{df.rays.iloc[-1]:,} diffuse rays); GPU `{args.gpu}` with its IR costs; the "
+            f"BVH built with `--bvh-build {args.bvh_build}` (the paper table's tree). "
             "Orders: `pixel` is the order rays are spawned in (a pixel's rays side by "
             "side, pixels in 2D Morton order); `morton 2^k` sorts each consecutive launch "
             "of 2^k rays by a 6D Morton key: origin normalised to the launch's origin "
@@ -189,10 +193,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--gpu", default="gtx285")
     ap.add_argument("--windows", type=int, default=5, help="windows of 2^21 rays per ray type")
+    ap.add_argument("--bvh-build", default=PROTOCOL_BUILD, help="the BVH builder's method")
     ap.add_argument("--out", default=str(REPO / "docs" / "secondary_order.md"))
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    df = measure(args.scene, parse_resolution(args.resolution), args.spp, args.gpu, args.windows)
+    df = measure(
+        args.scene, parse_resolution(args.resolution), args.spp, args.gpu, args.windows,
+        build=args.bvh_build,
+    )  # fmt: skip
     table = ratios(df, pd.read_csv(reference_dir() / PAPER_CSV, comment="#"))
     doc = render(args, df, table, time.perf_counter() - t0)
     write_atomic(args.out, doc)
