@@ -643,26 +643,21 @@ def _spatial_partition(idx, start, end, v, tri, rtri, rlo, rhi, rcen, used, axis
 
 
 @njit(cache=True, nogil=True)
-def _build_spatial(v, tri, max_leaf, bins, node_cost, alpha, budget):
+def _build_spatial(v, tri, tlo, thi, cen, max_leaf, bins, node_cost, alpha, budget):
     """:func:`_build` with spatial splits: the work stack over references (a triangle and
-    the box of its part) instead of triangles. Returns what :func:`_build` does, ``idx``
-    the leaves' triangles in leaf order (a triangle split by a plane sits in each leaf
-    that holds a part of it)."""
+    the box of its part; first the triangles' bounds ``tlo``/``thi`` and centres ``cen``)
+    instead of triangles. Returns what :func:`_build` does, ``idx`` the leaves' triangles
+    in leaf order (a triangle split by a plane sits in each leaf that holds a part of it)."""
     m = tri.shape[0]
     cap = m + int(budget * m) + 2
     rtri = np.empty(cap, np.int32)
     rlo = np.empty((cap, 3), np.float32)
     rhi = np.empty((cap, 3), np.float32)
     rcen = np.empty((cap, 3), np.float32)
-    for t in range(m):
-        rtri[t] = t
-        for j in range(3):
-            a = v[tri[t, 0], j]
-            b = v[tri[t, 1], j]
-            c = v[tri[t, 2], j]
-            rlo[t, j] = min(a, min(b, c))
-            rhi[t, j] = max(a, max(b, c))
-            rcen[t, j] = (rlo[t, j] + rhi[t, j]) * _F32_HALF
+    rtri[:m] = np.arange(m)
+    rlo[:m] = tlo
+    rhi[:m] = thi
+    rcen[:m] = cen
     used = m
     idx = np.arange(cap).astype(np.int32)  # the live references, one segment per task
     out = np.empty(cap, np.int32)
@@ -885,7 +880,16 @@ def build_bvh(
     cen = (tlo + thi) * _F32_HALF
     if method == "spatial":
         idx, child, nbox, leaf_start, root, depth, sah, hist = _build_spatial(
-            v, tri, int(max_leaf), int(bins), float(node_cost), SPATIAL_ALPHA, SPATIAL_BUDGET
+            v,
+            tri,
+            tlo,
+            thi,
+            cen,
+            int(max_leaf),
+            int(bins),
+            float(node_cost),
+            SPATIAL_ALPHA,
+            SPATIAL_BUDGET,
         )
     else:
         idx, child, nbox, leaf_start, root, depth, sah, hist = _build(

@@ -1118,6 +1118,17 @@ def _cw_alive(lc, lane):
     return lc[lane, _CEND] == 0 and (lc[lane, _G_HITS] != 0 or lc[lane, _CSP] != 0)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _cw_select(lc, lanes, sel):
+    """The alive lanes (:func:`_cw_alive`) into ``sel``, in order; returns how many."""
+    n = 0
+    for lane in range(lanes):
+        if _cw_alive(lc, lane):
+            sel[n] = lane
+            n += 1
+    return n
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _cw_step(lc, lf, stack, lane, nodes, nodes_f, nodes_u):
     """One node step of a lane: take the next child of its node group (popping a group
@@ -1237,11 +1248,7 @@ def _cw_group(lc, lf, stack, lanes, nodes, nodes_f, nodes_u, woop, any_hit, ops,
     alive; then ``finish``. Returns the cost, -1 on a stack overflow."""
     sel = np.empty(lanes, np.int64)
     cost = np.int64(0)
-    n = 0
-    for lane in range(lanes):
-        if _cw_alive(lc, lane):
-            sel[n] = lane
-            n += 1
+    n = _cw_select(lc, lanes, sel)
     while n:
         cost += charge(cnt, hist, costs, TRAV_STEP, n)
         tested = np.int64(0)
@@ -1268,11 +1275,7 @@ def _cw_group(lc, lf, stack, lanes, nodes, nodes_f, nodes_u, woop, any_hit, ops,
                 exits += 1
         cost += charge(cnt, hist, costs, LEAF_ENTRY, exits)
         cost += charge(cnt, hist, costs, LOOP_CONTROL, n)
-        n = 0
-        for lane in range(lanes):
-            if _cw_alive(lc, lane):
-                sel[n] = lane
-                n += 1
+        n = _cw_select(lc, lanes, sel)
         cost += charge(cnt, hist, costs, STACK_POP, n)
     return cost + charge(cnt, hist, costs, FINISH, lanes)
 
