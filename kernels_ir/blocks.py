@@ -558,7 +558,8 @@ class Placement(NamedTuple):
     all, with call counts). ``fallback``: the indices of divergent-warp fallbacks
     (:func:`divergent_only`), whose ``block`` is their marker block. ``full_warp``: the
     indices of full-warp-only paths (:func:`full_warp_only`). ``run_elsewhere``: the
-    blocks whose code all runs in other blocks' basic blocks (:func:`by_basic_block`).
+    blocks whose code all runs in other blocks' basic blocks (:func:`by_basic_block`,
+    :func:`shared_outcomes`).
     ``shared``: the indices of code that two outcomes of a node step run in common
     (:func:`shared_outcomes`), each with every outcome it is charged to (``block`` is the
     first). ``rounds``: the blocks of loops that go round through a convergence barrier
@@ -607,7 +608,6 @@ def place_instructions(
     placed = by_basic_block(cfg, by_loop, [instructions[i] for i in kernel], spare)
     common = shared_outcomes(cfg, placed, [instructions[i] for i in kernel], spare)
     shared = {kernel[j]: outcomes for j, outcomes in common.items()}
-    run_elsewhere = frozenset(by_loop) - frozenset(placed) - {None}
     block = [UNATTRIBUTED] * len(instructions)
     for i, line, freq in zip(kernel, lines, placed, strict=True):
         marker = owner.get(line) if line is not None else None
@@ -649,6 +649,11 @@ def place_instructions(
     taken = after_exit(cfg, [block[i] for i in kernel], [instructions[i] for i in kernel])
     for i, taken_block in zip(kernel, taken, strict=True):
         block[i] = taken_block
+    # blocks whose code all runs in other blocks' basic blocks (by_basic_block, or a node
+    # step's outcomes sharing one, shared_outcomes)
+    marked = {owner.get(line) for i, line in zip(kernel, lines, strict=True) if i not in never}
+    charged = {block[i] for i in kernel} | {o for outcomes in shared.values() for o in outcomes}
+    run_elsewhere = frozenset(marked - charged - {None})
     full_warp = frozenset(full_warp_only(instructions))
     rounds = frozenset(
         block[kernel[cfg.starts[loop.header]]]

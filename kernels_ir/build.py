@@ -31,6 +31,7 @@ from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import (
     CLASSES,
     DEFAULT_TESTS,
+    FOLDABLE_BLOCKS,
     RECONVERGE,
     ROUNDS,
     RUN_ELSEWHERE,
@@ -283,8 +284,9 @@ def ir_document(
     # where the scheme sees a diverged warp: speculative); other fallbacks stay uncharged
     if "trav_step" in fallback:
         counts["trav_diverged"] = fallback["trav_step"]
-    # a spin block without a spin on this target costs nothing, and says so
-    for block in set(owner.values()) & set(SPIN_BLOCKS):
+    # a spin block without a spin on this target costs nothing, and says so; so does a
+    # test the compiler folded into the code before it
+    for block in set(owner.values()) & {*SPIN_BLOCKS, *FOLDABLE_BLOCKS}:
         counts.setdefault(block, dict.fromkeys(CLASSES, 0))
     # every marked block must own code: a marker the compiler left empty would cost
     # nothing. A block whose code all runs in another block's basic block (an if-converted
@@ -299,7 +301,7 @@ def ir_document(
         notes[ROUNDS] = ", ".join(sorted(placement.rounds))
     missing = [
         b
-        for b in sorted(set(owner.values()) - set(SPIN_BLOCKS) - elsewhere)
+        for b in sorted(set(owner.values()) - {*SPIN_BLOCKS, *FOLDABLE_BLOCKS} - elsewhere)
         if sum(counts.get(b, {}).values()) <= 0
     ]
     if missing:

@@ -25,6 +25,8 @@ refill_break       ... fewer than the threshold trace: they leave for the refill
 idle_wait          lanes the pool left without a ray wait for the tracing ones (dynamic
                    fetch; a persistent launch's last group): their spin, sm_75 only
 trav_step          a traversal step: node fetch and both child box tests (TRAV_* ops)
+trav_else          ... some lane hit fewer than both children: the step's second outcome
+                   test (``else if``), which a warp whose lanes all hit both skips
 trav_none          ... neither child hit: pop the stack          (TRAV_NONE)
 trav_one           ... one child hit: go there                    (TRAV_ONE)
 trav_both          ... both hit: order them, push the farther     (TRAV_BOTH)
@@ -70,6 +72,7 @@ BLOCKS = (
     "refill_break",
     "idle_wait",
     "trav_step",
+    "trav_else",
     "trav_none",
     "trav_one",
     "trav_both",
@@ -98,6 +101,10 @@ POOL_TAKE = "pool_take"
 SPIN_BLOCKS = ("refill_break", "idle_wait")
 """Blocks whose code is what the compiler puts on a path (a convergence spin before a warp
 vote, sm_75): a target that needs none (sm_80 on) leaves them empty."""
+FOLDABLE_BLOCKS = ("trav_else",)
+"""Blocks holding nothing but a test the compiler may fold into the code before them
+(sm_100 and sm_120 settle a node step's outcome before its first branch): a target that
+folds it leaves the block empty."""
 TRI_TEST_BLOCKS = ("tri_test", "tri_u", "tri_v")
 """The Woop triangle test's stages (t, u, v): a whole test, as a warp that runs it through
 costs it."""

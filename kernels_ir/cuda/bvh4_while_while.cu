@@ -42,13 +42,17 @@ extern "C" __global__ void bvh4_while_while(const float4* __restrict__ nodes,
                 // @block trav_both
                 node = simt_bvh4_order_push(h, k, stack, sp);
                 // @block trav_step
-            } else if (k == 1) {
-                // @block trav_one
-                node = simt_bvh4_single(h);
-                // @block trav_step
             } else {
-                // @block trav_none
-                node = stack[sp--];
+                // @block trav_else
+                if (k == 1) {
+                    // @block trav_one
+                    node = simt_bvh4_single(h);
+                    // @block trav_else
+                } else {
+                    // @block trav_none
+                    node = stack[sp--];
+                    // @block trav_else
+                }
                 // @block trav_step
             }
         }

@@ -49,13 +49,17 @@ extern "C" __global__ void packet(const float4* __restrict__ nodes,
                 if (simt_lane_id() == 0) stack[sp] = swap ? h.child0 : h.child1;
                 __syncwarp();
                 // @block trav_step
-            } else if ((m0 | m1) != 0u) {
-                // @block trav_one
-                node = m0 != 0u ? h.child0 : h.child1;
-                // @block trav_step
             } else {
-                // @block trav_none
-                node = stack[sp--];
+                // @block trav_else
+                if ((m0 | m1) != 0u) {
+                    // @block trav_one
+                    node = m0 != 0u ? h.child0 : h.child1;
+                    // @block trav_else
+                } else {
+                    // @block trav_none
+                    node = stack[sp--];
+                    // @block trav_else
+                }
                 // @block trav_step
             }
         } else {

@@ -35,13 +35,17 @@ extern "C" __global__ void while_while(const float4* __restrict__ nodes,
                 node = swap ? h.child1 : h.child0;
                 stack[++sp] = swap ? h.child0 : h.child1;
                 // @block trav_step
-            } else if (h.hit0 || h.hit1) {
-                // @block trav_one
-                node = h.hit0 ? h.child0 : h.child1;
-                // @block trav_step
             } else {
-                // @block trav_none
-                node = stack[sp--];
+                // @block trav_else
+                if (h.hit0 || h.hit1) {
+                    // @block trav_one
+                    node = h.hit0 ? h.child0 : h.child1;
+                    // @block trav_else
+                } else {
+                    // @block trav_none
+                    node = stack[sp--];
+                    // @block trav_else
+                }
                 // @block trav_step
             }
         }

@@ -167,6 +167,7 @@ from simt_sim.simt.engine import (
     REFILL_TEST,
     STACK_POP,
     TRAV_DIVERGED,
+    TRAV_ELSE,
     TRAV_NONE_B,
     TRAV_STEP,
     TRI_HIT_B,
@@ -379,8 +380,9 @@ def _tri_test(li, lf, lane, woop, woop_i, any_hit):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs):
-    """One lockstep traversal step of lanes ``sel[:n]``: trav_step plus outcome branches,
-    and the issues of the step's closing barrier by each outcome's lanes after the first,
+    """One lockstep traversal step of lanes ``sel[:n]``: trav_step, the second outcome
+    test (``trav_else``) for the lanes that did not hit both children, the outcome
+    branches, and the issues of the step's closing barrier by each outcome's lanes after the first,
     as the kernels close it.
 
     Returns the cost issued, or -1 on stack overflow.
@@ -394,6 +396,7 @@ def _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, 
             return np.int64(-1)
         outcome_lanes[o] += 1
         ops[base + lane, _C_TRAV] += 1
+    cost += charge(cnt, hist, costs, TRAV_ELSE, outcome_lanes[0] + outcome_lanes[1])
     for o in range(3):
         cost += charge(cnt, hist, costs, TRAV_NONE_B + o, outcome_lanes[o])
     groups = outcome_groups(outcome_lanes[0], outcome_lanes[1], outcome_lanes[2])
@@ -866,11 +869,13 @@ def _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop, woop_i, a
                 node = c1 if near_is_1 else c0
                 go_on = True
             elif m0 or m1:
+                cost += _issue(cnt, hist, costs, TRAV_ELSE, n_useful)
                 cost += _issue(cnt, hist, costs, TRAV_NONE_B + TRAV_ONE, n_useful)
                 node = c0 if m0 else c1
                 mask = m0 if m0 else m1
                 go_on = True
             else:
+                cost += _issue(cnt, hist, costs, TRAV_ELSE, n_useful)
                 cost += _issue(cnt, hist, costs, TRAV_NONE_B + TRAV_NONE, n_useful)
         else:
             cost += _issue(cnt, hist, costs, LEAF_ENTRY, n_useful)
@@ -998,10 +1003,11 @@ def _wide_trav_step(li, lf, stack, lane, nodes, nodes_i, width, tnear, child):
 @njit(cache=True, nogil=True, error_model="numpy")
 def _wide_traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, width, tnear, child, ops,
                               base, cnt, hist, costs):  # fmt: skip
-    """One lockstep node step of lanes ``sel[:n]`` on a wide tree: ``trav_step``, then
-    ``trav_none``, ``trav_one`` and ``trav_both`` with the lanes that hit no child, one
-    child, and two or more, and the step's closing barrier issued again by each of those
-    groups after the first. Returns the cost issued, or -1 on stack overflow."""
+    """One lockstep node step of lanes ``sel[:n]`` on a wide tree: ``trav_step``,
+    ``trav_else`` with the lanes that hit fewer than two children, then ``trav_none``,
+    ``trav_one`` and ``trav_both`` with the lanes that hit no child, one child, and two or
+    more, and the step's closing barrier issued again by each of those groups after the
+    first. Returns the cost issued, or -1 on stack overflow."""
     cost = charge(cnt, hist, costs, TRAV_STEP, n)
     none = 0
     one = 0
@@ -1018,6 +1024,7 @@ def _wide_traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, width, tnea
         else:
             several += 1
         ops[base + lane, _C_TRAV] += 1
+    cost += charge(cnt, hist, costs, TRAV_ELSE, none + one)
     cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_NONE, none)
     cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_ONE, one)
     cost += charge(cnt, hist, costs, TRAV_NONE_B + TRAV_BOTH, several)

@@ -17,9 +17,20 @@ from typing import Any
 from kernels_ir.kernel_ir import BLOCKS, persistent_warps
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.scheme import SchemeInfo
-from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRI_HIT, is_tri, is_wide_trav, tri_stages
+from simt_sim.types.optrace import (
+    LEAF,
+    TRAV_BOTH,
+    TRAV_NONE,
+    TRAV_ONE,
+    TRI_HIT,
+    is_tri,
+    is_wide_trav,
+    tri_stages,
+)
 
 _OUTCOME_BLOCK = ("trav_none", "trav_one", "trav_both")
+#: the outcomes whose lanes run a node step's second outcome test (``trav_else``)
+_ELSE_OUTCOMES = (TRAV_NONE, TRAV_ONE)
 
 
 @dataclass
@@ -122,8 +133,10 @@ def _tri_loop(w: _Lanes, group: list[int], rec: RefCounts) -> int:
 
 
 def _trav_step(w: _Lanes, t: list[int], rec: RefCounts) -> int:
-    """``trav_step`` for the lanes ``t`` at interior nodes, and each one's outcome block."""
+    """``trav_step`` for the lanes ``t`` at interior nodes, ``trav_else`` for those that did
+    not hit both children (the step's second outcome test), and each one's outcome block."""
     issued = rec.charge("trav_step", t)
+    issued += rec.charge("trav_else", [lane for lane in t if w.next(lane) in _ELSE_OUTCOMES])
     for o, block in enumerate(_OUTCOME_BLOCK):
         issued += rec.charge(block, [lane for lane in t if w.next(lane) == o])
     return issued
@@ -451,6 +464,8 @@ def packet_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts
     for a, lanes in nodes.items():
         issued += rec.charge("loop_control", everyone)
         issued += rec.charge("trav_step", sorted(lanes))
+        if outcome[a] in _ELSE_OUTCOMES:
+            issued += rec.charge("trav_else", sorted(lanes))
         issued += rec.charge(_OUTCOME_BLOCK[outcome[a]], sorted(lanes))
     for lanes in leaves.values():
         issued += rec.charge("loop_control", everyone)

@@ -43,6 +43,7 @@ BLOCK_COLOURS = {
     "refill_break": "#8c6d31",
     "idle_wait": "#c7c7c7",
     "trav_step": "#08306b",
+    "trav_else": "#2171b5",
     "trav_none": "#9ecae1",
     "trav_one": "#6baed6",
     "trav_both": "#3182bd",

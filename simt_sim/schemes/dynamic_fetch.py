@@ -65,6 +65,7 @@ from simt_sim.simt.engine import (
     RAY_SETUP,
     REFILL_BREAK,
     REFILL_TEST,
+    TRAV_ELSE,
     TRAV_NONE_B,
     TRAV_STEP,
     Counts,
@@ -163,7 +164,7 @@ def _replay(offsets, op, costs, warp_size, resident_warps, threshold, speculativ
     dry = np.zeros(resident_warps, np.bool_)  # the warp's last fetch emptied the pool
     lanes = np.int64(-1) if warp_size == 64 else (np.int64(1) << warp_size) - 1
     step_floor = costs[TRAV_STEP] + min(
-        costs[TRAV_NONE_B], costs[TRAV_NONE_B + 1], costs[TRAV_NONE_B + 2]
+        costs[TRAV_ELSE] + min(costs[TRAV_NONE_B], costs[TRAV_NONE_B + 1]), costs[TRAV_NONE_B + 2]
     )
     pool = 0
     while size > 0 or n_pending > 0:

@@ -33,6 +33,7 @@ from simt_sim.simt.engine import (
     N_BLOCKS,
     N_CHUNKS,
     RAY_SETUP,
+    TRAV_ELSE,
     TRAV_NONE_B,
     TRAV_STEP,
     TRI_LANES,
@@ -111,6 +112,7 @@ def _warp(offsets, op, r0, n, cur, end, costs, cnt, hist):
             cur[lane] = c
             nxt |= np.int64(c < e) << lane
         issued += charge(cnt, hist, costs, TRAV_STEP, k)
+        issued += charge(cnt, hist, costs, TRAV_ELSE, c0 + c1)
         issued += charge(cnt, hist, costs, TRAV_NONE_B, c0)
         issued += charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
         issued += charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)

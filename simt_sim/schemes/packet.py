@@ -47,6 +47,7 @@ from simt_sim.simt.engine import (
     N_BLOCKS,
     N_CHUNKS,
     RAY_SETUP,
+    TRAV_ELSE,
     TRAV_NONE_B,
     TRAV_STEP,
     TRI_HIT_B,
@@ -125,6 +126,7 @@ def _warp(offsets, op, addr, r0, n, table, used, costs, cnt, hist):
         lanes = popcount(table[s, _LANES])
         if kind == 0:
             issued += charge(cnt, hist, costs, TRAV_STEP, lanes)
+            issued += charge(cnt, hist, costs, TRAV_ELSE, lanes * (table[s, _OUT] != TRAV_BOTH))
             issued += charge(cnt, hist, costs, TRAV_NONE_B + table[s, _OUT], lanes)
             visits += 1
         elif kind == 1:

@@ -45,6 +45,7 @@ from simt_sim.simt.engine import (
     N_BLOCKS,
     N_CHUNKS,
     RAY_SETUP,
+    TRAV_ELSE,
     TRAV_NONE_B,
     TRAV_STEP,
     Counts,
@@ -92,11 +93,13 @@ def trav_pack(o):
 @njit(cache=True, nogil=True, inline="always")
 def charge_trav(cnt, hist, costs, a):
     """Charge one traversal iteration from its packed counters ``a`` (the sum of its lanes'
-    :func:`trav_pack`): ``trav_step`` and each outcome block. Returns the instructions."""
+    :func:`trav_pack`): ``trav_step``, the second outcome test (``trav_else``) with the
+    lanes that did not hit both children, and each outcome block. Returns the instructions."""
     k = a & _LOW
     c0 = (a >> _FIELD) & _LOW
     c1 = a >> (2 * _FIELD)
     issued = charge(cnt, hist, costs, TRAV_STEP, k)
+    issued += charge(cnt, hist, costs, TRAV_ELSE, c0 + c1)
     issued += charge(cnt, hist, costs, TRAV_NONE_B, c0)
     issued += charge(cnt, hist, costs, TRAV_NONE_B + 1, c1)
     return issued + charge(cnt, hist, costs, TRAV_NONE_B + 2, k - c0 - c1)

@@ -25,7 +25,7 @@ from simt_sim.simt.bounds import dual_issue_bound, issue_bound, pipe_bound, roof
 from simt_sim.simt.engine import Counts, class_mix, cost_vector, lane_traffic
 from simt_sim.simt.gpus import GpuConfig, executed_on, runs_in_rounds
 
-TRAVERSAL_BLOCKS = ("trav_step", "trav_none", "trav_one", "trav_both", "trav_diverged")
+TRAVERSAL_BLOCKS = ("trav_step", "trav_else", "trav_none", "trav_one", "trav_both", "trav_diverged")
 INTERSECTION_BLOCKS = ("leaf_entry", "tri_test", "tri_u", "tri_v", "tri_hit")
 
 

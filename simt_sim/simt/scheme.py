@@ -30,6 +30,7 @@ TRACE_BLOCKS = (
     "ray_setup",
     "loop_control",
     "trav_step",
+    "trav_else",
     "trav_none",
     "trav_one",
     "trav_both",

@@ -19,7 +19,15 @@ from simt_sim.simt.replay import simulate_paths, simulate_queues
 from simt_sim.simt.result import SimResult
 from simt_sim.trace.paths import trace_paths
 from simt_sim.types.hits import Hits
-from simt_sim.types.optrace import LEAF, TRI_HIT, OpTrace, is_tri, tri_stages
+from simt_sim.types.optrace import (
+    LEAF,
+    TRAV_NONE,
+    TRAV_ONE,
+    TRI_HIT,
+    OpTrace,
+    is_tri,
+    tri_stages,
+)
 from simt_sim.types.paths import PathTrace
 from simt_sim.types.raybatch import RayBatch
 
@@ -109,6 +117,7 @@ def ref_trace(streams: list[list[int]], c: Counter) -> None:
         exits = int(len(trav) < len(alive))
         while trav:
             c.charge("trav_step", len(trav))
+            c.charge("trav_else", sum(1 for i in trav if nxt(i) in (TRAV_NONE, TRAV_ONE)))
             for code, name in enumerate(("trav_none", "trav_one", "trav_both")):
                 c.charge(name, sum(1 for i in trav if nxt(i) == code))
             c.apart(len({nxt(i) for i in trav}))

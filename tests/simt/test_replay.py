@@ -19,6 +19,7 @@ from simt_sim.simt.result import SimResult, merge
 from simt_sim.simt.synth import synthetic_trace, trace_from_lists
 from simt_sim.types.optrace import (
     LEAF,
+    TRAV_BOTH,
     TRAV_NONE,
     TRAV_ONE,
     TRI_HIT,
@@ -378,6 +379,30 @@ def test_triangle_stages_no_lane_reached_are_not_issued(scheme: str) -> None:
     assert tri_blocks(one_u) == {"tri_test": (1, 4), "tri_u": (1, 1), "tri_v": (0, 0)}
     mixed = [TRI_MISS_T, TRI_MISS_U, TRI_MISS, TRI_HIT]
     assert tri_blocks(mixed) == {"tri_test": (1, 4), "tri_u": (1, 3), "tri_v": (1, 2)}
+
+
+@pytest.mark.parametrize("scheme", TRACE_SCHEMES)
+def test_a_step_whose_lanes_all_hit_both_children_skips_the_second_outcome_test(
+    scheme: str,
+) -> None:
+    """A node step's ``else if`` (``trav_else``) runs only when some lane did not hit both
+    children: a warp whose lanes all did branches past it. Packet: the warp's one outcome
+    decides; the per-ray schemes: the lanes that hit one child or none run it."""
+    ir = kernels_ir.load(get_scheme(scheme).kernel, "sm_75")
+    assert ir.cost("trav_else") == (0 if scheme == "packet" else 2)
+
+    def blocks(lanes: list[list[int]]) -> dict[str, tuple[int, int]]:
+        ops = [[*steps, LEAF, TRI_MISS_T] for steps in lanes]
+        r = simulate_traces([trace_from_lists(ops)], get_scheme(scheme), ir, gpu_for(4))
+        return {b: (r.executions[b], r.active_sum[b]) for b in ("trav_step", "trav_else")}
+
+    both = [[TRAV_BOTH, TRAV_BOTH]] * 4
+    assert blocks(both) == {"trav_step": (2, 8), "trav_else": (0, 0)}
+    none = [[TRAV_BOTH, TRAV_NONE]] * 4
+    assert blocks(none) == {"trav_step": (2, 8), "trav_else": (1, 4)}
+    if scheme != "packet":  # a packet's lanes take one outcome per node
+        mixed = [[TRAV_BOTH, TRAV_ONE]] * 3 + [[TRAV_ONE, TRAV_BOTH]]
+        assert blocks(mixed) == {"trav_step": (2, 8), "trav_else": (2, 4)}
 
 
 @pytest.mark.parametrize("scheme", REFILLING)
