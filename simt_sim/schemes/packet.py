@@ -126,7 +126,8 @@ def _warp(offsets, op, addr, r0, n, table, used, costs, cnt, hist):
         lanes = popcount(table[s, _LANES])
         if kind == 0:
             issued += charge(cnt, hist, costs, TRAV_STEP, lanes)
-            issued += charge(cnt, hist, costs, TRAV_ELSE, lanes * (table[s, _OUT] != TRAV_BOTH))
+            if table[s, _OUT] != TRAV_BOTH:
+                issued += charge(cnt, hist, costs, TRAV_ELSE, lanes)
             issued += charge(cnt, hist, costs, TRAV_NONE_B + table[s, _OUT], lanes)
             visits += 1
         elif kind == 1:
