@@ -382,8 +382,8 @@ def _tri_test(li, lf, lane, woop, woop_i, any_hit):
 def _traversal_iteration(li, lf, stack, sel, n, nodes, nodes_i, ops, base, cnt, hist, costs):
     """One lockstep traversal step of lanes ``sel[:n]``: trav_step, the second outcome
     test (``trav_else``) for the lanes that did not hit both children, the outcome
-    branches, and the issues of the step's closing barrier by each outcome's lanes after the first,
-    as the kernels close it.
+    branches, and the issues of the step's closing barrier by each outcome's lanes after
+    the first, as the kernels close it.
 
     Returns the cost issued, or -1 on stack overflow.
     """
