@@ -47,6 +47,8 @@ from kernels_ir.kernel_ir import (
 from kernels_ir.sass import SassInstruction, base_opcode, branch_target, classify
 
 UNATTRIBUTED = "unattributed"
+#: a ``BSSY``'s operand: the label just after the ``BSYNC`` that closes its region
+_REGION_END = re.compile(r"\((\.L_x_\d+)\)")
 _MARKER = re.compile(r"^\s*//\s*@(?P<kind>block|end)\b\s*(?P<name>\w*)\s*$")
 
 
@@ -450,6 +452,32 @@ def after_exit(
     return out
 
 
+def closing_joins(cfg: ControlFlow, instructions: Sequence[SassInstruction]) -> dict[int, int]:
+    """Convergence barriers that close a conditional ``if`` chain at a join of their own:
+    each ``BSYNC`` alone in its basic block, which does not run on every iteration of its
+    loop, in the same loop as the ``BSSY`` that opens its region and dominated by it, with
+    that ``BSSY``'s index. Every way through the chain meets there, so it runs as often as
+    the ``BSSY`` (if-if's triangle test: the join after the hit's ``if``, whose line is the
+    hit's), and goes to the ``BSSY``'s block. A group of lanes that reaches it apart
+    issues it again (``reconverge``)."""
+    where = {label: i for i, ins in enumerate(instructions) for label in ins.labels}
+    out = {}
+    for i, ins in enumerate(instructions):
+        target = _REGION_END.search(ins.text) if base_opcode(ins.opcode) == "BSSY" else None
+        j = where.get(target.group(1), 0) - 1 if target is not None else -1
+        if j < 0 or base_opcode(instructions[j].opcode) != "BSYNC":
+            continue
+        b = cfg.block_of[j]
+        if (
+            cfg.starts[b] == cfg.last(b) == j
+            and not cfg.runs_every_iteration(j)
+            and cfg.loop_of(i) == cfg.loop_of(j)
+            and i in cfg.dominating(j)
+        ):
+            out[j] = i
+    return out
+
+
 def shared_outcomes(
     cfg: ControlFlow,
     placed: Sequence[str | None],
@@ -588,7 +616,8 @@ def place_instructions(
     """The block each instruction is charged to: the marker block moved by
     :func:`by_frequency` for the kernel's own code, the marker block for a divergent-warp
     fallback, the caller's for a compiler subroutine up to its last ``RET`` (what follows
-    is padding, :data:`UNATTRIBUTED`).
+    is padding, :data:`UNATTRIBUTED`), the ``BSSY``'s block for a join that closes a
+    conditional ``if`` chain (:func:`closing_joins`).
 
     Raises
     ------
@@ -649,6 +678,8 @@ def place_instructions(
     taken = after_exit(cfg, [block[i] for i in kernel], [instructions[i] for i in kernel])
     for i, taken_block in zip(kernel, taken, strict=True):
         block[i] = taken_block
+    for j, i in closing_joins(cfg, [instructions[i] for i in kernel]).items():
+        block[kernel[j]] = block[kernel[i]]
     # blocks whose code all runs in other blocks' basic blocks (by_basic_block, or a node
     # step's outcomes sharing one, shared_outcomes)
     marked = {owner.get(line) for i, line in zip(kernel, lines, strict=True) if i not in never}

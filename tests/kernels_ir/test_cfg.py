@@ -453,3 +453,62 @@ def test_only_the_persistent_speculative_kernel_from_sm_80_runs_in_rounds() -> N
             expected = kernel == "persistent_speculative_while_while" and arch != "sm_75"
             assert rounds == ({"trav_step"} if expected else set()), (kernel, arch)
     assert not load("persistent_speculative_while_while", "sm_35").rounds
+
+
+#: a loop whose body is an ``if`` holding a nested ``if`` (if-if's triangle test and hit)
+JOIN_SOURCE = """// k.cu
+// @block ray_setup
+a;
+// @block loop_control
+while (x) {
+    // @block tri_test
+    if (c) {
+        t;
+        // @block tri_hit
+        if (h) {
+            hit;
+        }
+        // @block tri_test
+        next;
+    }
+    // @block loop_control
+}
+// @block finish
+b;
+"""
+
+
+def test_a_join_that_closes_a_conditional_if_chain_runs_with_its_bssy() -> None:
+    """The ``BSYNC`` where the hit's ``if`` and the way around it meet carries the hit's
+    line, but every test that opened the region reaches it: it goes to the ``BSSY``'s
+    block, while the hit's own code stays in ``tri_hit``."""
+    rows = [
+        (3, "MOV R1, c[0x0][0x28]"),
+        (5, "ISETP.NE.AND P0, PT, R2, RZ, PT"),
+        (5, "@!P0 BRA `(.L_x_3)"),
+        ".L_x_0",
+        (7, "ISETP.NE.AND P1, PT, R3, RZ, PT"),
+        (7, "@!P1 BRA `(.L_x_2)"),
+        (8, "BSSY B1, `(.L_x_9)"),
+        (8, "FADD R4, R4, 1"),
+        (10, "ISETP.NE.AND P2, PT, R4, RZ, PT"),
+        (10, "@!P2 BRA `(.L_x_1)"),
+        (11, "FADD R5, R5, 1"),
+        ".L_x_1",
+        (11, "BSYNC B1"),
+        ".L_x_9",
+        (14, "FADD R6, R6, 1"),
+        ".L_x_2",
+        (5, "IADD3 R2, R2, -0x1, RZ"),
+        (5, "ISETP.NE.AND P0, PT, R2, RZ, PT"),
+        (5, "@P0 BRA `(.L_x_0)"),
+        ".L_x_3",
+        (19, "STG.E [R8], R4"),
+        (19, "EXIT"),
+    ]
+    ins = parse_listing(_listing(rows))
+    loops = parse_loops(JOIN_SOURCE)
+    placed = place_instructions(ins, parse_markers(JOIN_SOURCE, "k.cu"), "k.cu", loops)
+    assert [ins[i].opcode for i in (5, 10)] == ["BSSY", "BSYNC"]
+    assert placed.block[5] == placed.block[10] == placed.block[11] == "tri_test"
+    assert placed.block[9] == "tri_hit"

@@ -62,9 +62,7 @@ def test_walk_meets_the_replay_where_the_replay_is_exact(kernel: str) -> None:
     assert d.kernel == kernel
     assert d.hits_agree == 1.0
     assert d.warps == 4 and d.rays == 128
-    # if-if's BSYNC that closes the hit's `if` is a basic block of its own, run with every
-    # v stage, not only on hits
-    inexact = {"finish"} if "persistent" in kernel else {"tri_hit"} if kernel == "if_if" else set()
+    inexact = {"finish"} if "persistent" in kernel else set()
     for block in set(EXACT) - inexact:
         assert d.table.loc[block, "walk"] == d.table.loc[block, "replay"], block
     assert d.walk == d.table["walk"].sum() > 0
