@@ -44,11 +44,9 @@ from kernels_ir.kernel_ir import (
     SPIN_BLOCKS,
     STEP_OUTCOMES,
 )
-from kernels_ir.sass import SassInstruction, base_opcode, branch_target, classify
+from kernels_ir.sass import SassInstruction, base_opcode, branch_target, classify, region_end
 
 UNATTRIBUTED = "unattributed"
-#: a ``BSSY``'s operand: the label just after the ``BSYNC`` that closes its region
-_REGION_END = re.compile(r"\((\.L_x_\d+)\)")
 _MARKER = re.compile(r"^\s*//\s*@(?P<kind>block|end)\b\s*(?P<name>\w*)\s*$")
 
 
@@ -463,8 +461,8 @@ def closing_joins(cfg: ControlFlow, instructions: Sequence[SassInstruction]) -> 
     where = {label: i for i, ins in enumerate(instructions) for label in ins.labels}
     out = {}
     for i, ins in enumerate(instructions):
-        target = _REGION_END.search(ins.text) if base_opcode(ins.opcode) == "BSSY" else None
-        j = where.get(target.group(1), 0) - 1 if target is not None else -1
+        target = region_end(ins)
+        j = where.get(target, 0) - 1 if target is not None else -1
         if j < 0 or base_opcode(instructions[j].opcode) != "BSYNC":
             continue
         b = cfg.block_of[j]

@@ -130,6 +130,15 @@ def branch_target(ins: SassInstruction) -> str | None:
     return m.group("name") if m else None
 
 
+def region_end(ins: SassInstruction) -> str | None:
+    """The label a ``BSSY`` names: the instruction just after the ``BSYNC`` that closes the
+    convergence region it opens; ``None`` for anything else."""
+    if base_opcode(ins.opcode) != "BSSY":
+        return None
+    m = _TARGET.search(ins.text)
+    return m.group("name") if m else None
+
+
 def parse_listing(text: str) -> list[SassInstruction]:
     """Parse an ``nvdisasm -c -g -gi`` listing into instructions in listing order.
 

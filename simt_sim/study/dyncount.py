@@ -12,7 +12,6 @@ the cwbvh kernel (:data:`WALKED_LAYOUTS`).
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from functools import cache
 
@@ -25,7 +24,7 @@ from kernels_ir.build import CUDA_DIR, compile_listing, place_kernel
 from kernels_ir.emulate import PARAM_BASE, Program, run_kernel
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import BLOCKS, RECONVERGE
-from kernels_ir.sass import SassInstruction, base_opcode
+from kernels_ir.sass import SassInstruction, base_opcode, region_end
 from simt_sim import schemes
 from simt_sim.bvh.layout import BVH
 from simt_sim.bvh.layouts import Tree, make_tree
@@ -138,9 +137,9 @@ def barrier_excess(instructions: list[SassInstruction], issued: np.ndarray) -> d
     where = {label: i for i, ins in enumerate(instructions) for label in ins.labels}
     excess = {}
     for i, ins in enumerate(instructions):
-        if base_opcode(ins.opcode) == "BSSY":
+        if (target := region_end(ins)) is not None:
             # the region's target is the reconvergence point, just after its BSYNC
-            bsync = where[re.search(r"\((\.L_x_\d+)\)", ins.text).group(1)] - 1
+            bsync = where[target] - 1
             if base_opcode(instructions[bsync].opcode) == "BSYNC":
                 excess[bsync] = excess.get(bsync, 0) + int(issued[bsync]) - int(issued[i])
     return {i: n for i, n in excess.items() if n > 0}
