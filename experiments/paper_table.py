@@ -29,6 +29,7 @@ from simt_sim.atomic import write_atomic
 from simt_sim.report.markdown import block_table
 from simt_sim.simt.gpus import GpuConfig, executed_on
 from simt_sim.simt.result import INTERSECTION_BLOCKS, TRAVERSAL_BLOCKS, SimResult
+from simt_sim.study.published import PAPER_CSV, reference_dir
 from simt_sim.study.run import run_study
 from simt_sim.study.spec import StudySpec
 from simt_sim.study.workload import parse_resolution
@@ -38,7 +39,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import secondary_order  # noqa: E402  (experiments/secondary_order.py)
 
 REPO = Path(__file__).resolve().parents[1]
-REFERENCE = REPO.parent / "shared" / "reference" / "aila-laine-2009-conference.csv"
 SCHEMES = (
     "packet",
     "while_while",
@@ -83,6 +83,11 @@ PACKET_WINDOWS = 5
 BVH_COLUMNS = (
     "method", "max_leaf", "node_cost", "interior_nodes", "leaves", "triangles_per_leaf", "sah_cost",
 )  # fmt: skip
+
+
+def reference_csv() -> Path:
+    """The paper's table as shared/reference holds it (``$SIMT_SIM_SCENES`` moves it)."""
+    return reference_dir() / PAPER_CSV
 
 
 def reference(path: Path) -> pd.DataFrame:
@@ -307,7 +312,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)
 
-    paper = reference(REFERENCE)
+    paper = reference(reference_csv())
     spec = StudySpec(
         scene=args.scene,
         ray_types=RAY_TYPES,
@@ -413,7 +418,10 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   {arch}). The calibrated profile shows it: fitted to
   while-while alone, it prices per-iteration overhead (loop control, setup) {other:.3g}x
   higher, and if-if then lands {ii_lo:.0%}-{ii_hi:.0%} below the paper, on the paper's side
-  of while-while.
+  of while-while. Nor is it the replay's count: a walk of the compiled kernels' SASS
+  over the protocol's own rays, op streams and all, sets each ratio beside the replay's
+  (`python experiments/protocol_walk.py`, docs/kernels_ir.md, "The paper table's
+  ratios, walked on the protocol's own rays").
 - **Speculative versus while-while.** Speculation raises SIMD efficiency as in the paper;
   its speed relative to while-while is {spec_ratio} against the paper's {spec_paper} (errors
   {spec_err}). Its traversal step costs {spec_trav} instructions on {arch} as the GTX 285

@@ -36,9 +36,10 @@ def results():
 
 @pytest.fixture(scope="module")
 def paper():
-    if not paper_table.REFERENCE.exists():
-        pytest.skip(f"the paper's table is not at {paper_table.REFERENCE}")
-    return paper_table.reference(paper_table.REFERENCE)
+    csv = paper_table.reference_csv()
+    if not csv.exists():
+        pytest.skip(f"the paper's table is not at {csv}")
+    return paper_table.reference(csv)
 
 
 def test_break_even_change_puts_each_ratio_on_the_papers(results, paper) -> None:
