@@ -439,8 +439,8 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   stream; the exact lockstep executor (experiments/approximation_error.py,
   docs/model_card.md) puts that error at 1.2% of warp instructions or less.
 - **The tree.** Ours is built as the paper's was (SAH, cost 1, leaves of at most 8,
-  spatial splits) but from another mesh file and by another implementation (binned, no
-  reference unsplitting), and the tree shapes the mix of traversal and intersection every
+  spatial splits) but from another mesh file and by another implementation (object and
+  spatial splits over bins, with Stich et al.'s reference unsplitting), and the tree shapes the mix of traversal and intersection every
   scheme sees. Across the trees of "The same ratios on other trees", {bvh}.
 - **The calibrated profile** has three factors for three equations, so it fits
   while-while exactly whatever the mechanism; its "other" group (setup, loop control,

@@ -848,7 +848,7 @@ def build_bvh(
         ``"spatial"``: binned, and where the best object split's children overlap (more
         than :data:`SPATIAL_ALPHA` of the root's area) also ``bins`` spatial splits per
         axis, which cut the triangles a plane crosses into two references with their
-        parts' bounds (Stich et al. 2009, as Aila & Laine's trees were built; no
+        parts' bounds (Stich et al. 2009, as Aila & Laine's trees were built, with its
         reference unsplitting; at most :data:`SPATIAL_BUDGET` x the triangles added). A
         split triangle then sits in every leaf holding a part of it.
         All centroids equal on every axis: the index range is split in the middle.
