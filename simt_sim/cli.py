@@ -51,7 +51,8 @@ class _Parser(argparse.ArgumentParser):
 PAPER = {"resolution": "1024x768", "spp": 32, "camera": "all"}
 #: the scene and ray types of table and plot when none are named
 _DEFAULTS = {"scene": DEFAULT_SCENE, "rays": "primary,ao,diffuse"}
-#: the workload every command but ``plot`` runs by default (small enough for a laptop)
+#: the workload every command but ``plot`` and ``report`` runs by default (small enough for
+#: a laptop; those two draw one camera's, :func:`_add_figure_args`)
 DEFAULT_WORKLOAD = {"resolution": "256x192", "spp": 8, "camera": "all"}
 
 
@@ -128,8 +129,8 @@ def _add_workload_args(
         choices=BUILD_METHODS,
         default="binned",
         help="BVH builder: binned SAH, a full SAH sweep, or binned with spatial splits "
-        "(Stich et al. 2009; a triangle a plane crosses sits in both children, as in the "
-        "paper's trees) (default: %(default)s)",
+        "(Stich et al. 2009; a triangle a plane crosses sits in both children unless keeping "
+        "it whole on one side is cheaper, as in the paper's trees) (default: %(default)s)",
     )
 
 

@@ -38,7 +38,7 @@
 #define SIMT_TRI_ROUNDING 0x1.4p-22f    // 5 * 2^-24: factor of the Woop test's error bounds
 
 // A ray prepared for slab tests: idir = 1 / clamped direction. Slab bounds are
-// (lo - orig) * idir, as simt_sim/geometry.py computes them: with a finite idir no
+// (lo - orig) * idir, as simt_sim/bvh/geometry.py computes them: with a finite idir no
 // inf - inf or 0 * inf appears (Aila & Laine's one-FFMA lo * idir - orig * idir can).
 struct Ray {
     float3 orig;
@@ -83,7 +83,7 @@ __device__ __forceinline__ int simt_opaque(int x)
 __device__ __forceinline__ Ray simt_make_ray(float4 o, float4 d)
 {
     // |d_i| clamped to 2^-80 of the largest component (and 2^-126), keeping 1/d finite
-    // and tilting a short direction no more than a long one (simt_sim.geometry).
+    // and tilting a short direction no more than a long one (simt_sim.bvh.geometry).
     const float ooeps = fmaxf(fmaxf(fmaxf(fabsf(d.x), fabsf(d.y)), fabsf(d.z)) * SIMT_OOEPS,
                               SIMT_MIN_NORMAL);
     Ray r;
@@ -148,7 +148,7 @@ __device__ __forceinline__ NodeHit simt_intersect_node(const float4* __restrict_
     const float c1hiz = (n2.w - r.orig.z) * r.idir.z;
 #endif
     // Watertight, tfar carries the slabs' rounding bound, so a ray touching a box never
-    // misses it (as simt_sim.geometry.node_child_intervals).
+    // misses it (as simt_sim.bvh.geometry.node_child_intervals).
 #ifdef SIMT_PUBLISHED_TESTS
     const float rounding = 1.0f;
 #else
@@ -180,12 +180,12 @@ __device__ __forceinline__ bool simt_is_tri_end(float4 w0)
 }
 
 // Woop test of the triangle at float4 `tri` whose first float4 `w0` is already loaded, in
-// its three stages (simt_sim.geometry.woop_test): t from w0, then u from w1, then v from
-// w2, each run only where the one before passed. A kernel calls each stage on a line of its
-// own block (tri_test, tri_u, tri_v) so that the IR charges a stage only to the lanes, and
+// its three stages (simt_sim.bvh.geometry.woop_test): t from w0, then u from w1, then v
+// from w2, each run only where the one before passed. A kernel calls each stage on a line of
+// its own block (tri_test, tri_u, tri_v) so the IR charges a stage only to the lanes, and
 // the warps, that reach it. Watertight (the default), a hit needs tmin < t < tmax and
 // (u, v) inside the triangle up to their rounding-error bounds eu, ev: u >= -eu, v >= -ev,
-// u + v <= 1 + eu + ev (the bounds and their derivation are simt_sim.geometry's).
+// u + v <= 1 + eu + ev (the bounds and their derivation: simt_sim.bvh.geometry).
 struct SimtWoop {
     float t, dz, u, eu, px, py, pz, slope;
 };

@@ -1,1 +1,2 @@
-"""Bounding volume hierarchies: the binned-SAH builder and the Aila-Laine GPU layout."""
+"""Bounding volume hierarchies: the SAH builder (binned, swept or with spatial splits) and
+the Aila-Laine GPU layout."""

@@ -1,4 +1,5 @@
-"""SAH BVH builder (binned or full sweep) writing the Aila-Laine layout.
+"""SAH BVH builder (binned, full sweep, or binned with spatial splits) writing the Aila-Laine
+layout.
 
 The paper's hierarchies are binary SAH trees with node and triangle cost 1 and leaves of
 1 to 8 triangles; the SIMT model's op streams depend on that tree, so the builder follows

@@ -21,7 +21,7 @@ zeros included):
   propagates from the same side; ``BOX_ROUNDING * (-x) = -(BOX_ROUNDING * x)`` exactly;
 - the reductions keep the scalar expression's nesting and operand order.
 
-``tests/test_simd_box.py`` checks it against the scalar function on random and extreme
+``tests/bvh/test_simd_box.py`` checks it against the scalar function on random and extreme
 inputs; the traversal tests check the op streams against the scalar function too.
 """
 

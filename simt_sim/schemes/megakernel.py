@@ -1,6 +1,18 @@
 """Megakernel path tracing: each lane runs one whole path, bounce after bounce.
 
-Warps hold 32 consecutive paths (path-id order, i.e. Morton order of pixels). Per warp:
+Warps hold 32 consecutive paths (path-id order, i.e. Morton order of pixels). Two orders
+(the ``order`` parameter); the record's default, and the table's, is ``"ray"``.
+
+``order="ray"`` replays the control flow of ``kernels_ir/cuda/megakernel.cu``: its path
+loop traces *one* ray per iteration (the extension ray or the pending shadow ray), so each
+lane walks its own sequence ext 0, shadow 0, ext 1, shadow 1, ... and lanes drift out of
+phase (one lane's shadow ray is traced with another's extension ray). Per iteration:
+``ray_setup`` (per traced ray), the while-while nest, ``shade`` and ``loop_control`` with
+the lanes still in the loop; ``finish`` once with every lane after it. The kernel's IR
+sums the path-start and per-ray regions marked ``ray_setup`` (and the loops'
+``loop_control`` regions), and each is charged at that summed cost.
+
+``order="bounce"`` replays the paths bounce by bounce instead. Per warp:
 
 - ``ray_setup`` once with every lane that has a path (path start);
 - per bounce ``b``, while any lane's path is alive (the bounce loop reconverges every
@@ -12,21 +24,13 @@ Warps hold 32 consecutive paths (path-id order, i.e. Morton order of pixels). Pe
   lanes that sent one, under the same loop nest; ``finish`` with the lanes whose path
   ended in this iteration (miss, roulette or the bounce limit).
 
-A lane whose path has ended idles until every path of its warp has ended: that waste is
-what the wavefront scheme removes by compacting live paths into queues.
-
-Charging choices (also in the model card): ``ray_setup`` and ``finish`` are per path, not
+Its charging choices (also in its model card): ``ray_setup`` and ``finish`` per path, not
 per traced ray; ``loop_control`` counts the bounce loop's iterations plus every trace's
 outer-loop iterations.
 
-``order="ray"`` replays the control flow of ``kernels_ir/cuda/megakernel.cu`` instead:
-its path loop traces *one* ray per iteration (the extension ray or the pending shadow
-ray), so each lane walks its own sequence ext 0, shadow 0, ext 1, shadow 1, ... and lanes
-drift out of phase (one lane's shadow ray is traced with another's extension ray). Per
-iteration: ``ray_setup`` (per traced ray), the while-while nest, ``shade`` and
-``loop_control`` with the lanes still in the loop; ``finish`` once with every lane after
-it. The kernel's IR sums the path-start and per-ray regions marked ``ray_setup`` (and the
-loops' ``loop_control`` regions), and each is charged at that summed cost.
+In either order a lane whose path has ended idles until every path of its warp has
+ended: that waste is what the wavefront scheme removes by compacting live paths into
+queues.
 
 Memory: the replay tables take 9 bytes per path and bounce.
 """
