@@ -26,17 +26,15 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from simt_sim.atomic import write_atomic
-from simt_sim.rays.generate import LAUNCH_SIZE, RayStream
 from simt_sim.report.markdown import splice
 from simt_sim.scene.load import load_scene
 from simt_sim.schemes import get_scheme
 from simt_sim.study.dyncount import compare_counts, pick_warps
 from simt_sim.study.workload import make_workload
-from simt_sim.types.raybatch import TRACE_RAY_TYPES, RayBatch
+from simt_sim.types.raybatch import TRACE_RAY_TYPES
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import paper_table  # noqa: E402  (experiments/paper_table.py)
@@ -44,23 +42,6 @@ import paper_table  # noqa: E402  (experiments/paper_table.py)
 REPO = Path(__file__).resolve().parents[1]
 DOC = REPO / "docs" / "kernels_ir.md"
 BASE = "while_while"
-
-
-def protocol_warps(stream: RayStream, warps: int, launch: int = LAUNCH_SIZE) -> RayBatch:
-    """``warps`` whole warps spread evenly over ``stream`` in the order the table traces
-    it (each launch's secondary rays Morton-sorted), making only the launches they are in."""
-    rows = pick_warps(stream.n_rays, warps)
-    which = rows // launch
-    parts = [
-        stream.batch(int(k), launch).take(rows[which == k] - int(k) * launch)
-        for k in np.unique(which)
-    ]
-    return RayBatch(
-        *(np.concatenate([getattr(p, f) for p in parts]) for f in ("origin", "direction")),
-        *(np.concatenate([getattr(p, f) for p in parts]) for f in ("tmin", "tmax")),
-        parts[0].query, parts[0].ray_type,
-        *(np.concatenate([getattr(p, f) for p in parts]) for f in ("camera", "pixel")),
-    )  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -78,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
             scene, ray_type, cameras="all", bvh=bvh, build=paper_table.PROTOCOL_BUILD
         )
         bvh = wl.bvh
-        rays = protocol_warps(wl.stream, args.warps)
+        rays = wl.stream.take(pick_warps(wl.stream.n_rays, args.warps))
         model, walk = {}, {}
         for scheme in schemes:
             d = compare_counts(scheme, scene.name, bvh, rays)

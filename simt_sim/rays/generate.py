@@ -410,6 +410,18 @@ class RayStream:
             _sort_inplace(rays, int(batch))
         return rays
 
+    def take(self, rows: np.ndarray, batch: int = LAUNCH_SIZE) -> RayBatch:
+        """Rays ``rows`` (increasing indices) of the stream as :meth:`all_rays` orders it
+        (secondary rays Morton-sorted within batches of ``batch``), making only the batches
+        they fall in: a sample of a stream too large to hold."""
+        _check_batch(batch)
+        rows = np.asarray(rows, np.int64)
+        which = rows // batch
+        return RayBatch.concat([
+            self.batch(int(k), batch).take(rows[which == k] - int(k) * batch)
+            for k in np.unique(which)
+        ])  # fmt: skip
+
     def n_batches(self, size: int = LAUNCH_SIZE) -> int:
         """Batches of ``size`` rays in the stream."""
         return -(-self.n_rays // size)

@@ -1,10 +1,10 @@
 """Regression goldens: committed study tables that every change must reproduce.
 
 Each golden is the ``simt-sim table`` of one scene for every scheme that replays binary
-(bvh2) traces and every ray type on the GTX 285, at a size small enough for the test suite (:data:`GOLDENS`: the built-in room,
-Cornell box, bunny and a Conference subset). Integer columns
-(rays, warp instructions, makespan) must match exactly and float columns to a relative
-1e-9, so a changed instruction cost, op stream, ray generator or BVH shows up at once.
+(bvh2) traces and every ray type on the GTX 285, at a size small enough for the test
+suite (:data:`GOLDENS`: the built-in room, Cornell box, bunny and a Conference subset).
+Integer columns (rays, warp instructions, makespan) must match exactly and float columns
+to a relative 1e-9, so a changed instruction cost, op stream, ray generator or BVH shows up at once.
 
 The tables live in the checkout's ``tests/goldens`` (the package never reads its own
 source tree: the folder is an argument, by default ``tests/goldens`` below the current

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
+from simt_sim.errors import SimtSimError
 
 #: the paper's ray types, traced as batches of rays (secondary ones spawn at primary hits)
 TRACE_RAY_TYPES = ("primary", "ao", "diffuse")
@@ -87,6 +90,23 @@ class RayBatch:
             self.camera[s],
             self.pixel[s],
         )
+
+    @classmethod
+    def concat(cls, parts: Sequence[RayBatch]) -> RayBatch:
+        """``parts`` one after the other as one batch (copies); they must share the query
+        and ray type."""
+        kinds = {(p.query, p.ray_type) for p in parts}
+        if len(kinds) != 1:
+            raise SimtSimError(f"cannot join batches of {len(kinds)} query and ray types")
+        (query, ray_type) = kinds.pop()
+
+        def joined(field: str) -> np.ndarray:
+            return np.concatenate([getattr(p, field) for p in parts])
+
+        return cls(
+            joined("origin"), joined("direction"), joined("tmin"), joined("tmax"), query,
+            ray_type, joined("camera"), joined("pixel"),
+        )  # fmt: skip
 
     def take(self, rows: np.ndarray) -> RayBatch:
         """Rays ``rows`` (an index array), in that order, as a new batch (copies)."""

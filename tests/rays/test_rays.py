@@ -15,6 +15,7 @@ from simt_sim.rays.generate import (
     paper_rays,
     pixel_rotation,
     primary_rays,
+    ray_stream,
     secondary_rays,
     sort_morton6d,
 )
@@ -392,6 +393,36 @@ def test_paper_secondary_rays_are_the_sorted_union_over_cameras():
     expected = sort_morton6d(unsorted)
     for name in ("origin", "direction", "tmax", "camera", "pixel"):
         assert np.array_equal(getattr(rays, name), getattr(expected, name))
+
+
+def test_a_stream_sample_is_the_sorted_streams_rows():
+    """``RayStream.take`` makes only the launches its rows fall in, yet gives the rows of
+    the whole, launch-sorted stream (the sort is per launch, so a wrong launch size or no
+    sort gives other rays)."""
+    scene = _box_room()
+    stream = ray_stream(scene, "ao", cameras=[0, 1], width=12, height=8, spp=4,
+                        tracer=_tracer(scene))  # fmt: skip
+    launch = 128
+    assert stream.n_rays > 4 * launch
+    rows = np.array([0, 1, 31, 200, 201, 500, stream.n_rays - 1])
+    got = stream.take(rows, launch)
+    whole = stream.all_rays(launch).take(rows)
+    for f in ("origin", "direction", "tmin", "tmax", "camera", "pixel"):
+        np.testing.assert_array_equal(getattr(got, f), getattr(whole, f))
+    unsorted = stream.all_rays(launch, sort=False).take(rows)
+    assert not np.array_equal(got.direction, unsorted.direction)
+    other = stream.all_rays(4 * launch).take(rows)
+    assert not np.array_equal(got.direction, other.direction)
+    assert (got.query, got.ray_type) == ("any", "ao")
+
+
+def test_joining_batches_keeps_their_order_and_refuses_mixed_queries():
+    a = RayBatch.from_arrays(np.zeros((2, 3)), np.ones((2, 3)), "closest")
+    b = RayBatch.from_arrays(np.ones((1, 3)), np.ones((1, 3)), "closest", tmax=5.0)
+    joined = RayBatch.concat([a, b])
+    assert len(joined) == 3 and joined.tmax.tolist() == [np.inf, np.inf, 5.0]
+    with pytest.raises(SimtSimError, match="query and ray types"):
+        RayBatch.concat([a, RayBatch.from_arrays(np.ones((1, 3)), np.ones((1, 3)), "any")])
 
 
 def test_paper_rays_input_errors():

@@ -1,0 +1,175 @@
+"""How far if-if / while-while would move if an if-if iteration did one thing per lane.
+
+Our if-if kernel (kernels_ir/cuda/if_if.cu) follows the paper's pseudo-code with two
+``if``s: in one iteration a lane may take a traversal step, enter the leaf it reaches and
+test that leaf's first triangle. The lecture this project started from says of the
+paper's kernel: "each loop iteration either executes a traversal step or a primitive
+intersection" (shared/seed/gpu-ray-tracing-lecture.txt, "Variant 2"). Which one the 2009
+kernel did is not published in code. This estimates what the second reading would do to
+the paper table's if_if / while_while, before any kernel is written for it: the
+protocol's recorded op streams (``--warps`` warps per ray type spread evenly over each
+stream, in its launch-sorted order) are replayed warp by warp in both readings
+with today's sm_75 block costs as the GTX 285 runs them, beside while-while's count from
+the replay. An estimate, not a model: an either-or kernel's blocks would cost what its
+own compiled code costs. The two-``if`` reading here must equal the if-if replay's count
+exactly (checked), so the difference is the reading alone. Prints a table;
+experiments/paper_table.py writes it into docs/paper_table.md.
+
+    python experiments/if_if_either_or.py               # 512 warps per ray type
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+import kernels_ir
+from simt_sim.schemes import get_scheme
+from simt_sim.simt.gpus import executed_on, get_gpu
+from simt_sim.simt.replay import simulate_traces
+from simt_sim.study.dyncount import pick_warps
+from simt_sim.study.published import PAPER_CSV, reference_dir
+from simt_sim.study.workload import make_workload
+from simt_sim.trace.record import record_all
+from simt_sim.types.optrace import (
+    LEAF,
+    TRAV_BOTH,
+    TRAV_NONE,
+    TRAV_ONE,
+    TRI_HIT,
+    OpTrace,
+    is_tri,
+    tri_stages,
+)
+from simt_sim.types.raybatch import TRACE_RAY_TYPES
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import secondary_order  # noqa: E402  (experiments/secondary_order.py)
+
+GPU = "gtx285"
+ARCH = "sm_75"
+WARP = 32
+TWO_IFS = "two ifs (ours)"
+EITHER_OR = "either-or"
+OUTCOME = {TRAV_NONE: "trav_none", TRAV_ONE: "trav_one", TRAV_BOTH: "trav_both"}
+CODES = np.arange(256, dtype=np.uint8)
+IS_TRI = is_tri(CODES)
+STAGES = tri_stages(CODES)
+
+
+def block_costs(kernel: str) -> dict[str, int]:
+    """Instructions per execution of each block of ``kernel`` as the GTX 285 runs it."""
+    ir = executed_on(kernels_ir.load(kernel, ARCH), get_gpu(GPU))
+    return {block: int(sum(by_class.values())) for block, by_class in ir.blocks.items()}
+
+
+def if_if_warp(streams: list[np.ndarray], costs: dict[str, int], either_or: bool) -> int:
+    """Warp instructions of one if-if warp. Per iteration, with the lanes still alive:
+    ``loop_control``; a traversal step for the lanes at a TRAV op; a leaf entry for the
+    lanes then at a LEAF; a triangle test for those then at a TRI op. ``either_or``: a
+    lane that stepped this iteration enters no leaf and tests no triangle in it."""
+    cur = [0] * len(streams)
+
+    def at(lane: int) -> int:
+        return int(streams[lane][cur[lane]]) if cur[lane] < len(streams[lane]) else -1
+
+    def charge(block: str, lanes: list[int]) -> int:
+        return costs.get(block, 0) if lanes else 0
+
+    issued = charge("ray_setup", list(range(len(streams))))
+    alive = [lane for lane in range(len(streams)) if at(lane) >= 0]
+    while alive:
+        issued += charge("loop_control", alive)
+        step = [lane for lane in alive if 0 <= at(lane) <= TRAV_BOTH]
+        issued += charge("trav_step", step)
+        issued += charge("trav_else", [lane for lane in step if at(lane) != TRAV_BOTH])
+        for op, block in OUTCOME.items():
+            issued += charge(block, [lane for lane in step if at(lane) == op])
+        for lane in step:
+            cur[lane] += 1
+        rest = [lane for lane in alive if not (either_or and lane in step)]
+        leaf = [lane for lane in rest if at(lane) == LEAF]
+        issued += charge("leaf_entry", leaf)
+        for lane in leaf:
+            cur[lane] += 1
+        tri = [lane for lane in rest if at(lane) >= 0 and IS_TRI[at(lane)]]
+        issued += charge("tri_test", tri)
+        issued += charge("tri_u", [lane for lane in tri if STAGES[at(lane)] >= 2])
+        issued += charge("tri_v", [lane for lane in tri if STAGES[at(lane)] >= 3])
+        issued += charge("tri_hit", [lane for lane in tri if at(lane) == TRI_HIT])
+        for lane in tri:
+            cur[lane] += 1
+        alive = [lane for lane in alive if at(lane) >= 0]
+    return issued + charge("finish", list(range(len(streams))))
+
+
+def warp_total(trace: OpTrace, costs: dict[str, int], either_or: bool) -> int:
+    """Both readings' warp instructions over every warp of ``trace``."""
+    total = 0
+    for r0 in range(0, trace.n_rays, WARP):
+        streams = [
+            trace.op[trace.offsets[i] : trace.offsets[i + 1]]
+            for i in range(r0, min(r0 + WARP, trace.n_rays))
+        ]
+        total += if_if_warp(streams, costs, either_or)
+    return total
+
+
+def estimate(
+    scene: str = "conference",
+    cameras: str = "all",
+    resolution: tuple[int, int] = (1024, 768),
+    spp: int = 32,
+    warps: int = 512,
+    build: str = secondary_order.PROTOCOL_BUILD,
+) -> pd.DataFrame:
+    """Per ray type and reading, the if-if warp instructions on ``warps`` warps spread over
+    the protocol's stream, if_if / while_while from them and the error to the paper's."""
+    gpu = get_gpu(GPU)
+    ir = {k: kernels_ir.load(k, ARCH) for k in ("while_while", "if_if")}
+    costs = block_costs("if_if")
+    paper = pd.read_csv(reference_dir() / PAPER_CSV, comment="#")
+    sim = paper.set_index(["scheme", "ray_type"])["simulated"]
+    rows, bvh = [], None
+    for ray_type in TRACE_RAY_TYPES:
+        wl = make_workload(
+            scene, ray_type, cameras=cameras, resolution=resolution, spp=spp, bvh=bvh,
+            build=build,
+        )  # fmt: skip
+        bvh = wl.bvh
+        n = min(warps, wl.stream.n_rays // WARP)
+        trace = record_all(wl.tree, wl.stream.take(pick_warps(wl.stream.n_rays, n)))
+        replay = {
+            k: simulate_traces([trace], get_scheme(k), ir[k], gpu).warp_instructions for k in ir
+        }
+        two_ifs = warp_total(trace, costs, either_or=False)
+        if two_ifs != replay["if_if"]:
+            raise RuntimeError(f"the two-if reading counts {two_ifs}, the replay {replay['if_if']}")
+        paper_ratio = sim[("if_if", ray_type)] / sim[("while_while", ray_type)]
+        for reading, count in ((TWO_IFS, two_ifs), (EITHER_OR, warp_total(trace, costs, True))):
+            ours = replay["while_while"] / count
+            rows.append({
+                "ray_type": ray_type, "reading": reading, "warps": n,
+                "if_if warp instructions": count, "if_if / while_while": ours,
+                "paper": paper_ratio, "rel_error": ours / paper_ratio - 1,
+            })  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--warps", type=int, default=512, help="warps per ray type")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    print(estimate(warps=args.warps).to_string(index=False))
+    print(f"{time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

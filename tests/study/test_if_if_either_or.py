@@ -1,0 +1,62 @@
+"""experiments/if_if_either_or.py: the two readings of an if-if iteration, on hand-made warps."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import kernels_ir
+from simt_sim.schemes import get_scheme
+from simt_sim.simt.gpus import get_gpu
+from simt_sim.simt.replay import simulate_traces
+from simt_sim.simt.synth import trace_from_lists
+from simt_sim.types.optrace import (
+    LEAF,
+    TRAV_BOTH,
+    TRAV_NONE,
+    TRAV_ONE,
+    TRI_HIT,
+    TRI_MISS,
+    TRI_MISS_T,
+    TRI_MISS_U,
+)
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
+import if_if_either_or  # noqa: E402
+
+ITERATIONS = {"loop_control": 1}  # count the loop's iterations only
+
+
+def iterations(ops: list[list[int]], either_or: bool) -> int:
+    streams = [np.array(o, np.uint8) for o in ops]
+    return if_if_either_or.if_if_warp(streams, ITERATIONS, either_or)
+
+
+def test_a_lane_that_steps_onto_a_leaf_tests_it_in_the_next_iteration_only_if_either_or():
+    lane = [TRAV_ONE, LEAF, TRI_MISS]
+    assert iterations([lane], either_or=False) == 1  # step, enter, test: one iteration
+    assert iterations([lane], either_or=True) == 2
+    longer = [TRAV_BOTH, TRAV_ONE, LEAF, TRI_HIT, TRI_MISS, TRAV_NONE]
+    assert iterations([longer], either_or=False) == 4
+    assert iterations([longer], either_or=True) == 5
+    # a warp runs as long as its longest lane in either reading
+    assert iterations([lane, longer], either_or=True) == 5
+
+
+def test_the_two_if_reading_is_the_replay() -> None:
+    ops = [
+        [TRAV_BOTH, TRAV_ONE, LEAF, TRI_MISS_T, TRI_HIT, TRAV_NONE, LEAF, TRI_MISS_U],
+        [TRAV_ONE, LEAF, TRI_MISS, TRI_MISS, TRAV_NONE],
+        [TRAV_NONE],
+        [],
+    ]
+    trace = trace_from_lists(ops)
+    replay = simulate_traces(
+        [trace], get_scheme("if_if"), kernels_ir.load("if_if", if_if_either_or.ARCH),
+        get_gpu(if_if_either_or.GPU),
+    ).warp_instructions  # fmt: skip
+    costs = if_if_either_or.block_costs("if_if")
+    assert if_if_either_or.warp_total(trace, costs, either_or=False) == replay
+    assert if_if_either_or.warp_total(trace, costs, either_or=True) > replay
