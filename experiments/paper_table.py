@@ -36,7 +36,6 @@ from simt_sim.study.workload import parse_resolution
 from simt_sim.types.raybatch import TRACE_RAY_TYPES as RAY_TYPES
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import if_if_either_or  # noqa: E402  (experiments/if_if_either_or.py)
 import secondary_order  # noqa: E402  (experiments/secondary_order.py)
 
 REPO = Path(__file__).resolve().parents[1]
@@ -64,9 +63,6 @@ BREAK_EVEN_BLOCKS = {
     "persistent / while_while": ("pool_fetch",),
     "packet / while_while": ("trav_step", "leaf_entry", "tri_test"),
 }
-
-IF_IF_WARPS = 512
-"""Warps per ray type of the if-if readings' estimate (:mod:`if_if_either_or`)."""
 
 BINNED = "no spatial splits"
 """The label of :data:`BVH_VARIANTS`' tree without spatial splits."""
@@ -381,16 +377,11 @@ def main(argv: list[str] | None = None) -> int:
 
     # 4. the same ratios on trees with other leaf sizes
     trees, by_bvh = bvh_sensitivity(spec, paper, progress=not args.quiet and sys.stderr.isatty())
-
-    # 5. if-if as the lecture describes it: one traversal step or one test per iteration
-    readings = if_if_either_or.estimate(
-        args.scene, args.camera, spec.resolution, args.spp, IF_IF_WARPS, PROTOCOL_BUILD
-    )
     seconds = time.perf_counter() - t0
 
     doc = render(
         args, spec, main_table, ratios, by_arch, even, calibrated, factors, seconds, results,
-        trees, by_bvh, packet, readings,
+        trees, by_bvh, packet,
     )  # fmt: skip
     write_atomic(args.out, doc)
     print(doc)
@@ -430,11 +421,11 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   of while-while. Nor is it the replay's count: a walk of the compiled kernels' SASS
   over the protocol's own rays, op streams and all, sets each ratio beside the replay's
   (`python experiments/protocol_walk.py`, docs/kernels_ir.md, "The paper table's
-  ratios, walked on the protocol's own rays"). What would move it is the loop itself: if,
-  as the lecture says of the paper's kernel, each iteration took a traversal step or a
-  triangle test but never both, the ratio would move by {ii_reading_moves}, errors
-  {ii_reading_err} ("If-if, one thing per iteration"; an estimate with our block costs).
-  That kernel is not written yet, so the table above keeps ours.
+  ratios, walked on the protocol's own rays"). Nor the loop's shape: the lecture says of
+  the paper's kernel that each iteration "either executes a traversal step or a primitive
+  intersection", where ours may do both; that kernel, compiled and replayed on the
+  protocol's rays, is set beside ours (`python experiments/if_if_either_or.py`,
+  docs/kernels_ir.md, "If-if, one thing per iteration").
 - **Speculative versus while-while.** Speculation raises SIMD efficiency as in the paper;
   its speed relative to while-while is {spec_ratio} against the paper's {spec_paper} (errors
   {spec_err}). Its traversal step costs {spec_trav} instructions on {arch} as the GTX 285
@@ -535,12 +526,10 @@ def deviations(
     bvh: str,
     packet: pd.DataFrame,
     main_table: pd.DataFrame,
-    moves: dict[str, str],
 ) -> str:
     """:data:`DEVIATIONS` with the block costs of ``arch`` as ``gpu`` runs them, the
-    measured figures, the BVH verdict ``bvh``, the union replay's error ``packet``,
-    each row's level against the paper (``main_table``) and the if-if readings' ``moves``
-    (:func:`reading_moves`)."""
+    measured figures, the BVH verdict ``bvh``, the union replay's error ``packet`` and
+    each row's level against the paper (``main_table``)."""
 
     def cost(kernel: str, block: str, target: str = arch) -> int:
         return executed_on(kernels_ir.load(kernel, target), gpu).cost(block)
@@ -600,45 +589,17 @@ def deviations(
         ),
         packet_gpu=cited_range("gpu_results.md", "gpu-counts", "packet", "executor vs GPU"),
         packet_walk=cited_range("kernels_ir.md", "dyncount", "packet", "executor vs walk"),
-        ii_reading_moves=f"{moves['moves']} ({moves['types']})",
-        ii_reading_err=moves["err_either"],
     )  # fmt: skip
-
-
-def reading_moves(readings: pd.DataFrame) -> dict[str, str]:
-    """How the either-or reading of if-if (:mod:`if_if_either_or`) moves if_if /
-    while_while per ray type, and both readings' errors against the paper's ratio."""
-    by = readings.set_index(["ray_type", "reading"])
-    ours, either = if_if_either_or.TWO_IFS, if_if_either_or.EITHER_OR
-    col = "if_if / while_while"
-    types = list(dict.fromkeys(readings["ray_type"]))
-
-    def listed(values: list[float], spec: str = "+.1%") -> str:
-        return ", ".join(f"{v:{spec}}" for v in values)
-
-    err_ours = [by.loc[(rt, ours), "rel_error"] for rt in types]
-    err_either = [by.loc[(rt, either), "rel_error"] for rt in types]
-    closer = sum(abs(e) < abs(o) for e, o in zip(err_either, err_ours, strict=True))
-    return {
-        "moves": listed([by.loc[(rt, either), col] / by.loc[(rt, ours), col] - 1 for rt in types]),
-        "err_ours": listed(err_ours),
-        "err_either": listed(err_either),
-        "within": f"{sum(abs(e) <= 0.10 for e in err_either)} of {len(types)}",
-        "closer": f"{closer} of {len(types)}",
-        "types": ", ".join(types),
-        "warps": str(int(readings["warps"].max())),
-    }
 
 
 def render(
     args, spec, main_table, ratios, by_arch, even, calibrated, factors, seconds, results,
-    trees, by_bvh, packet, readings,
+    trees, by_bvh, packet,
 ) -> str:  # fmt: skip
     fmt = {"floatfmt": ".3g", "index": False}
     r0 = results[0]
     pred = calibrated[~calibrated["fitted"]]
     verdict = bvh_verdict(trees, by_bvh)
-    moves = reading_moves(readings)
     lines = [
         "# The paper's table, reproduced",
         "",
@@ -732,26 +693,6 @@ def render(
         "",
         f"Across these trees, {verdict}.",
         "",
-        "## If-if, one thing per iteration",
-        "",
-        "Our if-if kernel follows the paper's pseudo-code, two `if`s in one loop: in one "
-        "iteration a lane may take a traversal step, enter the leaf it lands on and test "
-        "that leaf's first triangle. The lecture this project started from says of the "
-        "paper's kernel that \"each loop iteration either executes a traversal step or a "
-        'primitive intersection" (shared/seed/gpu-ray-tracing-lecture.txt, variant 2); no '
-        "code of the 2009 kernel is published to settle which. `python "
-        "experiments/if_if_either_or.py` replays both readings on "
-        f"{moves['warps']} warps per ray type spread over the protocol's streams, with "
-        f"today's `{r0.model_card['ir_arch']}` block costs as the GTX 285 runs them: an "
-        "estimate, as no either-or kernel is compiled and its blocks are priced as ours. "
-        "The two-`if` reading equals the replay on those warps (checked). The either-or "
-        f"reading moves if_if / while_while by {moves['moves']} ({moves['types']}), "
-        f"closer to the paper's ratio on {moves['closer']} ray types: errors "
-        f"{moves['err_either']} against ours' {moves['err_ours']} on the same warps "
-        f"({moves['within']} within 10%).",
-        "",
-        readings.to_markdown(**fmt),
-        "",
         "## Calibrated profile",
         "",
         "Per-block costs scaled by group (traversal, intersection, other) so that "
@@ -773,7 +714,6 @@ def render(
             verdict,
             packet,
             main_table,
-            moves,
         ),
     ]
     return "\n".join(lines)

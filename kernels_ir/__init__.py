@@ -29,6 +29,7 @@ __all__ = [
     "TESTS",
     "available",
     "format_ir_table",
+    "from_document",
     "load",
     "summary_table",
 ]
@@ -83,7 +84,12 @@ def load(kernel: str, arch: str = "sm_90", tests: str = DEFAULT_TESTS) -> Kernel
             f"no KernelIR for kernel {kernel!r} arch {arch!r}; kernels: {', '.join(kernels)}; "
             f"archs: {', '.join(archs)}"
         )
-    doc = json.loads(entry.read_text())
+    return from_document(json.loads(entry.read_text()))
+
+
+def from_document(doc: dict) -> KernelIR:
+    """The KernelIR of one IR JSON document (as :func:`kernels_ir.build.build_one` makes
+    it and ``kernels_ir/ir`` holds it)."""
     notes = dict(doc.get("notes", {}))
     spare = {c: n for c, n in doc.get("unattributed", {}).items() if n}
     notes["unattributed_classes"] = ", ".join(f"{c}={n}" for c, n in spare.items())

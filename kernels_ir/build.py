@@ -123,20 +123,21 @@ def run_tool(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
 _INCLUDE = re.compile(r'^\s*#include\s+"([^"]+)"', re.MULTILINE)
 
 
-def kernel_headers(kernel: str) -> tuple[str, ...]:
-    """The headers of ``kernels_ir/cuda`` a kernel reads: the shared header, then any
-    other one its ``.cu`` includes, in include order (``bvh4.cuh`` for the bvh4 kernels)."""
-    text = (CUDA_DIR / f"{kernel}.cu").read_text()
+def kernel_headers(kernel: str, cuda_dir: Path = CUDA_DIR) -> tuple[str, ...]:
+    """The headers of ``kernels_ir/cuda`` (or ``cuda_dir``) a kernel reads: the shared
+    header, then any other one its ``.cu`` includes, in include order (``bvh4.cuh`` for the
+    bvh4 kernels)."""
+    text = (cuda_dir / f"{kernel}.cu").read_text()
     return (HEADER, *dict.fromkeys(h for h in _INCLUDE.findall(text) if h != HEADER))
 
 
-def source_sha256(kernel: str) -> str:
+def source_sha256(kernel: str, cuda_dir: Path = CUDA_DIR) -> str:
     """sha256 over the kernel's ``.cu`` file followed by the headers it reads
     (:func:`kernel_headers`; for a kernel including only the shared header, the ``.cu``
     and that header)."""
     h = hashlib.sha256()
-    for name in (f"{kernel}.cu", *kernel_headers(kernel)):
-        h.update((CUDA_DIR / name).read_bytes())
+    for name in (f"{kernel}.cu", *kernel_headers(kernel, cuda_dir)):
+        h.update((cuda_dir / name).read_bytes())
     return h.hexdigest()
 
 
@@ -167,7 +168,7 @@ def nvcc_flags(arch: str, tests: str) -> list[str]:
 
 
 def _compile(
-    kernel: str, arch: str, tools: Toolchain, workdir: Path, tests: str
+    kernel: str, arch: str, tools: Toolchain, workdir: Path, tests: str, cuda_dir: Path = CUDA_DIR
 ) -> tuple[list[str], str, list[SassInstruction]]:
     """Compile and disassemble one kernel: its flags, the compiler's log, and the
     instructions of the kernel and of the compiler subroutines (``$__internal_*``) it
@@ -175,12 +176,12 @@ def _compile(
     cubin = workdir / cubin_filename(kernel, arch, tests)
     flags = nvcc_flags(arch, tests)
     cmd = [str(tools.nvcc), *flags, "-o", str(cubin), f"{kernel}.cu"]
-    proc = run_tool(cmd, CUDA_DIR)
+    proc = run_tool(cmd, cuda_dir)
     log = proc.stdout + proc.stderr
     warnings = [ln for ln in log.splitlines() if "warning" in ln.lower()]
     if warnings:
         raise KernelIRError(f"{kernel} {arch}: compiler warning: {warnings[0].strip()}")
-    listing = run_tool([str(tools.nvdisasm), "-c", "-g", "-gi", str(cubin)], CUDA_DIR).stdout
+    listing = run_tool([str(tools.nvdisasm), "-c", "-g", "-gi", str(cubin)], cuda_dir).stdout
     return flags, log, kernel_instructions(listing, kernel)
 
 
@@ -240,18 +241,25 @@ def write_cubins(
 
 
 def build_one(
-    kernel: str, arch: str, tools: Toolchain, workdir: Path, tests: str = DEFAULT_TESTS
+    kernel: str,
+    arch: str,
+    tools: Toolchain,
+    workdir: Path,
+    tests: str = DEFAULT_TESTS,
+    cuda_dir: Path = CUDA_DIR,
 ) -> dict:
     """Compile, disassemble and map one kernel for one arch with the box and triangle
-    ``tests`` (:data:`TEST_DEFINES`); return its JSON document.
+    ``tests`` (:data:`TEST_DEFINES`); return its JSON document. ``cuda_dir``: the folder
+    of its ``.cu`` and the headers it includes (a kernel variant built outside the
+    package, as an experiment's).
 
     Raises
     ------
     KernelIRError
         On a compiler warning or error, or when a marked block gets no instruction.
     """
-    flags, log, instructions = _compile(kernel, arch, tools, workdir, tests)
-    return ir_document(kernel, arch, tests, instructions, log, flags, tools.version)
+    flags, log, instructions = _compile(kernel, arch, tools, workdir, tests, cuda_dir)
+    return ir_document(kernel, arch, tests, instructions, log, flags, tools.version, cuda_dir)
 
 
 def ir_document(
@@ -262,10 +270,11 @@ def ir_document(
     log: str,
     flags: list[str],
     compiler: str,
+    cuda_dir: Path = CUDA_DIR,
 ) -> dict:
     """The KernelIR JSON document of one kernel's listing: ``instructions`` (the kernel's
     and its compiler subroutines'), ``log`` (ptxas ``-v``), and the ``flags`` and
-    ``compiler`` that made them.
+    ``compiler`` that made them; its source is in ``cuda_dir``.
 
     Raises
     ------
@@ -273,7 +282,7 @@ def ir_document(
         When a marked block gets no instruction.
     """
     registers, notes = _ptxas_info(log, kernel)
-    source = (CUDA_DIR / f"{kernel}.cu").read_text()
+    source = (cuda_dir / f"{kernel}.cu").read_text()
     owner = parse_markers(source, f"{kernel}.cu")
     loops = parse_loops(source)
     counts, fallback, moved, full_warp = map_blocks(instructions, owner, f"{kernel}.cu", loops)
@@ -330,7 +339,7 @@ def ir_document(
         "compiler": compiler,
         "flags": flags,
         "registers": registers,
-        "source_sha256": source_sha256(kernel),
+        "source_sha256": source_sha256(kernel, cuda_dir),
         "tests": tests,
         "notes": notes,
     }

@@ -6,8 +6,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import kernels_ir
+from kernels_ir.build import toolchain_available
 from simt_sim.schemes import get_scheme
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.replay import simulate_traces
@@ -57,6 +59,17 @@ def test_the_two_if_reading_is_the_replay() -> None:
         [trace], get_scheme("if_if"), kernels_ir.load("if_if", if_if_either_or.ARCH),
         get_gpu(if_if_either_or.GPU),
     ).warp_instructions  # fmt: skip
-    costs = if_if_either_or.block_costs("if_if")
+    costs = if_if_either_or.block_costs(kernels_ir.load("if_if", if_if_either_or.ARCH))
     assert if_if_either_or.warp_total(trace, costs, either_or=False) == replay
     assert if_if_either_or.warp_total(trace, costs, either_or=True) > replay
+
+
+@pytest.mark.toolchain
+@pytest.mark.skipif(not toolchain_available(), reason="needs pip install -e '.[cuda-toolchain]'")
+def test_the_variant_compiles_outside_the_package_with_every_block_mapped() -> None:
+    ir = if_if_either_or.compiled_variant()  # build_one raises on a block left empty
+    assert (ir.kernel, ir.arch) == ("if_if_either_or", if_if_either_or.ARCH)
+    ours = kernels_ir.load("if_if", if_if_either_or.ARCH)
+    assert set(ir.blocks) == set(ours.blocks)
+    # the same triangle test and node step code: only the loop's shape differs
+    assert ir.cost("tri_u") == ours.cost("tri_u") and ir.cost("tri_v") == ours.cost("tri_v")
