@@ -35,6 +35,8 @@ import kernels_ir
 from kernels_ir.build import CUDA_DIR, HEADER, build_one, find_toolchain
 from kernels_ir.kernel_ir import KernelIR
 from simt_sim.atomic import write_atomic
+from simt_sim.oracles import reference
+from simt_sim.oracles.reference import RefCounts
 from simt_sim.report.markdown import splice
 from simt_sim.schemes import get_scheme
 from simt_sim.simt.gpus import executed_on, get_gpu
@@ -43,16 +45,7 @@ from simt_sim.study.dyncount import pick_warps
 from simt_sim.study.published import PAPER_CSV, reference_dir
 from simt_sim.study.workload import make_workload
 from simt_sim.trace.record import record_all
-from simt_sim.types.optrace import (
-    LEAF,
-    TRAV_BOTH,
-    TRAV_NONE,
-    TRAV_ONE,
-    TRI_HIT,
-    OpTrace,
-    is_tri,
-    tri_stages,
-)
+from simt_sim.types.optrace import OpTrace
 from simt_sim.types.raybatch import TRACE_RAY_TYPES
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -67,10 +60,6 @@ VARIANT = Path(__file__).resolve().with_suffix(".cu")
 TWO_IFS = "two ifs (ours)"
 EITHER_OR = "either-or, our blocks' costs"
 EITHER_OR_OWN = "either-or, its own code"
-OUTCOME = {TRAV_NONE: "trav_none", TRAV_ONE: "trav_one", TRAV_BOTH: "trav_both"}
-CODES = np.arange(256, dtype=np.uint8)
-IS_TRI = is_tri(CODES)
-STAGES = tri_stages(CODES)
 
 
 def block_costs(ir: KernelIR) -> dict[str, int]:
@@ -91,43 +80,11 @@ def compiled_variant() -> KernelIR:
 
 
 def if_if_warp(streams: list[np.ndarray], costs: dict[str, int], either_or: bool) -> int:
-    """Warp instructions of one if-if warp. Per iteration, with the lanes still alive:
-    ``loop_control``; a traversal step for the lanes at a TRAV op; a leaf entry for the
-    lanes then at a LEAF; a triangle test for those then at a TRI op. ``either_or``: a
-    lane that stepped this iteration enters no leaf and tests no triangle in it."""
-    cur = [0] * len(streams)
-
-    def at(lane: int) -> int:
-        return int(streams[lane][cur[lane]]) if cur[lane] < len(streams[lane]) else -1
-
-    def charge(block: str, lanes: list[int]) -> int:
-        return costs.get(block, 0) if lanes else 0
-
-    issued = charge("ray_setup", list(range(len(streams))))
-    alive = [lane for lane in range(len(streams)) if at(lane) >= 0]
-    while alive:
-        issued += charge("loop_control", alive)
-        step = [lane for lane in alive if 0 <= at(lane) <= TRAV_BOTH]
-        issued += charge("trav_step", step)
-        issued += charge("trav_else", [lane for lane in step if at(lane) != TRAV_BOTH])
-        for op, block in OUTCOME.items():
-            issued += charge(block, [lane for lane in step if at(lane) == op])
-        for lane in step:
-            cur[lane] += 1
-        rest = [lane for lane in alive if not (either_or and lane in step)]
-        leaf = [lane for lane in rest if at(lane) == LEAF]
-        issued += charge("leaf_entry", leaf)
-        for lane in leaf:
-            cur[lane] += 1
-        tri = [lane for lane in rest if at(lane) >= 0 and IS_TRI[at(lane)]]
-        issued += charge("tri_test", tri)
-        issued += charge("tri_u", [lane for lane in tri if STAGES[at(lane)] >= 2])
-        issued += charge("tri_v", [lane for lane in tri if STAGES[at(lane)] >= 3])
-        issued += charge("tri_hit", [lane for lane in tri if at(lane) == TRI_HIT])
-        for lane in tri:
-            cur[lane] += 1
-        alive = [lane for lane in alive if at(lane) >= 0]
-    return issued + charge("finish", list(range(len(streams))))
+    """Warp instructions of one if-if warp in either reading: the plain reference's
+    (:func:`simt_sim.oracles.reference.if_if_warp`)."""
+    ops = [s.tolist() for s in streams]
+    rec = RefCounts(WARP, costs)
+    return reference.if_if_warp(ops, [[0] * len(o) for o in ops], rec, either_or=either_or)
 
 
 def warp_total(trace: OpTrace, costs: dict[str, int], either_or: bool) -> int:

@@ -215,10 +215,14 @@ def while_while_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefC
     return issued + rec.charge("finish", everyone)
 
 
-def if_if_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts) -> int:
+def if_if_warp(
+    streams: list[list[int]], addrs: list[list[int]], rec: RefCounts, *, either_or: bool = False
+) -> int:
     """One if-if warp, charged in issue order; returns its instructions. Each ``if``'s
     barrier is reached apart by the lanes that skip it and by each way through it; lanes
-    that finish in different iterations reach the loop's exit apart."""
+    that finish in different iterations reach the loop's exit apart. ``either_or``: a lane
+    that took a traversal step enters no leaf and tests no triangle in that iteration (the
+    seed lecture's reading of the paper's loop, experiments/if_if_either_or.py)."""
     w = _Lanes(streams)
     everyone = list(range(len(streams)))
     issued = rec.charge("ray_setup", everyone)
@@ -230,11 +234,12 @@ def if_if_warp(streams: list[list[int]], addrs: list[list[int]], rec: RefCounts)
         issued += _trav_step(w, t, rec)
         issued += rec.apart(len({w.next(lane) for lane in t}) + (len(t) < len(alive)))
         w.advance(t)
-        leaf = [lane for lane in alive if w.next(lane) == LEAF]
+        rest = [lane for lane in alive if lane not in t] if either_or else alive
+        leaf = [lane for lane in rest if w.next(lane) == LEAF]
         issued += rec.charge("leaf_entry", leaf)
         issued += rec.apart((len(leaf) > 0) + (len(leaf) < len(alive)))
         w.advance(leaf)
-        x = [lane for lane in alive if _is_tri(w.next(lane))]
+        x = [lane for lane in rest if _is_tri(w.next(lane))]
         ops = {lane: w.next(lane) for lane in x}
         issued += _tri_charge(ops, rec)
         issued += rec.apart(len({_tri_reach(o) for o in ops.values()}))
