@@ -37,6 +37,7 @@ from simt_sim.schemes import get_scheme
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import merge
+from simt_sim.study.protocol import PAPER_PROTOCOL
 from simt_sim.study.published import PAPER_CSV, reference_dir
 from simt_sim.study.workload import parse_resolution
 from simt_sim.trace.record import record_all
@@ -56,7 +57,7 @@ WINDOW = 1 << 21
 ORDERS = {"pixel": None, "morton 2^16": 1 << 16, "morton 2^20": LAUNCH_SIZE,
           "morton 2^21": WINDOW}  # fmt: skip
 DEFAULT = "morton 2^20"
-PROTOCOL_BUILD = "spatial"
+PROTOCOL_BUILD = PAPER_PROTOCOL["build"]
 """The protocol's tree: the paper's builder (SAH, node and triangle cost 1, leaves of at
 most 8) used spatial splits (docs/BACKGROUND.md), so ours does too (``--bvh-build``)."""
 RAY_TYPES = ("ao", "diffuse")

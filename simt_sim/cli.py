@@ -24,6 +24,7 @@ from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 from simt_sim import __version__, progress
 from simt_sim.atomic import write_atomic
+from simt_sim.bvh.build import DEFAULT_METHOD
 from simt_sim.bvh.build import METHODS as BUILD_METHODS
 from simt_sim.errors import SimtSimError
 from simt_sim.report.tables import (
@@ -37,6 +38,7 @@ from simt_sim.report.tables import (
 from simt_sim.scene.load import DEFAULT_SCENE
 from simt_sim.simt.footprint import MODES as MEMORY_MODES
 from simt_sim.simt.gpus import DEFAULT_GPU
+from simt_sim.study.protocol import PAPER_PROTOCOL
 from simt_sim.types.optrace import LAYOUTS
 
 
@@ -47,8 +49,12 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
-#: the paper's protocol, which ``--paper`` selects on every command
-PAPER = {"resolution": "1024x768", "spp": 32, "camera": "all"}
+#: the paper's protocol as the workload flags ``--paper`` sets on every command
+PAPER = {
+    "resolution": "x".join(map(str, PAPER_PROTOCOL["resolution"])),
+    "spp": PAPER_PROTOCOL["spp"],
+    "camera": PAPER_PROTOCOL["cameras"],
+}
 #: the scene and ray types of table and plot when none are named
 _DEFAULTS = {"scene": DEFAULT_SCENE, "rays": "primary,ao,diffuse"}
 #: the workload every command but ``plot`` and ``report`` runs by default (small enough for
@@ -97,7 +103,9 @@ def _add_workload_args(
         "--paper",
         action="store_true",
         help=f"the paper's protocol: {PAPER['resolution']}, {PAPER['spp']} secondary rays per "
-        "hit, every camera (instead of --resolution, --spp and --camera)",
+        "hit, every camera (instead of --resolution, --spp and --camera), on the tree with "
+        f"spatial splits (--bvh-build {PAPER_PROTOCOL['build']}) unless --bvh-build names "
+        "another",
     )
     p.set_defaults(workload_defaults={"resolution": resolution, "spp": spp, "camera": camera})
     p.add_argument("--seed", type=int, default=0, help="sample seed (default: %(default)s)")
@@ -127,10 +135,11 @@ def _add_workload_args(
     p.add_argument(
         "--bvh-build",
         choices=BUILD_METHODS,
-        default="binned",
+        default=None,
         help="BVH builder: binned SAH, a full SAH sweep, or binned with spatial splits "
         "(Stich et al. 2009; a triangle a plane crosses sits in both children unless keeping "
-        "it whole on one side is cheaper, as in the paper's trees) (default: %(default)s)",
+        f"it whole on one side is cheaper, as in the paper's trees) (default: {DEFAULT_METHOD}"
+        f"; with --paper: {PAPER_PROTOCOL['build']})",
     )
 
 
@@ -772,6 +781,9 @@ def _resolve_workload(args: argparse.Namespace) -> None:
     defaults = getattr(args, "workload_defaults", None)
     if defaults is None:
         return
+    if args.bvh_build is None:  # a tree choice, not the workload: --bvh-build overrides --paper
+        paper = args.paper and not getattr(args, "trace", None)
+        args.bvh_build = PAPER_PROTOCOL["build"] if paper else DEFAULT_METHOD
     given = [k for k in defaults if getattr(args, k) is not None]
     if getattr(args, "trace", None):
         fixed = given + [k for k in ("scene", "rays") if getattr(args, k) != _DEFAULTS[k]]

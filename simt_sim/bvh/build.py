@@ -30,6 +30,8 @@ from simt_sim.bvh.woop import woop_transform
 from simt_sim.errors import SimtSimError
 
 METHODS = ("binned", "sweep", "spatial")
+DEFAULT_METHOD = "binned"
+"""The builder's method unless one is named: fast, and the common baseline."""
 WIDEN = np.float32(2.0**-38)
 """Relative growth of the stored boxes (see :func:`widened`)."""
 WOOP_CHUNK = 1 << 20
@@ -828,7 +830,7 @@ def build_bvh(
     vertices: np.ndarray,
     triangles: np.ndarray,
     *,
-    method: str = "binned",
+    method: str = DEFAULT_METHOD,
     max_leaf: int = 8,
     bins: int = 32,
     node_cost: float = 1.0,

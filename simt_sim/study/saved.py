@@ -18,6 +18,7 @@ from typing import Any
 
 import pandas as pd
 
+from simt_sim.bvh.build import DEFAULT_METHOD
 from simt_sim.bvh.layouts import tree_card
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.result import SimResult
@@ -64,7 +65,7 @@ def saved_spec(paths: Sequence[str], **fields: Any) -> StudySpec:
         seed=int(first["seed"]),
         max_leaf=int(tree["max_leaf"]),
         node_cost=float(tree["node_cost"]),
-        build=str(tree.get("method", "binned")),
+        build=str(tree.get("method", DEFAULT_METHOD)),
         bvh=tree.get("layout", "bvh2"),
         **fields,
     )

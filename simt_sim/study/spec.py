@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 from simt_sim import schemes
+from simt_sim.bvh.build import DEFAULT_METHOD
 from simt_sim.bvh.build import METHODS as BUILD_METHODS
 from simt_sim.bvh.layouts import NODE_BYTES_OF
 from simt_sim.errors import SimtSimError
@@ -40,7 +41,7 @@ class StudySpec:
     max_bounces: int = 8
     max_leaf: int = 8
     node_cost: float = 1.0
-    build: str = "binned"
+    build: str = DEFAULT_METHOD
     """The BVH builder's method (``--bvh-build``; :data:`simt_sim.bvh.build.METHODS`):
     ``spatial`` adds spatial splits, as the paper's trees had."""
     launch_size: int = LAUNCH_SIZE

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 from simt_sim import progress
-from simt_sim.bvh.build import build_bvh
+from simt_sim.bvh.build import DEFAULT_METHOD, build_bvh
 from simt_sim.bvh.layout import BVH
 from simt_sim.bvh.layouts import DEFAULT_LAYOUT, Tree, check_layout, make_tree
 from simt_sim.errors import SimtSimError
@@ -94,7 +94,7 @@ def make_workload(
     bvh: BVH | None = None,
     max_leaf: int = 8,
     node_cost: float = 1.0,
-    build: str = "binned",
+    build: str = DEFAULT_METHOD,
     up: str | None = None,
     camera_file: str | None = None,
     layout: str = DEFAULT_LAYOUT,

@@ -11,10 +11,12 @@ from test_cli import SMALL, run_cli
 
 from kernels_ir.kernel_ir import TESTS
 from simt_sim.errors import SimtSimError
+from simt_sim.study.protocol import PAPER_PROTOCOL
 from simt_sim.study.published import (
     bound_check,
     check_published,
     published_measurements,
+    published_spec,
     reference_dir,
 )
 
@@ -24,6 +26,13 @@ def measured() -> pd.DataFrame:
     if not (reference_dir() / "later-gpus-conference.csv").exists():
         pytest.skip(f"no published tables in {reference_dir()}")
     return published_measurements()
+
+
+def test_the_bounds_run_the_papers_protocol_on_its_tree(measured: pd.DataFrame) -> None:
+    """The measured kernels ran on trees with spatial splits; the bounds' study does too."""
+    spec = published_spec()
+    assert {k: getattr(spec, k) for k in PAPER_PROTOCOL} == dict(PAPER_PROTOCOL)
+    assert spec.build == "spatial" and spec.schemes == tuple(dict.fromkeys(measured["scheme"]))
 
 
 def test_every_published_measurement_is_read(measured: pd.DataFrame) -> None:

@@ -8,7 +8,10 @@ from pathlib import Path
 
 from test_cli import assert_clean_error, run_cli
 
+from simt_sim import cli
+from simt_sim.bvh.build import DEFAULT_METHOD
 from simt_sim.cli import main
+from simt_sim.study.protocol import PAPER_PROTOCOL
 from simt_sim.trace.tracefile import load_trace, read_meta, save_trace
 
 
@@ -59,6 +62,25 @@ def test_traces_that_do_not_belong_together_or_clash_with_flags_are_refused(tmp_
 def test_paper_selects_the_protocol_and_refuses_what_it_replaces() -> None:
     assert_clean_error(run_cli("table", "--paper", "--spp", "4"), "--paper sets --spp")
     assert_clean_error(run_cli("bench", "--paper", "--camera", "0"), "--paper sets --camera")
+
+
+def test_paper_builds_the_papers_tree_unless_another_is_named(monkeypatch) -> None:
+    """``--paper`` is the protocol the paper table and the published bounds run (its
+    workload and the tree with spatial splits); a named ``--bvh-build`` keeps its tree."""
+    seen: dict[str, object] = {}
+    for name in ("cmd_table", "cmd_bench"):
+        monkeypatch.setattr(cli, name, lambda args: seen.update(vars(args)) or 0)
+
+    def resolved(*argv: str) -> tuple[object, ...]:
+        assert main([*argv, "--quiet"]) == 0
+        return seen["resolution"], seen["spp"], seen["camera"], seen["bvh_build"]
+
+    w, h = PAPER_PROTOCOL["resolution"]
+    paper = (f"{w}x{h}", PAPER_PROTOCOL["spp"], PAPER_PROTOCOL["cameras"])
+    assert resolved("table", "--paper") == (*paper, PAPER_PROTOCOL["build"])
+    assert resolved("bench", "--paper", "--bvh-build", "binned") == (*paper, "binned")
+    assert resolved("table")[3] == DEFAULT_METHOD != PAPER_PROTOCOL["build"]
+    assert resolved("table", "--bvh-build", "sweep")[3] == "sweep"
 
 
 def test_trace_refuses_a_file_the_disk_cannot_hold(tmp_path, monkeypatch, capsys) -> None:
