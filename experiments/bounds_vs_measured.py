@@ -19,8 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from simt_sim.atomic import write_atomic
-from simt_sim.report.markdown import splice
+from simt_sim.report.markdown import splice_file
 from simt_sim.simt.gpus import PIPES, load_gpus
 from simt_sim.study.published import check_published
 from simt_sim.study.sampling import check_fraction
@@ -81,10 +80,9 @@ def main(argv: list[str] | None = None) -> int:
         "`ratio` cost the kernels with the published tests, which the measured kernels ran; "
         "the `watertight_` columns with simt-sim's own."
     )
-    text = args.out.read_text(encoding="utf-8")
-    text = splice(text, "gpus", gpu_table())
-    text = splice(text, "bounds", f"{stamp}\n\n{bound_table(check, watertight)}")
-    write_atomic(args.out, text)
+    splice_file(
+        args.out, {"gpus": gpu_table(), "bounds": f"{stamp}\n\n{bound_table(check, watertight)}"}
+    )
     return 0 if check["holds"].all() else 1
 
 

@@ -22,8 +22,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from simt_sim.atomic import write_atomic
-from simt_sim.report.markdown import splice
+from simt_sim.report.markdown import splice_file
 from simt_sim.study.dyncount import compare_counts, pick_warps, walked_schemes
 from simt_sim.study.workload import make_workload
 from simt_sim.types.raybatch import TRACE_RAY_TYPES
@@ -106,23 +105,16 @@ def main(argv: list[str] | None = None) -> int:
     print(share.to_string())
     print(ratios.to_string(index=False))
     if not args.no_write:
-        text = DOC.read_text()
-        text = splice(text, "dyncount", header + table.to_markdown(index=False))
-        text = splice(
-            text,
-            "dyncount-blocks",
-            "Replay minus walk per block, in % of the walk's instructions (all scenes and "
-            "ray types together; positive: the replay charges more):\n\n" + share.to_markdown(),
-        )
-        text = splice(
-            text,
-            "dyncount-ratios",
-            "The paper table's ratios on these warps (a scheme's speed over while-while's on "
-            "the same rays: while-while's warp instructions over the scheme's), counted by "
-            "the replay and by the walk; `moves` is how far the walk's count moves the "
-            "replay's ratio:\n\n" + ratios.to_markdown(index=False),
-        )
-        write_atomic(DOC, text)
+        splice_file(DOC, {
+            "dyncount": header + table.to_markdown(index=False),
+            "dyncount-blocks": "Replay minus walk per block, in % of the walk's instructions "
+            "(all scenes and ray types together; positive: the replay charges more):\n\n"
+            + share.to_markdown(),
+            "dyncount-ratios": "The paper table's ratios on these warps (a scheme's speed over "
+            "while-while's on the same rays: while-while's warp instructions over the "
+            "scheme's), counted by the replay and by the walk; `moves` is how far the walk's "
+            "count moves the replay's ratio:\n\n" + ratios.to_markdown(index=False),
+        })  # fmt: skip
         print(f"wrote {DOC}")
     return 0
 

@@ -367,8 +367,7 @@ def stall_table() -> pd.DataFrame:
 
 
 def write_doc(table: pd.DataFrame, share: pd.DataFrame, seconds: float) -> None:
-    from simt_sim.atomic import write_atomic
-    from simt_sim.report.markdown import splice
+    from simt_sim.report.markdown import splice_file
 
     launches = pd.read_csv(OUT_DIR / "h200_launches.csv")
     header = (
@@ -382,25 +381,16 @@ def write_doc(table: pd.DataFrame, share: pd.DataFrame, seconds: float) -> None:
         f"barrier issues the replay charges groups of lanes that arrive apart; both in % "
         f"of the GPU's warp instructions:\n\n"
     )
-    text = DOC.read_text()
-    text = splice(text, "gpu-counts", header + table.to_markdown(index=False))
-    text = splice(
-        text, "gpu-blocks",
-        "Replay minus GPU per block, in % of the GPU's warp instructions (the three ray "
-        "types together; negative: the GPU issued more):\n\n" + share.to_markdown(),
-    )  # fmt: skip
-    text = splice(
-        text, "gpu-stalls",
-        "ncu's warp-state samples of the counted launches, in % of each warp's sampled "
-        "cycles (docs/gpu/h200_launches.csv):\n\n" + stall_table().to_markdown(),
-    )  # fmt: skip
-    text = splice(
-        text, "gpu-actual",
-        "From docs/gpu/h200_conference_actual.csv and h200_sibenik_actual.csv (made by "
-        "step 4 and 6 of experiments/gpu_run.sh); ranks count from the fastest:\n\n"
+    splice_file(DOC, {
+        "gpu-counts": header + table.to_markdown(index=False),
+        "gpu-blocks": "Replay minus GPU per block, in % of the GPU's warp instructions (the "
+        "three ray types together; negative: the GPU issued more):\n\n" + share.to_markdown(),
+        "gpu-stalls": "ncu's warp-state samples of the counted launches, in % of each warp's "
+        "sampled cycles (docs/gpu/h200_launches.csv):\n\n" + stall_table().to_markdown(),
+        "gpu-actual": "From docs/gpu/h200_conference_actual.csv and h200_sibenik_actual.csv "
+        "(made by step 4 and 6 of experiments/gpu_run.sh); ranks count from the fastest:\n\n"
         + actual_table().to_markdown(index=False),
-    )  # fmt: skip
-    write_atomic(DOC, text)
+    })  # fmt: skip
     print(f"wrote {DOC}")
 
 

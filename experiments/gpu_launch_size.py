@@ -145,13 +145,12 @@ def main(argv: list[str] | None = None) -> int:
     elif args.cmd == "import":
         import_run(args.dir)
     else:
-        from simt_sim.atomic import write_atomic
-        from simt_sim.report.markdown import splice
+        from simt_sim.report.markdown import splice_file
 
         table = report()
         print(table)
         header = "`python experiments/gpu_launch_size.py report` (docs/gpu/h200_launch_size.csv):"
-        write_atomic(DOC, splice(DOC.read_text(), "gpu-launch-size", f"{header}\n\n{table}"))
+        splice_file(DOC, {"gpu-launch-size": f"{header}\n\n{table}"})
     return 0
 
 

@@ -34,10 +34,9 @@ import pandas as pd
 import kernels_ir
 from kernels_ir.build import CUDA_DIR, HEADER, build_one, find_toolchain
 from kernels_ir.kernel_ir import KernelIR
-from simt_sim.atomic import write_atomic
 from simt_sim.oracles import reference
 from simt_sim.oracles.reference import RefCounts
-from simt_sim.report.markdown import splice
+from simt_sim.report.markdown import splice_file
 from simt_sim.schemes import get_scheme
 from simt_sim.simt.gpus import executed_on, get_gpu
 from simt_sim.simt.replay import simulate_traces
@@ -164,15 +163,12 @@ def main(argv: list[str] | None = None) -> int:
         command = "python experiments/if_if_either_or.py" + (
             f" --warps {args.warps}" if args.warps != 512 else ""
         )
-        text = splice(
-            DOC.read_text(),
-            "if-if-readings",
-            f"`{command}` ({seconds:.0f} s; {args.warps} warps per ray type spread over the "
-            f"paper protocol's streams, GTX 285 rules, {ARCH} costs; the variant's blocks "
-            f"that cost otherwise than ours: {moved}):\n\n"
+        splice_file(DOC, {
+            "if-if-readings": f"`{command}` ({seconds:.0f} s; {args.warps} warps per ray type "
+            f"spread over the paper protocol's streams, GTX 285 rules, {ARCH} costs; the "
+            f"variant's blocks that cost otherwise than ours: {moved}):\n\n"
             + table.to_markdown(index=False, floatfmt=".4g"),
-        )
-        write_atomic(DOC, text)
+        })  # fmt: skip
         print(f"wrote {DOC}")
     return 0
 

@@ -28,8 +28,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from simt_sim.atomic import write_atomic
-from simt_sim.report.markdown import splice
+from simt_sim.report.markdown import splice_file
 from simt_sim.scene.load import load_scene
 from simt_sim.schemes import get_scheme
 from simt_sim.study.dyncount import compare_counts, pick_warps
@@ -85,19 +84,16 @@ def main(argv: list[str] | None = None) -> int:
         command = "python experiments/protocol_walk.py" + (
             f" --warps {args.warps}" if args.warps != 512 else ""
         )
-        text = splice(
-            DOC.read_text(),
-            "protocol-walk",
-            f"`{command}` ({seconds:.0f} s; {args.warps} warps per ray type spread over "
-            "the paper protocol's stream, sm_75, RTX 2080 Ti rules; `model` is the "
-            "replay's count, packet's the lockstep executor's, as the paper table counts "
+        splice_file(DOC, {
+            "protocol-walk": f"`{command}` ({seconds:.0f} s; {args.warps} warps per ray type "
+            "spread over the paper protocol's stream, sm_75, RTX 2080 Ti rules; `model` is "
+            "the replay's count, packet's the lockstep executor's, as the paper table counts "
             "them):\n\n"
             + count_table.to_markdown(index=False)
             + "\n\nEach ratio is while-while's warp instructions over the scheme's on the "
             "same warps; `moves` is how far the walk's count moves the model's:\n\n"
             + ratio_table.to_markdown(index=False),
-        )
-        write_atomic(DOC, text)
+        })  # fmt: skip
         print(f"wrote {DOC}")
     return 0
 

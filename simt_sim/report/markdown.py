@@ -6,8 +6,12 @@ page and rewrites only that, so the prose around its tables stays hand-written.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from pathlib import Path
+
 import pandas as pd
 
+from simt_sim.atomic import write_atomic
 from simt_sim.errors import SimtSimError
 
 
@@ -51,3 +55,12 @@ def splice(text: str, name: str, block: str) -> str:
     head, rest = text.split(start)
     _, tail = rest.split(end)
     return f"{head}{start}\n{block}\n{end}{tail}"
+
+
+def splice_file(path: Path, blocks: Mapping[str, str]) -> None:
+    """Replace the named ``blocks`` of the page at ``path`` (:func:`splice`), all or none:
+    the page is rewritten atomically once every block has found its markers."""
+    text = path.read_text()
+    for name, block in blocks.items():
+        text = splice(text, name, block)
+    write_atomic(path, text)

@@ -6,7 +6,7 @@ import pandas as pd
 import pytest
 
 from simt_sim.errors import SimtSimError
-from simt_sim.report.markdown import block_table, splice
+from simt_sim.report.markdown import block_table, splice, splice_file
 
 
 def test_splice_replaces_only_its_block() -> None:
@@ -24,6 +24,17 @@ def test_splice_refuses_a_page_without_its_markers() -> None:
     twice = "<!-- t:start --><!-- t:end --><!-- t:start --><!-- t:end -->"
     with pytest.raises(SimtSimError):
         splice(twice, "t", "x")
+
+
+def test_splice_file_writes_every_block_or_none(tmp_path) -> None:
+    page = "a\n<!-- t:start -->\n1\n<!-- t:end -->\nb\n<!-- u:start -->\n2\n<!-- u:end -->\n"
+    path = tmp_path / "page.md"
+    path.write_text(page)
+    with pytest.raises(SimtSimError, match="needs one <!-- v:start -->"):
+        splice_file(path, {"t": "new", "v": "x"})
+    assert path.read_text() == page and [p.name for p in tmp_path.iterdir()] == ["page.md"]
+    splice_file(path, {"t": "one", "u": "two"})
+    assert path.read_text() == page.replace("\n1\n", "\none\n").replace("\n2\n", "\ntwo\n")
 
 
 def test_block_table_reads_back_what_an_experiment_wrote() -> None:
