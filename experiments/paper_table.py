@@ -380,8 +380,8 @@ def main(argv: list[str] | None = None) -> int:
     seconds = time.perf_counter() - t0
 
     doc = render(
-        args, spec, main_table, ratios, by_arch, even, calibrated, factors, seconds, results,
-        trees, by_bvh, packet,
+        spec, main_table, ratios, by_arch, even, calibrated, factors, seconds, results, trees,
+        by_bvh, packet,
     )  # fmt: skip
     write_atomic(args.out, doc)
     print(doc)
@@ -593,8 +593,8 @@ def deviations(
 
 
 def render(
-    args, spec, main_table, ratios, by_arch, even, calibrated, factors, seconds, results,
-    trees, by_bvh, packet,
+    spec, main_table, ratios, by_arch, even, calibrated, factors, seconds, results, trees,
+    by_bvh, packet,
 ) -> str:  # fmt: skip
     fmt = {"floatfmt": ".3g", "index": False}
     r0 = results[0]

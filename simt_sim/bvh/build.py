@@ -13,8 +13,6 @@ and deterministic (same input, same bytes).
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 from numba import njit
 
@@ -874,7 +872,6 @@ def build_bvh(
         Woop float4 triples plus a sentinel.
     """
     v, tri = _check_inputs(vertices, triangles, method, max_leaf, bins, node_cost)
-    t0 = time.perf_counter()
     p0 = v[tri[:, 0]]
     p1 = v[tri[:, 1]]
     p2 = v[tri[:, 2]]
@@ -927,14 +924,12 @@ def build_bvh(
     is_last[:-1] = leaf_of_pos[1:] != leaf_of_pos[:-1]
     sentinel = base[is_last] + WOOP_FLOAT4_PER_TRI
     woop.view(np.uint32)[sentinel, 0] = SENTINEL_BITS
-    seconds = time.perf_counter() - t0
     stats = BuildStats(
         nodes=n_int,
         leaves=int(n_leaf),
         depth=int(depth),
         sah_cost=float(sah),
         leaf_size_hist=tuple(int(h) for h in hist),
-        build_seconds=seconds,
         method=method,
         max_leaf=int(max_leaf),
         node_cost=float(node_cost),

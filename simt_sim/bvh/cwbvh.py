@@ -77,7 +77,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from simt_sim.bvh.layout import BVH, FLOAT4_BYTES, WOOP_FLOAT4_PER_TRI, BuildStats
+from simt_sim.bvh.layout import BVH, FLOAT4_BYTES, WOOP_FLOAT4_PER_TRI
 from simt_sim.bvh.wide import WideStats
 from simt_sim.errors import SimtSimError
 
@@ -150,7 +150,7 @@ class CwBVH:
     @property
     def p(self) -> np.ndarray:
         """float32 (n, 3) grid origins."""
-        return self.nodes.view(np.float32)[:, 0:3]
+        return self.nodes.view(np.float32)[:, OFF_P : OFF_P + 3]
 
     @property
     def e(self) -> np.ndarray:
@@ -192,10 +192,6 @@ class CwBVH:
         """uint8 (n, 3, 8) quantised hi planes (axis, slot)."""
         return self.nodes[:, OFF_QHI : OFF_QHI + 3 * WIDTH].reshape(-1, 3, WIDTH)
 
-    @property
-    def build_stats(self) -> BuildStats:
-        return self.binary.stats
-
     def decoded_boxes(self) -> np.ndarray:
         """float32 (n, 8, 6) child boxes as the traversal decodes them (lo xyz, hi xyz);
         empty slots hold NaN."""
@@ -206,7 +202,7 @@ def decode_boxes(nodes: np.ndarray) -> np.ndarray:
     """float32 (n, 8, 6) decoded child boxes of 80-byte rows (NaN for empty slots): the
     float32 ``p + 2^e * q`` of the traversal, one rounding."""
     n = nodes.shape[0]
-    p = nodes.view(np.float32)[:, 0:3]  # (n, 3)
+    p = nodes.view(np.float32)[:, OFF_P : OFF_P + 3]  # (n, 3)
     s = POW2[nodes[:, OFF_E : OFF_E + 3]]  # (n, 3)
     qlo = nodes[:, OFF_QLO : OFF_QLO + 3 * WIDTH].reshape(n, 3, WIDTH).astype(np.float32)
     qhi = nodes[:, OFF_QHI : OFF_QHI + 3 * WIDTH].reshape(n, 3, WIDTH).astype(np.float32)
@@ -523,7 +519,7 @@ def build_cwbvh(bvh: BVH) -> CwBVH:
         for c, s in enumerate(slot_of):
             by_slot[s] = slots[c]
         row = np.zeros(NODE_BYTES, dtype=np.uint8)
-        row[0:12] = lo.view(np.uint8)
+        row[OFF_P : OFF_P + 12] = lo.view(np.uint8)
         for a in range(3):
             ext = float(np.float64(hi[a]) - np.float64(lo[a]))
             eb, ql, qh = quantise_axis(boxes[:, a], boxes[:, 3 + a], lo[a], ext)

@@ -52,7 +52,6 @@ class BuildStats:
     depth: int  # longest root-to-leaf path, in edges
     sah_cost: float
     leaf_size_hist: tuple[int, ...]  # leaf_size_hist[k] = leaves holding k triangles
-    build_seconds: float
     method: str  # "binned", "sweep" or "spatial"
     max_leaf: int = 8  # the builder's options
     node_cost: float = 1.0

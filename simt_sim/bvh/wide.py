@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from simt_sim.bvh.layout import BVH, FLOAT4_BYTES, NODE_BYTES, BuildStats
+from simt_sim.bvh.layout import BVH, FLOAT4_BYTES, NODE_BYTES
 from simt_sim.errors import SimtSimError
 
 WIDTHS = {"bvh4": 4, "bvh8": 8}
@@ -106,10 +106,6 @@ class WideBVH:
         """int32 (n_nodes, width) view of the child indices."""
         w = self.width
         return self.nodes[:, PLANES * w :].view(np.int32)
-
-    @property
-    def build_stats(self) -> BuildStats:
-        return self.binary.stats
 
 
 def _area(box: np.ndarray) -> float:

@@ -118,12 +118,6 @@ def passes_u(o):
     return np.int64(np.uint8(o - TRI_MISS) <= TRI_HIT - TRI_MISS)
 
 
-@njit(cache=True, nogil=True, inline="always")
-def is_hit(o):
-    """1 if ``o`` is TRI_HIT, else 0."""
-    return np.int64(o == TRI_HIT)
-
-
 @intrinsic
 def popcount(typingctx, x):
     """Number of set bits of an integer (LLVM ctpop): the active lanes of a lane mask."""
