@@ -26,11 +26,11 @@ import kernels_ir
 from simt_sim.bvh.build import build_bvh
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.lockstep import METRICS, approximation_error
-from simt_sim.rays.generate import paper_rays
+from simt_sim.rays.generate import PAPER_SPP, paper_rays
 from simt_sim.report.tables import FORMATS, emit
 from simt_sim.scene.load import load_scene
 from simt_sim.schemes import get_scheme
-from simt_sim.simt.gpus import get_gpu
+from simt_sim.simt.gpus import DEFAULT_GPU, get_gpu
 from simt_sim.study.workload import parse_resolution
 from simt_sim.tracers.numba_tracer import trace
 
@@ -96,8 +96,8 @@ def main() -> None:
     ap.add_argument("--camera", type=int, default=0)
     ap.add_argument("--resolution", default="64x48", help="primary rays, WxH")
     ap.add_argument("--secondary-resolution", default="16x12", help="AO / diffuse spawn, WxH")
-    ap.add_argument("--spp", type=int, default=32, help="secondary rays per primary hit")
-    ap.add_argument("--gpu", default="gtx285")
+    ap.add_argument("--spp", type=int, default=PAPER_SPP, help="secondary rays per primary hit")
+    ap.add_argument("--gpu", default=DEFAULT_GPU)
     ap.add_argument("--schemes", default=",".join(SCHEMES))
     ap.add_argument("--format", choices=FORMATS, default="md")
     ap.add_argument("--out", default=None)

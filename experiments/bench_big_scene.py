@@ -27,7 +27,7 @@ import kernels_ir
 from simt_sim.bvh.build import build_bvh
 from simt_sim.scene.room import make_room
 from simt_sim.schemes import get_scheme
-from simt_sim.simt.gpus import get_gpu
+from simt_sim.simt.gpus import DEFAULT_GPU, get_gpu
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.study.workload import make_workload, parse_resolution
 from simt_sim.trace.record import record
@@ -35,7 +35,7 @@ from simt_sim.tracers.numba_tracer import trace
 
 TRIANGLES_AT_SIZE_1 = 102_788
 """Triangles of the room at size 1 (the count is linear in the size)."""
-GPU = "gtx285"
+GPU = DEFAULT_GPU
 SCHEME = "while_while"
 
 

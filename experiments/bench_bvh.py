@@ -12,22 +12,19 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import time
-from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from simt_sim.bvh.build import METHODS, build_bvh
+from simt_sim.bvh.build import DEFAULT_METHOD, METHODS, build_bvh
+from simt_sim.scene.load import scenes_dir
 
 
 def load_conference() -> tuple[np.ndarray, np.ndarray]:
     """Conference vertices (float32) and its non-degenerate triangles (int32)."""
-    default = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
-    root = Path(os.environ.get("SIMT_SIM_SCENES", default))
-    mesh = trimesh.load(root / "conference" / "conference.obj", force="mesh", process=False)
+    mesh = trimesh.load(scenes_dir() / "conference" / "conference.obj", force="mesh", process=False)
     v = np.asarray(mesh.vertices, dtype=np.float64)
     f = np.asarray(mesh.faces, dtype=np.int64)
     area2 = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
@@ -38,7 +35,7 @@ def load_conference() -> tuple[np.ndarray, np.ndarray]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--method", choices=METHODS, default="binned")
+    ap.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD)
     ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args()
     v, t = load_conference()

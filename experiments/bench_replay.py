@@ -45,14 +45,14 @@ from kernels_ir.kernel_ir import BLOCKS, KernelIR
 from simt_sim.bvh.build import build_bvh
 from simt_sim.scene.load import load_scene
 from simt_sim.schemes import SCHEMES, get_scheme
-from simt_sim.simt.gpus import GpuConfig, get_gpu
+from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, get_gpu
 from simt_sim.simt.replay import simulate_paths, simulate_traces
 from simt_sim.simt.result import SimResult
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
 from simt_sim.simt.synth import synthetic_trace
 from simt_sim.study.workload import make_workload, parse_resolution
 from simt_sim.trace.paths import trace_paths
-from simt_sim.types.optrace import OpTrace
+from simt_sim.types.optrace import DEFAULT_LAYOUT, OpTrace
 from simt_sim.types.paths import PathTrace
 
 
@@ -159,8 +159,8 @@ def main() -> None:
     ap.add_argument("--scene", default="room")
     ap.add_argument("--resolution", default="256x192")
     ap.add_argument("--spp", type=int, default=8)
-    ap.add_argument("--gpu", default="gtx285")
-    ap.add_argument("--bvh", default="bvh2", help="layout of the recorded trace")
+    ap.add_argument("--gpu", default=DEFAULT_GPU)
+    ap.add_argument("--bvh", default=DEFAULT_LAYOUT, help="layout of the recorded trace")
     ap.add_argument("--schemes", default="all", help="all or a comma-separated list")
     ap.add_argument(
         "--thread-cpu",

@@ -20,6 +20,7 @@ import pandas as pd
 
 from simt_sim.bvh.build import build_bvh
 from simt_sim.bvh.layouts import make_tree
+from simt_sim.rays.generate import PAPER_HEIGHT, PAPER_WIDTH
 from simt_sim.scene.load import load_scene
 from simt_sim.study.workload import make_workload, parse_resolution
 from simt_sim.trace.record import record
@@ -81,7 +82,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", default="conference")
     ap.add_argument("--camera", default="0")
-    ap.add_argument("--resolution", default="1024x768")
+    ap.add_argument("--resolution", default=f"{PAPER_WIDTH}x{PAPER_HEIGHT}")
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--layouts", default="", help="wide layouts to time too, e.g. bvh4,bvh8")

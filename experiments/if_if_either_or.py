@@ -33,12 +33,13 @@ import pandas as pd
 
 import kernels_ir
 from kernels_ir.build import CUDA_DIR, HEADER, build_one, find_toolchain
-from kernels_ir.kernel_ir import KernelIR
+from kernels_ir.kernel_ir import WARP_SIZE, KernelIR
 from simt_sim.oracles import reference
 from simt_sim.oracles.reference import RefCounts
+from simt_sim.rays.generate import PAPER_HEIGHT, PAPER_SPP, PAPER_WIDTH
 from simt_sim.report.markdown import splice_file
 from simt_sim.schemes import get_scheme
-from simt_sim.simt.gpus import executed_on, get_gpu
+from simt_sim.simt.gpus import DEFAULT_GPU, executed_on, get_gpu
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.study.dyncount import pick_warps
 from simt_sim.study.published import PAPER_CSV, reference_dir
@@ -50,9 +51,8 @@ from simt_sim.types.raybatch import TRACE_RAY_TYPES
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import secondary_order  # noqa: E402  (experiments/secondary_order.py)
 
-GPU = "gtx285"
+GPU = DEFAULT_GPU
 ARCH = "sm_75"
-WARP = 32
 REPO = Path(__file__).resolve().parents[1]
 DOC = REPO / "docs" / "kernels_ir.md"
 VARIANT = Path(__file__).resolve().with_suffix(".cu")
@@ -82,17 +82,17 @@ def if_if_warp(streams: list[np.ndarray], costs: dict[str, int], either_or: bool
     """Warp instructions of one if-if warp in either reading: the plain reference's
     (:func:`simt_sim.oracles.reference.if_if_warp`)."""
     ops = [s.tolist() for s in streams]
-    rec = RefCounts(WARP, costs)
+    rec = RefCounts(WARP_SIZE, costs)
     return reference.if_if_warp(ops, [[0] * len(o) for o in ops], rec, either_or=either_or)
 
 
 def warp_total(trace: OpTrace, costs: dict[str, int], either_or: bool) -> int:
     """Both readings' warp instructions over every warp of ``trace``."""
     total = 0
-    for r0 in range(0, trace.n_rays, WARP):
+    for r0 in range(0, trace.n_rays, WARP_SIZE):
         streams = [
             trace.op[trace.offsets[i] : trace.offsets[i + 1]]
-            for i in range(r0, min(r0 + WARP, trace.n_rays))
+            for i in range(r0, min(r0 + WARP_SIZE, trace.n_rays))
         ]
         total += if_if_warp(streams, costs, either_or)
     return total
@@ -101,8 +101,8 @@ def warp_total(trace: OpTrace, costs: dict[str, int], either_or: bool) -> int:
 def estimate(
     scene: str = "conference",
     cameras: str = "all",
-    resolution: tuple[int, int] = (1024, 768),
-    spp: int = 32,
+    resolution: tuple[int, int] = (PAPER_WIDTH, PAPER_HEIGHT),
+    spp: int = PAPER_SPP,
     warps: int = 512,
     build: str = secondary_order.PROTOCOL_BUILD,
 ) -> pd.DataFrame:
@@ -121,7 +121,7 @@ def estimate(
             build=build,
         )  # fmt: skip
         bvh = wl.bvh
-        n = min(warps, wl.stream.n_rays // WARP)
+        n = min(warps, wl.stream.n_rays // WARP_SIZE)
         trace = record_all(wl.tree, wl.stream.take(pick_warps(wl.stream.n_rays, n)))
         replay = {
             k: simulate_traces([trace], get_scheme(k), ir[k], gpu).warp_instructions for k in ir

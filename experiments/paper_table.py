@@ -26,8 +26,9 @@ import pandas as pd
 import kernels_ir
 from kernels_ir.kernel_ir import BLOCKS, TRI_TEST_BLOCKS, KernelIR
 from simt_sim.atomic import write_atomic
+from simt_sim.rays.generate import PAPER_HEIGHT, PAPER_SPP, PAPER_WIDTH
 from simt_sim.report.markdown import block_table
-from simt_sim.simt.gpus import GpuConfig, executed_on
+from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, executed_on
 from simt_sim.simt.result import INTERSECTION_BLOCKS, TRAVERSAL_BLOCKS, SimResult
 from simt_sim.study.published import PAPER_CSV, reference_dir
 from simt_sim.study.run import run_study
@@ -78,8 +79,7 @@ BVH_VARIANTS = {
     BINNED: {"build": "binned"},
 }
 BVH_SAMPLE = 1 / 64
-PACKET_WINDOWS = 5
-"""Windows of 2^21 consecutive rays per ray type the exact packet kernel runs on."""
+PACKET_WINDOWS = secondary_order.WINDOWS
 BVH_COLUMNS = (
     "method", "max_leaf", "node_cost", "interior_nodes", "leaves", "triangles_per_leaf", "sah_cost",
 )  # fmt: skip
@@ -304,10 +304,10 @@ def fit_factors(ww: dict[str, SimResult], paper: pd.DataFrame) -> np.ndarray:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", default="conference")
-    ap.add_argument("--resolution", default="1024x768")
-    ap.add_argument("--spp", type=int, default=32)
+    ap.add_argument("--resolution", default=f"{PAPER_WIDTH}x{PAPER_HEIGHT}")
+    ap.add_argument("--spp", type=int, default=PAPER_SPP)
     ap.add_argument("--camera", default="all")
-    ap.add_argument("--gpu", default="gtx285")
+    ap.add_argument("--gpu", default=DEFAULT_GPU)
     ap.add_argument("--out", default=str(REPO / "docs" / "paper_table.md"))
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)

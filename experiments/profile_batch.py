@@ -19,8 +19,9 @@ import time
 import pandas as pd
 
 import kernels_ir
+from simt_sim.rays.generate import PAPER_HEIGHT, PAPER_SPP, PAPER_WIDTH
 from simt_sim.schemes import get_scheme, names
-from simt_sim.simt.gpus import get_gpu
+from simt_sim.simt.gpus import DEFAULT_GPU, get_gpu
 from simt_sim.simt.memory import memory_counts
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.study.workload import make_workload, parse_resolution
@@ -62,9 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scene", default="conference")
     ap.add_argument("--rays", default="ao,diffuse")
     ap.add_argument("--camera", default="0")
-    ap.add_argument("--resolution", default="1024x768")
-    ap.add_argument("--spp", type=int, default=32)
-    ap.add_argument("--gpu", default="gtx285")
+    ap.add_argument("--resolution", default=f"{PAPER_WIDTH}x{PAPER_HEIGHT}")
+    ap.add_argument("--spp", type=int, default=PAPER_SPP)
+    ap.add_argument("--gpu", default=DEFAULT_GPU)
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args(argv)
     res = parse_resolution(args.resolution)

@@ -31,10 +31,17 @@ import kernels_ir
 from simt_sim.atomic import write_atomic
 from simt_sim.bvh.build import build_bvh
 from simt_sim.oracles.lockstep import execute
-from simt_sim.rays.generate import LAUNCH_SIZE, ray_stream, sort_morton6d
+from simt_sim.rays.generate import (
+    LAUNCH_SIZE,
+    PAPER_HEIGHT,
+    PAPER_SPP,
+    PAPER_WIDTH,
+    ray_stream,
+    sort_morton6d,
+)
 from simt_sim.scene.load import load_scene
 from simt_sim.schemes import get_scheme
-from simt_sim.simt.gpus import get_gpu
+from simt_sim.simt.gpus import DEFAULT_GPU, get_gpu
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import merge
 from simt_sim.study.protocol import PAPER_PROTOCOL
@@ -57,6 +64,8 @@ WINDOW = 1 << 21
 ORDERS = {"pixel": None, "morton 2^16": 1 << 16, "morton 2^20": LAUNCH_SIZE,
           "morton 2^21": WINDOW}  # fmt: skip
 DEFAULT = "morton 2^20"
+WINDOWS = 5
+"""Windows of 2^21 consecutive rays per ray type the exact packet kernel runs on."""
 PROTOCOL_BUILD = PAPER_PROTOCOL["build"]
 """The protocol's tree: the paper's builder (SAH, node and triangle cost 1, leaves of at
 most 8) used spatial splits (docs/BACKGROUND.md), so ours does too (``--bvh-build``)."""
@@ -190,10 +199,16 @@ def render(args, df: pd.DataFrame, t: pd.DataFrame, seconds: float) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="conference")
-    ap.add_argument("--resolution", default="1024x768", help="primary image the rays spawn from")
-    ap.add_argument("--spp", type=int, default=32)
-    ap.add_argument("--gpu", default="gtx285")
-    ap.add_argument("--windows", type=int, default=5, help="windows of 2^21 rays per ray type")
+    ap.add_argument(
+        "--resolution",
+        default=f"{PAPER_WIDTH}x{PAPER_HEIGHT}",
+        help="primary image the rays spawn from",
+    )
+    ap.add_argument("--spp", type=int, default=PAPER_SPP)
+    ap.add_argument("--gpu", default=DEFAULT_GPU)
+    ap.add_argument(
+        "--windows", type=int, default=WINDOWS, help="windows of 2^21 rays per ray type"
+    )
     ap.add_argument("--bvh-build", default=PROTOCOL_BUILD, help="the BVH builder's method")
     ap.add_argument("--out", default=str(REPO / "docs" / "secondary_order.md"))
     args = ap.parse_args(argv)

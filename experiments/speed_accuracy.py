@@ -45,8 +45,12 @@ from approximation_error import run as approximation_run  # noqa: E402
 
 import kernels_ir  # noqa: E402
 from simt_sim.atomic import write_atomic  # noqa: E402
+from simt_sim.rays.generate import PAPER_HEIGHT, PAPER_SPP, PAPER_WIDTH
 from simt_sim.schemes import SCHEMES, get_scheme, names  # noqa: E402
-from simt_sim.simt.gpus import get_gpu  # noqa: E402
+from simt_sim.simt.gpus import (
+    DEFAULT_GPU,
+    get_gpu,  # noqa: E402
+)
 from simt_sim.simt.replay import simulate_traces  # noqa: E402
 from simt_sim.study.run import run_study  # noqa: E402
 from simt_sim.study.spec import StudySpec  # noqa: E402
@@ -183,10 +187,10 @@ def md(df: pd.DataFrame, floatfmt: str = ".4g") -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", default="conference")
-    ap.add_argument("--gpu", default="gtx285")
+    ap.add_argument("--gpu", default=DEFAULT_GPU)
     ap.add_argument("--fractions", default="1/1024,1/256,1/64,1/32,1/8")
-    ap.add_argument("--resolution", default="1024x768")
-    ap.add_argument("--spp", type=int, default=32)
+    ap.add_argument("--resolution", default=f"{PAPER_WIDTH}x{PAPER_HEIGHT}")
+    ap.add_argument("--spp", type=int, default=PAPER_SPP)
     ap.add_argument("--reference", default=None, help="full-run table (CSV) made earlier")
     ap.add_argument("--reference-seconds", type=float, default=None)
     ap.add_argument("--out", default=str(REPO / "docs" / "speed_accuracy.md"))

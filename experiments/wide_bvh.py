@@ -24,6 +24,7 @@ import pandas as pd
 from simt_sim import schemes
 from simt_sim.atomic import write_atomic
 from simt_sim.bvh.layouts import LAYOUTS, NODE_BYTES_OF, make_tree, tree_stats
+from simt_sim.rays.generate import PAPER_HEIGHT, PAPER_SPP, PAPER_WIDTH
 from simt_sim.report.markdown import splice
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.memory import memory_counts
@@ -149,7 +150,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="256x192, 4 secondary rays per hit")
     ap.add_argument("--out", type=Path, default=DOC)
     args = ap.parse_args(argv)
-    args.resolution, args.spp = ((256, 192), 4) if args.quick else ((1024, 768), 32)
+    args.resolution, args.spp = (
+        ((256, 192), 4) if args.quick else ((PAPER_WIDTH, PAPER_HEIGHT), PAPER_SPP)
+    )
     t0 = time.perf_counter()
     trees, ops, replays = [], [], []
     for scene in SCENES:

@@ -14,7 +14,7 @@ from importlib.resources.abc import Traversable
 
 import pandas as pd
 
-from kernels_ir.build import ARCHS, KEPLER_ARCH, KERNELS
+from kernels_ir.build import ARCHS, DEFAULT_ARCH, KEPLER_ARCH, KERNELS
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import BLOCKS, CLASSES, DEFAULT_TESTS, TESTS, KernelIR
 
@@ -64,7 +64,7 @@ def available(tests: str = DEFAULT_TESTS) -> list[tuple[str, str]]:
     return sorted(_ir_files(tests), key=_order)
 
 
-def load(kernel: str, arch: str = "sm_90", tests: str = DEFAULT_TESTS) -> KernelIR:
+def load(kernel: str, arch: str = DEFAULT_ARCH, tests: str = DEFAULT_TESTS) -> KernelIR:
     """The committed KernelIR of ``kernel`` compiled for ``arch`` with the box and triangle
     ``tests`` (``"watertight"`` or ``"published"``, :data:`kernels_ir.kernel_ir.TESTS`).
 
@@ -127,7 +127,7 @@ def format_ir_table(ir: KernelIR) -> pd.DataFrame:
     return table
 
 
-def summary_table(arch: str = "sm_90") -> pd.DataFrame:
+def summary_table(arch: str = DEFAULT_ARCH) -> pd.DataFrame:
     """Kernels x blocks: instructions per block execution for every kernel on ``arch``
     (0 where a kernel lacks the block), plus registers and unattributed instructions."""
     kernels = [k for k, a in available() if a == arch]

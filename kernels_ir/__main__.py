@@ -14,7 +14,16 @@ from pathlib import Path
 import pandas as pd
 
 from kernels_ir import format_ir_table, kepler, load, summary_table
-from kernels_ir.build import ARCHS, IR_DIR, KERNELS, build_all, check, write_cubins
+from kernels_ir.build import (
+    ARCHS,
+    DEFAULT_ARCH,
+    DEFAULT_JOBS,
+    IR_DIR,
+    KERNELS,
+    build_all,
+    check,
+    write_cubins,
+)
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 
@@ -43,13 +52,13 @@ def main(argv: list[str] | None = None) -> int:
     b.add_argument("--arch", action="append", choices=ARCHS, help="only this arch")
     b.add_argument("--tests", action="append", choices=TESTS, help="only these box/triangle tests")
     b.add_argument("--out", type=Path, default=IR_DIR, help="output directory")
-    b.add_argument("--jobs", type=int, default=2, help="parallel compiles")
+    b.add_argument("--jobs", type=int, default=DEFAULT_JOBS, help="parallel compiles")
     s = sub.add_parser("show", help="print one kernel's blocks x classes table")
     s.add_argument("kernel")
-    s.add_argument("--arch", default="sm_90")
+    s.add_argument("--arch", default=DEFAULT_ARCH)
     s.add_argument("--tests", choices=TESTS, default=DEFAULT_TESTS)
     t = sub.add_parser("summary", help="print kernels x blocks for one arch (markdown)")
-    t.add_argument("--arch", default="sm_90")
+    t.add_argument("--arch", default=DEFAULT_ARCH)
     c = sub.add_parser(
         "cubins", help="compile kernels for one arch with the IR's flags and keep the cubins"
     )

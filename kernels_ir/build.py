@@ -49,6 +49,10 @@ KERNELS = tuple(sorted(p.stem for p in CUDA_DIR.glob("*.cu")))
 #: targets compiled; sm_75..sm_90 are required, sm_100/sm_120 are the Blackwell parts the
 #: pinned CUDA 13 compiler offers (CUDA 13 dropped everything below sm_75)
 ARCHS = ("sm_75", "sm_80", "sm_86", "sm_89", "sm_90", "sm_100", "sm_120")
+#: the target shown unless one is named (the H100 and H200 of the GPU runs)
+DEFAULT_ARCH = "sm_90"
+#: parallel compiles unless told (the project machine's two cores)
+DEFAULT_JOBS = 2
 #: the one pre-Volta target at hand: CUDA 11.8 (the last compiler for Kepler) builds its IR
 #: from the same PTX (:mod:`kernels_ir.kepler`); `build` neither writes nor checks it
 KEPLER_ARCH = "sm_35"
@@ -354,7 +358,7 @@ def build_all(
     out_dir: Path,
     kernels: tuple[str, ...] = KERNELS,
     archs: tuple[str, ...] = ARCHS,
-    jobs: int = 2,
+    jobs: int = DEFAULT_JOBS,
     tests: tuple[str, ...] = TESTS,
 ) -> list[Path]:
     """Build every (kernel, arch, tests) into ``out_dir`` (:func:`ir_filename`); return the
@@ -374,7 +378,7 @@ def build_all(
             return list(pool.map(work, units))
 
 
-def check(jobs: int = 2) -> list[str]:
+def check(jobs: int = DEFAULT_JOBS) -> list[str]:
     """Rebuild into a temporary directory and compare with the committed files.
 
     Returns one line per difference (empty when the committed IR is up to date).

@@ -20,9 +20,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from kernels_ir.errors import KernelIRError
+from kernels_ir.kernel_ir import WARP_SIZE
 from kernels_ir.sass import SassInstruction, base_opcode
 
-LANES = 32
+LANES = WARP_SIZE
 RZ = 255
 """Register index of ``RZ`` (reads 0, writes are dropped); ``URZ`` is 63, ``PT`` 7."""
 URZ = 63

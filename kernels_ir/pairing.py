@@ -115,7 +115,7 @@ def block_pairs(
 
 
 @cache
-def load(arch: str = "sm_35") -> dict:
+def load(arch: str = KEPLER_ARCH) -> dict:
     """The committed pairing document of ``arch``.
 
     Raises
@@ -132,7 +132,9 @@ def load(arch: str = "sm_35") -> dict:
 
 
 @cache
-def block_pair_counts(kernel: str, tests: str, arch: str = "sm_35") -> dict[str, tuple[int, int]]:
+def block_pair_counts(
+    kernel: str, tests: str, arch: str = KEPLER_ARCH
+) -> dict[str, tuple[int, int]]:
     """(instructions, marked pairs) of each block of ``kernel`` built with ``tests`` for
     ``arch`` (a block's issue slots per instruction are 1 - pairs / instructions).
 

@@ -19,12 +19,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from kernels_ir.build import KERNELS
+from kernels_ir.build import DEFAULT_ARCH, KERNELS
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 from simt_sim import __version__, progress
 from simt_sim.atomic import write_atomic
-from simt_sim.bvh.build import DEFAULT_METHOD
+from simt_sim.bvh.build import DEFAULT_MAX_LEAF, DEFAULT_METHOD, DEFAULT_NODE_COST
 from simt_sim.bvh.build import METHODS as BUILD_METHODS
 from simt_sim.errors import SimtSimError
 from simt_sim.report.tables import (
@@ -39,7 +39,8 @@ from simt_sim.scene.load import DEFAULT_SCENE
 from simt_sim.simt.footprint import MODES as MEMORY_MODES
 from simt_sim.simt.gpus import DEFAULT_GPU
 from simt_sim.study.protocol import PAPER_PROTOCOL
-from simt_sim.types.optrace import LAYOUTS
+from simt_sim.types.optrace import DEFAULT_LAYOUT, LAYOUTS
+from simt_sim.types.raybatch import TRACE_RAY_TYPES
 
 
 class _Parser(argparse.ArgumentParser):
@@ -56,7 +57,7 @@ PAPER = {
     "camera": PAPER_PROTOCOL["cameras"],
 }
 #: the scene and ray types of table and plot when none are named
-_DEFAULTS = {"scene": DEFAULT_SCENE, "rays": "primary,ao,diffuse"}
+_DEFAULTS = {"scene": DEFAULT_SCENE, "rays": ",".join(TRACE_RAY_TYPES)}
 #: the workload every command but ``plot`` and ``report`` runs by default (small enough for
 #: a laptop; those two draw one camera's, :func:`_add_figure_args`)
 DEFAULT_WORKLOAD = {"resolution": "256x192", "spp": 8, "camera": "all"}
@@ -112,14 +113,14 @@ def _add_workload_args(
     p.add_argument(
         "--max-leaf",
         type=int,
-        default=8,
+        default=DEFAULT_MAX_LEAF,
         metavar="N",
         help="BVH builder: largest leaf, in triangles (default: %(default)s)",
     )
     p.add_argument(
         "--bvh",
         choices=LAYOUTS,
-        default="bvh2",
+        default=DEFAULT_LAYOUT,
         help="BVH layout: bvh2 (binary, Aila-Laine), bvh4 / bvh8 (the binary tree collapsed to "
         "4 / 8 children per node), cwbvh (compressed 8-wide, Ylitie et al. 2017) "
         "(default: %(default)s)",
@@ -127,7 +128,7 @@ def _add_workload_args(
     p.add_argument(
         "--node-cost",
         type=float,
-        default=1.0,
+        default=DEFAULT_NODE_COST,
         metavar="X",
         help="BVH builder: SAH cost of a node step relative to a triangle test; higher "
         "makes larger leaves (default: %(default)s)",
@@ -353,7 +354,9 @@ def _saved_spec(args: argparse.Namespace, **fields: object):
 
     return saved_spec(
         args.trace,
-        schemes=_schemes(args, read_meta(args.trace[0])["layout"] if args.trace else "bvh2"),
+        schemes=_schemes(
+            args, read_meta(args.trace[0])["layout"] if args.trace else DEFAULT_LAYOUT
+        ),
         gpus=parse_list(args.gpu, tuple(load_gpus(args.gpus)), "GPU"),
         gpu_file=args.gpus,
         tests=args.tests,
@@ -768,7 +771,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="example: simt-sim ir show packet --arch sm_80",
     )
     q.add_argument("kernel", help=f"kernel name: {', '.join(KERNELS)}")
-    q.add_argument("--arch", default="sm_90", help="architecture (default: %(default)s)")
+    q.add_argument("--arch", default=DEFAULT_ARCH, help="architecture (default: %(default)s)")
     _add_output_args(q)
     q.set_defaults(func=cmd_ir_show)
     return parser

@@ -30,6 +30,10 @@ from simt_sim.errors import SimtSimError
 METHODS = ("binned", "sweep", "spatial")
 DEFAULT_METHOD = "binned"
 """The builder's method unless one is named: fast, and the common baseline."""
+DEFAULT_MAX_LEAF = 8
+"""Largest leaf, in triangles, as in the paper's trees."""
+DEFAULT_NODE_COST = 1.0
+"""SAH cost of a node step relative to a triangle test, as in the paper's builder."""
 WIDEN = np.float32(2.0**-38)
 """Relative growth of the stored boxes (see :func:`widened`)."""
 WOOP_CHUNK = 1 << 20
@@ -829,9 +833,9 @@ def build_bvh(
     triangles: np.ndarray,
     *,
     method: str = DEFAULT_METHOD,
-    max_leaf: int = 8,
+    max_leaf: int = DEFAULT_MAX_LEAF,
     bins: int = 32,
-    node_cost: float = 1.0,
+    node_cost: float = DEFAULT_NODE_COST,
 ) -> BVH:
     """Build a binary SAH BVH in the Aila-Laine layout.
 

@@ -52,7 +52,7 @@ from simt_sim.bvh.cwbvh import (
 )
 from simt_sim.bvh.geometry import BOX_ROUNDING, inverse_direction, woop_test
 from simt_sim.bvh.layout import WOOP_FLOAT4_PER_TRI
-from simt_sim.bvh.traverse import BLOCK, log_op, miss_code, ray_arrays
+from simt_sim.bvh.traverse import BLOCK, DEFAULT_STACK, log_op, miss_code, ray_arrays
 from simt_sim.bvh.wide_traverse import trav_op
 from simt_sim.errors import SimtSimError
 from simt_sim.types.optrace import LEAF, TRI_HIT
@@ -70,7 +70,7 @@ CTZ8 = np.array([((i & -i).bit_length() - 1) if i else 8 for i in range(256)], d
 
 def stack_size(cw: CwBVH) -> int:
     """Stack entries a ray needs: at most one node group pushed per level below the root."""
-    return max(64, int(cw.stats.depth) + 1)
+    return max(DEFAULT_STACK, int(cw.stats.depth) + 1)
 
 
 def check_cwbvh(cw: CwBVH) -> None:

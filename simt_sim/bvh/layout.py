@@ -52,9 +52,9 @@ class BuildStats:
     depth: int  # longest root-to-leaf path, in edges
     sah_cost: float
     leaf_size_hist: tuple[int, ...]  # leaf_size_hist[k] = leaves holding k triangles
-    method: str  # "binned", "sweep" or "spatial"
-    max_leaf: int = 8  # the builder's options
-    node_cost: float = 1.0
+    method: str  # the builder's options: "binned", "sweep" or "spatial"
+    max_leaf: int
+    node_cost: float
 
     def card(self) -> dict:
         """The tree in a model card or a trace header: what built it and its size."""

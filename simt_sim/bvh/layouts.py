@@ -30,7 +30,6 @@ from simt_sim.types.raybatch import RayBatch
 Tree = BVH | WideBVH | CwBVH
 """A BVH of any layout."""
 
-DEFAULT_LAYOUT = "bvh2"
 #: bytes of one node of each layout whose leaves are the binary tree's (sentinel-ended
 #: Woop lists): what the memory model reads per node step
 NODE_BYTES_OF = {"bvh2": NODE_BYTES, **{name: node_bytes(w) for name, w in WIDTHS.items()}}

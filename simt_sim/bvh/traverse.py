@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from kernels_ir.kernel_ir import STACK_SIZE
 from simt_sim.bvh.geometry import MIN_DIRECTION, SENTINEL_I32, inverse_direction, woop_test
 from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
 from simt_sim.bvh.simd_box import node_child_intervals_simd
@@ -36,7 +37,7 @@ from simt_sim.types.optrace import (
 )
 from simt_sim.types.raybatch import RayBatch
 
-DEFAULT_STACK = 64
+DEFAULT_STACK = STACK_SIZE
 """Per-ray stack entries, as in the kernels; grown for BVHs deeper than this."""
 
 _INF = np.float32(np.inf)

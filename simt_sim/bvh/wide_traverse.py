@@ -24,7 +24,14 @@ from numba import njit, prange
 from simt_sim.bvh.geometry import BOX_ROUNDING, SENTINEL_I32, inverse_direction
 from simt_sim.bvh.simd_wide import four_child_test
 from simt_sim.bvh.simd_woop import woop4
-from simt_sim.bvh.traverse import BLOCK, intersect_leaf, log_op, miss_code, ray_arrays
+from simt_sim.bvh.traverse import (
+    BLOCK,
+    DEFAULT_STACK,
+    intersect_leaf,
+    log_op,
+    miss_code,
+    ray_arrays,
+)
 from simt_sim.bvh.wide import PLANES, WideBVH, node_floats
 from simt_sim.errors import SimtSimError
 from simt_sim.types.optrace import LEAF, TRAV_BOTH, TRAV_WIDE, TRI_HIT
@@ -37,7 +44,7 @@ _OP_TRI_HIT = np.uint8(TRI_HIT)
 
 def stack_size(wide: WideBVH) -> int:
     """Stack entries a ray needs: at most ``width - 1`` pushes per level below the root."""
-    return max(64, (wide.width - 1) * int(wide.stats.depth) + 1)
+    return max(DEFAULT_STACK, (wide.width - 1) * int(wide.stats.depth) + 1)
 
 
 def check_wide(wide: WideBVH) -> None:

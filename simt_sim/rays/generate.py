@@ -31,6 +31,10 @@ from simt_sim.types.scene import Scene
 LAUNCH_SIZE = 1 << 20
 """Rays per launch, as the paper traced them; each launch's secondary rays are Morton-sorted
 together."""
+PAPER_WIDTH, PAPER_HEIGHT = 1024, 768
+"""The paper's primary image, and the rays' default one."""
+PAPER_SPP = 32
+"""Secondary rays per primary hit in the paper, and the default."""
 
 
 def _empty_batch(n: int, query: str, ray_type: str) -> RayBatch:
@@ -291,7 +295,7 @@ def secondary_rays(
     hits: Hits,
     kind: str,
     *,
-    spp: int = 32,
+    spp: int = PAPER_SPP,
     seed: int = 0,
 ) -> RayBatch:
     """Secondary rays spawned at the primary hits (misses spawn nothing).
@@ -443,9 +447,9 @@ def ray_stream(
     ray_type: str,
     *,
     cameras: Sequence[int] | None = None,
-    width: int = 1024,
-    height: int = 768,
-    spp: int = 32,
+    width: int = PAPER_WIDTH,
+    height: int = PAPER_HEIGHT,
+    spp: int = PAPER_SPP,
     seed: int = 0,
     tracer: Callable[[RayBatch], Hits] | None = None,
 ) -> RayStream:
@@ -501,9 +505,9 @@ def paper_ray_batches(
     ray_type: str,
     *,
     cameras: Sequence[int] | None = None,
-    width: int = 1024,
-    height: int = 768,
-    spp: int = 32,
+    width: int = PAPER_WIDTH,
+    height: int = PAPER_HEIGHT,
+    spp: int = PAPER_SPP,
     seed: int = 0,
     tracer: Callable[[RayBatch], Hits] | None = None,
     batch: int = LAUNCH_SIZE,
@@ -523,9 +527,9 @@ def paper_rays(
     ray_type: str,
     *,
     cameras: Sequence[int] | None = None,
-    width: int = 1024,
-    height: int = 768,
-    spp: int = 32,
+    width: int = PAPER_WIDTH,
+    height: int = PAPER_HEIGHT,
+    spp: int = PAPER_SPP,
     seed: int = 0,
     sort: bool = True,
     tracer: Callable[[RayBatch], Hits] | None = None,

@@ -36,7 +36,7 @@ from simt_sim.simt.gpus import GpuConfig, executed_on
 from simt_sim.simt.replay import check_streams, trace_params
 from simt_sim.simt.result import check_ir
 from simt_sim.simt.scheme import SchemeInfo
-from simt_sim.types.optrace import OpTrace
+from simt_sim.types.optrace import DEFAULT_LAYOUT, OpTrace
 from simt_sim.types.raybatch import RayBatch
 
 
@@ -50,12 +50,12 @@ def has_timeline(scheme: SchemeInfo) -> bool:
     return has_warp_counts(scheme) and scheme.reference_warp is not None and scheme.issue_order
 
 
-def warp_schemes(layout: str = "bvh2") -> tuple[str, ...]:
+def warp_schemes(layout: str = DEFAULT_LAYOUT) -> tuple[str, ...]:
     """Names of the schemes with per-warp counts of ``layout``'s traces."""
     return tuple(n for n, s in SCHEMES.items() if has_warp_counts(s) and layout in s.layouts)
 
 
-def timeline_schemes(layout: str = "bvh2") -> tuple[str, ...]:
+def timeline_schemes(layout: str = DEFAULT_LAYOUT) -> tuple[str, ...]:
     """Names of the schemes with an issue timeline of ``layout``'s traces."""
     return tuple(n for n, s in SCHEMES.items() if has_timeline(s) and layout in s.layouts)
 

@@ -34,13 +34,11 @@ from typing import Any
 import numpy as np
 
 from simt_sim.errors import SimtSimError
+from simt_sim.scene.views import FOV_Y_DEG, NEAR_FRACTION
 from simt_sim.types.camera import Camera
 from simt_sim.types.frame import UP_AXES
 
 DESCRIPTION_SUFFIXES = (".toml", ".json")
-DEFAULT_FOV_Y_DEG = 60.0
-NEAR_FRACTION = 1e-4
-"""Default near plane of a user's camera, as a share of the scene's diagonal."""
 FAR_FRACTION = 4.0
 """Default far plane of a user's camera, as a multiple of the scene's diagonal."""
 
@@ -154,7 +152,7 @@ def camera_spec(entry: Any, index: int, where: str) -> CameraSpec:
         np.linalg.norm(up) or 1.0
     ):
         raise SimtSimError(f"{here}: up is parallel to the viewing direction; tilt one of them")
-    fov = _number(entry.get("fov_y_deg", DEFAULT_FOV_Y_DEG), "fov_y_deg", here)
+    fov = _number(entry.get("fov_y_deg", FOV_Y_DEG), "fov_y_deg", here)
     if not fov < 180.0:
         raise SimtSimError(f"{here}: fov_y_deg must lie in (0, 180), got {fov}")
     near = _number(entry["near"], "near", here) if "near" in entry else None

@@ -26,7 +26,10 @@ from simt_sim.types.camera import Camera
 from simt_sim.types.frame import UP_AXES
 
 FOV_Y_DEG = 60.0
-"""Vertical field of view of the default cameras."""
+"""Vertical field of view of the default cameras (and of a user's that gives none)."""
+NEAR_FRACTION = 1e-4
+"""Near plane of the default cameras (and of a user's that gives none), as a share of the
+scene's diagonal."""
 OBJECT_AZIMUTHS = (30.0, 150.0, 270.0)  # degrees about +Z
 OBJECT_ELEVATION = 35.0  # degrees above the XY plane
 FIT_ASPECT = 4.0 / 3.0
@@ -238,7 +241,7 @@ def interior_cameras(eye: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[C
                 forward=forward / np.linalg.norm(forward),
                 up=np.array([0.0, 0.0, 1.0]),
                 fov_y_deg=FOV_Y_DEG,
-                near=1e-4 * diag,
+                near=NEAR_FRACTION * diag,
                 far=2.0 * diag,
             )
         )

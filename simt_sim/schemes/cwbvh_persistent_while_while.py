@@ -28,6 +28,7 @@ from numba import njit, prange
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.lockstep import CWBVH_BODY
 from simt_sim.oracles.reference import cwbvh_group
+from simt_sim.schemes.while_while import WINDOW
 from simt_sim.simt.engine import (
     FINISH,
     LEAF_ENTRY,
@@ -71,9 +72,6 @@ BLOCKS_CHARGED = (
     "tri_hit",
     "finish",
 )
-
-#: triangle-loop iterations a lane runs ahead of the others (length of the ``acc`` scratch)
-WINDOW = 64
 
 
 @njit(cache=True, nogil=True, inline="always")

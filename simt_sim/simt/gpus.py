@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from kernels_ir import KernelIR
-from kernels_ir.kernel_ir import RECONVERGE, SPIN_BLOCKS
+from kernels_ir.kernel_ir import RECONVERGE, SPIN_BLOCKS, WARP_SIZE
 from kernels_ir.pairing import PAIRING_ARCHS
 from simt_sim.errors import SimtSimError
 
@@ -369,7 +369,7 @@ def issue_limited(
     sms: int,
     clock_mhz: float,
     issue_rate: float,
-    warp_size: int = 32,
+    warp_size: int = WARP_SIZE,
     resident_warps_per_sm: int = 1,
     ir_arch: str = "sm_75",
 ) -> GpuConfig:

@@ -18,6 +18,7 @@ from typing import Any
 
 from kernels_ir.kernel_ir import KernelLaunch
 from simt_sim.errors import SimtSimError
+from simt_sim.types.optrace import DEFAULT_LAYOUT
 
 __all__ = ["KINDS", "PATH", "TRACE", "TRACE_BLOCKS", "KernelLaunch", "SchemeInfo"]
 
@@ -120,7 +121,7 @@ class SchemeInfo:
     lockstep: int | None = None
     executed: bool = False
     launch: KernelLaunch | None = None
-    layout: str = "bvh2"
+    layout: str = DEFAULT_LAYOUT
     wide: Mapping[str, Mapping[str, tuple[str, ...]]] = field(
         default_factory=lambda: MappingProxyType({})
     )

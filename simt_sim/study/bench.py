@@ -4,9 +4,10 @@ Embree runs on one thread (embreex holds the GIL); the numba tracer, on the work
 layout (``--bvh``; the ``bvh`` column), on one thread and on all of numba's; the CUDA
 kernels, on a GPU, for every scheme whose record names a launch.
 Each figure is the median of ``repeats`` timed runs after one warm-up (CUDA: of
-:data:`CUDA_TIMED_LAUNCHES` launches after two, as the paper measured). Embree is timed on
-its own query; dropping its hits at ``t = tmin`` (an origin on a face), which embreex's
-fixed tnear makes a second, untimed step, is not timed.
+:data:`~simt_sim.tracers.cuda_tracer.TIMED_LAUNCHES` launches after
+:data:`~simt_sim.tracers.cuda_tracer.WARMUP_LAUNCHES`, as the paper measured). Embree is
+timed on its own query; dropping its hits at ``t = tmin`` (an origin on a face), which
+embreex's fixed tnear makes a second, untimed step, is not timed.
 
 ``hit_agreement`` is every tracer's agreement (:func:`~simt_sim.tracers.agreement.agreement`)
 with the float64 reference tracer (:mod:`simt_sim.tracers.reference`), not with Embree,
@@ -33,6 +34,7 @@ from simt_sim.errors import SimtSimError
 from simt_sim.study.workload import Workload
 from simt_sim.tracers import numba_tracer
 from simt_sim.tracers.agreement import agreement, occlusion
+from simt_sim.tracers.cuda_tracer import TIMED_LAUNCHES
 from simt_sim.tracers.embree_tracer import THREADS as EMBREE_THREADS
 from simt_sim.tracers.embree_tracer import EmbreeTracer
 from simt_sim.tracers.reference import ReferenceTracer
@@ -41,8 +43,6 @@ from simt_sim.types.hits import Hits
 TRACERS = ("numba", "embree", "cuda")
 #: the ``bvh`` column of Embree's rows: it builds and walks its own wide tree
 EMBREE_BVH = "embree"
-#: timed launches per CUDA kernel (after 2 warm-ups, as the paper measured)
-CUDA_TIMED_LAUNCHES = 10
 #: rays checked against the float64 reference by default (about 20 ms on Conference, most
 #: of it checking the BVH once)
 DEFAULT_CHECK_RAYS = 4096
@@ -112,7 +112,7 @@ def runs(names: Sequence[str], repeats: int) -> int:
     threads = sorted({1, numba.config.NUMBA_NUM_THREADS})
     n = (("embree" in names) + ("numba" in names) * len(threads)) * (repeats + 1)
     if "cuda" in names:
-        n += CUDA_TIMED_LAUNCHES * len(_cuda_schemes())
+        n += TIMED_LAUNCHES * len(_cuda_schemes())
     return n
 
 
@@ -158,7 +158,7 @@ def bench_tracers(
         cu = CudaTracer(wl.bvh)
         for s in _cuda_schemes():
             bar.set_description(f"cuda:{s.launch.kernel}")
-            hits, secs = cu.trace_timed(rays, s.launch, repeats=CUDA_TIMED_LAUNCHES)
+            hits, secs = cu.trace_timed(rays, s.launch)
             traced(len(secs))
             kernel = f"cuda:{s.launch.kernel}"
             results.append((kernel, "bvh2", cu.device_name, hits, statistics.median(secs)))

@@ -23,7 +23,7 @@ from kernels_ir.blocks import UNATTRIBUTED
 from kernels_ir.build import CUDA_DIR, compile_listing, place_kernel
 from kernels_ir.emulate import PARAM_BASE, Program, run_kernel
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kernel_ir import BLOCKS, RECONVERGE
+from kernels_ir.kernel_ir import BLOCKS, RECONVERGE, WARP_SIZE
 from kernels_ir.sass import SassInstruction, base_opcode, region_end
 from simt_sim import schemes
 from simt_sim.bvh.layout import BVH
@@ -38,7 +38,6 @@ from simt_sim.trace.record import record_all
 from simt_sim.tracers.cuda_tracer import POOL_PARAM, pack_rays, pack_tree
 from simt_sim.types.raybatch import RayBatch
 
-WARP = 32
 WALKED_LAYOUTS = ("bvh2", "bvh4", "cwbvh")
 """Tree layouts whose trace kernels the walk runs."""
 DEFAULT_GPU = "rtx2080ti"
@@ -123,11 +122,11 @@ def scheme_of_kernel(kernel: str) -> SchemeInfo:
 
 def pick_warps(n_rays: int, warps: int) -> np.ndarray:
     """Indices of ``warps`` whole warps spread evenly over ``n_rays`` rays, in order."""
-    total = n_rays // WARP
+    total = n_rays // WARP_SIZE
     if warps < 1 or total < 1:
         raise SimtSimError(f"--warps must be 1 .. {total} (the rays make {total} whole warps)")
     chosen = np.unique(np.linspace(0, total - 1, min(warps, total)).round().astype(np.int64))
-    return (chosen[:, None] * WARP + np.arange(WARP)).ravel()
+    return (chosen[:, None] * WARP_SIZE + np.arange(WARP_SIZE)).ravel()
 
 
 def barrier_excess(instructions: list[SassInstruction], issued: np.ndarray) -> dict[int, int]:
@@ -201,7 +200,7 @@ def walk_kernel(
     packed = pack_rays(rays)
     arrays = pack_tree(tree)
     n = packed.shape[1]
-    if n % WARP:
+    if n % WARP_SIZE:
         raise SimtSimError(f"the walk runs whole warps; got {n} rays")
     params: dict[str, np.ndarray | int] = {
         "nodes": arrays["nodes"], "woop": arrays["woop"], "tri_index": arrays["tri_index"],
@@ -211,7 +210,7 @@ def walk_kernel(
     }  # fmt: skip
     if persistent:
         params[POOL_PARAM] = np.zeros(1, np.int32)
-    warps = n // WARP
+    warps = n // WARP_SIZE
     try:
         run = run_kernel(
             program, arch, (CUDA_DIR / f"{kernel}.cu").read_text(), params,

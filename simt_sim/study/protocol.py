@@ -6,8 +6,15 @@ from __future__ import annotations
 
 from types import MappingProxyType
 
+from simt_sim.rays.generate import PAPER_HEIGHT, PAPER_SPP, PAPER_WIDTH
+
 PAPER_PROTOCOL = MappingProxyType(
-    {"cameras": "all", "resolution": (1024, 768), "spp": 32, "build": "spatial"}
+    {
+        "cameras": "all",
+        "resolution": (PAPER_WIDTH, PAPER_HEIGHT),
+        "spp": PAPER_SPP,
+        "build": "spatial",
+    }
 )
 """The protocol as :class:`~simt_sim.study.spec.StudySpec` fields: every camera at 1024x768,
 32 secondary rays per primary hit, and the tree built with spatial splits, as the paper's

@@ -18,6 +18,7 @@ from simt_sim.scene.load import scenes_dir
 from simt_sim.study.protocol import PAPER_PROTOCOL
 from simt_sim.study.run import run_study
 from simt_sim.study.spec import StudySpec
+from simt_sim.types.raybatch import TRACE_RAY_TYPES
 
 #: the published tables, in the reference folder beside the scenes
 PAPER_CSV = "aila-laine-2009-conference.csv"
@@ -44,8 +45,6 @@ SCHEME_OF = {
     "dynamic_fetch (Aila-Laine 2009 kernels)": "speculative_dynamic_fetch",
     "Guthe 2014 (shallower hierarchy; unrolled loops; batched loads)": "speculative_dynamic_fetch",
 }
-
-RAY_TYPES = ("primary", "ao", "diffuse")
 
 
 def reference_dir() -> Path:
@@ -80,7 +79,7 @@ def published_measurements(folder: Path | None = None) -> pd.DataFrame:
         scheme = SCHEME_OF.get(r.kernel)
         if gpu is None or scheme is None:
             raise SimtSimError(f"{LATER_CSV}: no GPU id or scheme for {r.gpu!r} / {r.kernel!r}")
-        for rt in RAY_TYPES:
+        for rt in TRACE_RAY_TYPES:
             rows.append((gpu, r.kernel, scheme, rt, float(getattr(r, rt)), LATER_CSV))
     out = pd.DataFrame(rows, columns=["gpu", "kernel", "scheme", "ray_type", "measured", "source"])
     # the GTX 285 row of the later table repeats the paper's measurement
@@ -122,7 +121,7 @@ def published_spec(sample: float = 1 / 32, tests: str = "published") -> StudySpe
     measured = published_measurements()
     return StudySpec(
         scene="conference",
-        ray_types=RAY_TYPES,
+        ray_types=TRACE_RAY_TYPES,
         schemes=tuple(dict.fromkeys(measured["scheme"])),
         gpus=tuple(dict.fromkeys(measured["gpu"])),
         sample=sample,

@@ -55,8 +55,10 @@ def _not_applicable(plan: StudyPlan, ray_type: str, scheme: SchemeInfo, gpu: Gpu
 def measure_actual(plan: StudyPlan, ray_type: str) -> tuple[dict[str, float], str]:
     """Time each trace scheme's CUDA kernel on this machine's GPU on the ray type's rays.
 
-    Returns measured MRays/s by scheme (median of 10 launches after 2 warm-ups, as the
-    paper) and the device name.
+    Returns measured MRays/s by scheme (median of
+    :data:`~simt_sim.tracers.cuda_tracer.TIMED_LAUNCHES` launches after
+    :data:`~simt_sim.tracers.cuda_tracer.WARMUP_LAUNCHES`, as the paper) and the device
+    name.
     """
     from simt_sim.tracers.cuda_tracer import CudaTracer
 

@@ -1,4 +1,4 @@
-"""StudySpec: what the user asked to simulate, as plain values (every field a CLI flag).
+"""StudySpec: what the user asked to simulate, as plain values (nearly every field a CLI flag).
 
 A spec names things (a scene, schemes, GPUs) and says how much (resolution, samples);
 :func:`simt_sim.study.plan.plan_study` resolves it once into the objects a study runs on.
@@ -13,34 +13,37 @@ from dataclasses import dataclass
 
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 from simt_sim import schemes
-from simt_sim.bvh.build import DEFAULT_METHOD
+from simt_sim.bvh.build import DEFAULT_MAX_LEAF, DEFAULT_METHOD, DEFAULT_NODE_COST
 from simt_sim.bvh.build import METHODS as BUILD_METHODS
 from simt_sim.bvh.layouts import NODE_BYTES_OF
 from simt_sim.errors import SimtSimError
-from simt_sim.rays.generate import LAUNCH_SIZE
+from simt_sim.rays.generate import LAUNCH_SIZE, PAPER_HEIGHT, PAPER_SPP, PAPER_WIDTH
 from simt_sim.scene.load import DEFAULT_SCENE
 from simt_sim.simt.footprint import MODES as MEMORY_MODES
 from simt_sim.simt.gpus import DEFAULT_GPU
 from simt_sim.study.sampling import check_fraction
-from simt_sim.types.optrace import LAYOUTS
+from simt_sim.trace.paths import DEFAULT_MAX_BOUNCES
+from simt_sim.types.optrace import DEFAULT_LAYOUT, LAYOUTS
 from simt_sim.types.raybatch import PATH_RAYS, RAY_TYPES, TRACE_RAY_TYPES
 
 
 @dataclass(frozen=True)
 class StudySpec:
-    """What to simulate; every field is a CLI flag of ``simt-sim table``."""
+    """What to simulate; every field but ``max_bounces`` and ``launch_size`` (fixed for
+    the command line: the path tracer's bounces, the paper's launch) is a flag of
+    ``simt-sim table``."""
 
     scene: str = DEFAULT_SCENE
     ray_types: tuple[str, ...] = TRACE_RAY_TYPES
-    schemes: tuple[str, ...] = schemes.names(layout="bvh2")
+    schemes: tuple[str, ...] = schemes.names(layout=DEFAULT_LAYOUT)
     gpus: tuple[str, ...] = (DEFAULT_GPU,)
     cameras: str = "all"
-    resolution: tuple[int, int] = (1024, 768)
-    spp: int = 32
+    resolution: tuple[int, int] = (PAPER_WIDTH, PAPER_HEIGHT)
+    spp: int = PAPER_SPP
     seed: int = 0
-    max_bounces: int = 8
-    max_leaf: int = 8
-    node_cost: float = 1.0
+    max_bounces: int = DEFAULT_MAX_BOUNCES
+    max_leaf: int = DEFAULT_MAX_LEAF
+    node_cost: float = DEFAULT_NODE_COST
     build: str = DEFAULT_METHOD
     """The BVH builder's method (``--bvh-build``; :data:`simt_sim.bvh.build.METHODS`):
     ``spatial`` adds spatial splits, as the paper's trees had."""
@@ -56,7 +59,7 @@ class StudySpec:
     """The scene's up axis (``x``, ``y``, ``z``; ``None``: its description's, or detected)."""
     camera_file: str | None = None
     """A TOML or JSON file of cameras replacing the scene's own (``--camera-file``)."""
-    bvh: str = "bvh2"
+    bvh: str = DEFAULT_LAYOUT
     """The BVH layout the rays are recorded on (``--bvh``; :data:`LAYOUTS`)."""
 
     @property

@@ -14,14 +14,15 @@ from dataclasses import dataclass
 from functools import cached_property
 
 from simt_sim import progress
-from simt_sim.bvh.build import DEFAULT_METHOD, build_bvh
+from simt_sim.bvh.build import DEFAULT_MAX_LEAF, DEFAULT_METHOD, DEFAULT_NODE_COST, build_bvh
 from simt_sim.bvh.layout import BVH
-from simt_sim.bvh.layouts import DEFAULT_LAYOUT, Tree, check_layout, make_tree
+from simt_sim.bvh.layouts import Tree, check_layout, make_tree
 from simt_sim.errors import SimtSimError
-from simt_sim.rays.generate import RayStream, ray_stream
+from simt_sim.rays.generate import PAPER_HEIGHT, PAPER_SPP, PAPER_WIDTH, RayStream, ray_stream
 from simt_sim.scene.load import load_scene
 from simt_sim.study.viewcheck import announce
 from simt_sim.tracers.numba_tracer import trace
+from simt_sim.types.optrace import DEFAULT_LAYOUT
 from simt_sim.types.raybatch import TRACE_RAY_TYPES, RayBatch
 from simt_sim.types.scene import Scene
 
@@ -88,12 +89,12 @@ def make_workload(
     ray_type: str,
     *,
     cameras: str | None = None,
-    resolution: tuple[int, int] = (1024, 768),
-    spp: int = 32,
+    resolution: tuple[int, int] = (PAPER_WIDTH, PAPER_HEIGHT),
+    spp: int = PAPER_SPP,
     seed: int = 0,
     bvh: BVH | None = None,
-    max_leaf: int = 8,
-    node_cost: float = 1.0,
+    max_leaf: int = DEFAULT_MAX_LEAF,
+    node_cost: float = DEFAULT_NODE_COST,
     build: str = DEFAULT_METHOD,
     up: str | None = None,
     camera_file: str | None = None,

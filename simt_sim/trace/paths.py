@@ -50,6 +50,8 @@ from simt_sim.types.scene import Scene
 
 SHADOW_TMAX = np.float32(1.0 - 1e-4)
 """Shadow rays stop just short of the light sample (direction = light - origin)."""
+DEFAULT_MAX_BOUNCES = 8
+"""Extend rays per path unless told (``simt-sim table --rays path``)."""
 
 # random dimensions drawn per (path, bounce)
 _DIM_LIGHT_U, _DIM_LIGHT_V, _DIM_DIR_U, _DIM_DIR_V, _DIM_RR = range(5)
@@ -163,7 +165,7 @@ def trace_paths(
     cameras: Sequence[int],
     width: int,
     height: int,
-    max_bounces: int = 8,
+    max_bounces: int = DEFAULT_MAX_BOUNCES,
     rr_start: int = 2,
     albedo: float = 0.7,
     seed: int = 0,

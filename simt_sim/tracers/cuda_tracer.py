@@ -65,6 +65,8 @@ below SIMT_SENTINEL, 0x76543210, which this bound implies)."""
 MAX_RAYS = 2**30
 """Largest batch per launch: ray indices and the pool counter (which overshoots the ray
 count by up to 32 per resident warp) are int32 in the kernels."""
+WARMUP_LAUNCHES, TIMED_LAUNCHES = 2, 10
+"""A kernel's timing, as the paper measured: untimed launches, then timed ones."""
 NVRTC_OPTIONS = ("-std=c++17",)
 """The IR build's language flag (kernels_ir/build.py); -O3 is NVRTC's default and the
 -Xptxas/-lineinfo flags only serve the SASS analysis."""
@@ -507,7 +509,11 @@ class CudaTracer:
             return Hits(tri=prepared.hit_tri.get(), t=prepared.hit_t.get())
 
     def trace_timed(
-        self, rays: RayBatch, launch: KernelLaunch, warmup: int = 2, repeats: int = 10
+        self,
+        rays: RayBatch,
+        launch: KernelLaunch,
+        warmup: int = WARMUP_LAUNCHES,
+        repeats: int = TIMED_LAUNCHES,
     ) -> tuple[Hits, list[float]]:
         """Trace ``warmup`` untimed then ``repeats`` timed launches, as the paper measured.
 

@@ -82,7 +82,8 @@ def _box(nodes, k, c, o, inv, zero, tmin, tmax) -> tuple[bool, float]:
 def _triangle_t(vertices, triangles, k, o, d) -> float:
     """Float64 Moller-Trumbore distance to scene triangle ``k``, NaN for a miss.
 
-    The same operations in the same order as :func:`simt_sim.tracers.bruteforce` (with
+    The same operations in the same order as the brute-force tracer's
+    (:func:`simt_sim.tracers.bruteforce.trace_bruteforce`, with
     ``margin = 0``), so the two agree bit for bit on a triangle; a NaN anywhere misses.
     """
     a = triangles[k, 0]

@@ -68,6 +68,8 @@ STREAM_RULE = (
 """What a well-formed op stream is, for the errors that refuse one."""
 LAYOUTS = ("bvh2", "bvh4", "bvh8", "cwbvh")
 """The BVH layouts a trace can be recorded on (``bvh2``: the binary Aila-Laine tree)."""
+DEFAULT_LAYOUT = LAYOUTS[0]
+"""The layout unless one is named: the paper's binary tree."""
 
 
 def trav_code(hits: int) -> int:
@@ -134,7 +136,7 @@ class OpTrace:
     hits: Hits
     query: str
     ray_type: str
-    layout: str = "bvh2"
+    layout: str = DEFAULT_LAYOUT
 
     @property
     def n_rays(self) -> int:

@@ -152,7 +152,7 @@ def test_root_leaf_scene():
     woop[0:6:3], woop[1:6:3], woop[2:6:3] = w0, w1, w2
     woop.view(np.uint32)[6, 0] = SENTINEL_BITS
     tri_index = np.array([0, -1, -1, 1, -1, -1, -1], np.int32)
-    stats = BuildStats(0, 1, 0, 2.0, (0, 0, 1), "one leaf")
+    stats = BuildStats(0, 1, 0, 2.0, (0, 0, 1), "one leaf", 8, 1.0)
     bvh = BVH(nodes=np.zeros((0, 16), F32), woop=woop, tri_index=tri_index, root=~0, stats=stats)
     rays = make_rays([[0.2, 0.2, 2.0], [0.2, 0.2, 0.5], [2, 2, 2]], [[0, 0, -1]] * 3, "closest")
     h = trace(bvh, rays)
@@ -191,7 +191,7 @@ def comb_bvh(levels: int, claimed_depth: int | None = None) -> tuple[BVH, np.nda
     kids[-1, 0] = ~(4 * levels)  # the last node's child 0 is the leaf of triangle `levels`
     kids[:, 1] = ~(4 * np.arange(levels))
     depth = levels if claimed_depth is None else claimed_depth
-    stats = BuildStats(levels, m, depth, 0.0, (0, m), "comb")
+    stats = BuildStats(levels, m, depth, 0.0, (0, m), "comb", 8, 1.0)
     verts = np.concatenate([a, b, c]).astype(F32)
     tris = np.stack([np.arange(m), m + np.arange(m), 2 * m + np.arange(m)], 1).astype(np.int32)
     return BVH(nodes=nodes, woop=woop, tri_index=tri_index, root=0, stats=stats), (verts, tris)
