@@ -23,7 +23,14 @@ from pathlib import Path
 import pandas as pd
 
 from simt_sim.report.markdown import splice_file
-from simt_sim.study.dyncount import compare_counts, pick_warps, walked_schemes
+from simt_sim.study.dyncount import (
+    RESOLUTION,
+    SPP,
+    WARPS,
+    compare_counts,
+    pick_warps,
+    walked_schemes,
+)
 from simt_sim.study.workload import make_workload
 from simt_sim.types.raybatch import TRACE_RAY_TYPES
 
@@ -62,7 +69,7 @@ def scheme_ratios(table: pd.DataFrame) -> pd.DataFrame:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", default="room,cornell-box,conference")
-    ap.add_argument("--warps", type=int, default=16)
+    ap.add_argument("--warps", type=int, default=WARPS)
     ap.add_argument("--no-write", action="store_true", help="print only")
     args = ap.parse_args(argv)
     walked = walked_schemes()
@@ -70,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     for scene in args.scenes.split(","):
         for ray_type in TRACE_RAY_TYPES:
-            wl = make_workload(scene, ray_type, cameras="0", resolution=(256, 192), spp=4)
+            wl = make_workload(scene, ray_type, cameras="0", resolution=RESOLUTION, spp=SPP)
             rays = wl.rays.take(pick_warps(len(wl.rays.tmin), args.warps))
             for kernel in KERNELS:
                 d = compare_counts(walked[kernel], scene, wl.bvh, rays)
@@ -96,8 +103,9 @@ def main(argv: list[str] | None = None) -> int:
         f" --scenes {args.scenes}" if args.scenes != "room,cornell-box,conference" else ""
     )
     header = (
-        f"`{command}` ({seconds:.0f} s; sm_75, RTX 2080 Ti rules, camera 0 at 256x192, "
-        f"4 secondary rays per hit, {args.warps} warps spread over the image; the executor "
+        f"`{command}` ({seconds:.0f} s; sm_75, RTX 2080 Ti rules, camera 0 at "
+        f"{RESOLUTION[0]}x{RESOLUTION[1]}, {SPP} secondary rays per hit, {args.warps} warps "
+        "spread over the image; the executor "
         "is the lockstep executor, simt_sim/oracles/lockstep.py, where a scheme has one)\n\n"
     )
     ratios = scheme_ratios(table)

@@ -86,12 +86,14 @@ def main(argv: list[str] | None = None) -> int:
         help="a trace kernel over a binary, bvh4 or cwbvh tree: while_while, "
         "bvh4_while_while, cwbvh_persistent_while_while, ...",
     )
-    d.add_argument("--scene", default="room", help="scene name or mesh path (default room)")
+    # defaults left to the study (simt_sim.study.dyncount), which kernels_ir may not import
+    # before the command runs
+    d.add_argument("--scene", default=None, help="scene name or mesh path (default: room)")
     d.add_argument("--rays", default="primary", help="primary, ao or diffuse")
-    d.add_argument("--warps", type=int, default=16, help="warps, spread over the image")
+    d.add_argument("--warps", type=int, default=None, help="warps, spread over the image")
     d.add_argument("--gpu", default=None, help="GPU whose IR and rules the replay uses")
-    d.add_argument("--camera", type=int, default=0)
-    d.add_argument("--spp", type=int, default=4, help="secondary rays per primary hit")
+    d.add_argument("--camera", type=int, default=None)
+    d.add_argument("--spp", type=int, default=None, help="secondary rays per primary hit")
     d.add_argument(
         "--split",
         action="store_true",
@@ -155,13 +157,14 @@ def main(argv: list[str] | None = None) -> int:
 
 def _dyncount(args: argparse.Namespace) -> int:
     from simt_sim.errors import SimtSimError
-    from simt_sim.study.dyncount import DEFAULT_GPU, dyncount, scheme_of_kernel
+    from simt_sim.scene.load import DEFAULT_SCENE
+    from simt_sim.study.dyncount import dyncount, scheme_of_kernel
 
+    given = {"warps": args.warps, "gpu_id": args.gpu, "camera": args.camera, "spp": args.spp}
     try:
         result = dyncount(
-            scheme_of_kernel(args.kernel), args.scene, args.rays, warps=args.warps,
-            gpu_id=args.gpu or DEFAULT_GPU, camera=args.camera, spp=args.spp,
-            merge=not args.split,
+            scheme_of_kernel(args.kernel), args.scene or DEFAULT_SCENE, args.rays,
+            merge=not args.split, **{k: v for k, v in given.items() if v is not None},
         )  # fmt: skip
     except (SimtSimError, KernelIRError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -43,6 +43,9 @@ WALKED_LAYOUTS = ("bvh2", "bvh4", "cwbvh")
 DEFAULT_GPU = "rtx2080ti"
 """A GPU with independent thread scheduling whose IR is sm_75: the walk runs Volta-style
 code, divergent-warp fallbacks included, which the replay charges on such GPUs only."""
+WARPS, RESOLUTION, SPP = 16, (256, 192), 4
+"""The walk's default workload: warps spread over one camera's image, its size, and the
+secondary rays per primary hit (a walk takes seconds a warp)."""
 FALLBACK = "fallback"
 """Row of a divergent-warp fallback outside the traversal step (the IR charges none)."""
 DIVERGED = "trav_diverged"
@@ -228,10 +231,10 @@ def dyncount(
     scene: str,
     ray_type: str,
     *,
-    warps: int = 16,
+    warps: int = WARPS,
     gpu_id: str = DEFAULT_GPU,
-    resolution: tuple[int, int] = (256, 192),
-    spp: int = 4,
+    resolution: tuple[int, int] = RESOLUTION,
+    spp: int = SPP,
     camera: int = 0,
     merge: bool = True,
 ) -> DynCount:
