@@ -1,5 +1,5 @@
-"""Shared fixtures: the shared scenes (or a skip), a closed icosphere, and small path-tracing
-scenes."""
+"""Shared fixtures: the shared scenes (or a skip), a closed icosphere, small path-tracing
+scenes, and the thread counts a thread-independence test compares."""
 
 from __future__ import annotations
 
@@ -38,6 +38,17 @@ def require_shared(shared_dir: Path):
         return path
 
     return require
+
+
+@pytest.fixture
+def thread_counts() -> tuple[int, int]:
+    """One numba thread and two: a test that results do not depend on the thread count
+    needs the second to compare with (skipped where numba has one thread)."""
+    import numba
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba has one thread here: nothing to compare one thread with")
+    return 1, 2
 
 
 @pytest.fixture(scope="session")

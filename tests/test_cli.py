@@ -54,10 +54,13 @@ def bad_meshes(tmp_path: Path) -> dict[str, Path]:
     return {"empty": empty, "nan": nan, "garbage": garbage}
 
 
-@pytest.mark.parametrize("kind", ["empty", "nan", "garbage"])
-def test_bench_bad_mesh(kind, bad_meshes):
+@pytest.mark.parametrize(
+    ("kind", "says"),
+    [("empty", "has no triangles"), ("nan", "NaN or inf"), ("garbage", "cannot read mesh")],
+)
+def test_bench_bad_mesh(kind, says, bad_meshes):
     proc = run_cli("bench", "--scene", str(bad_meshes[kind]), "--resolution", "8x8")
-    assert_clean_error(proc)
+    assert_clean_error(proc, str(bad_meshes[kind]), says)
 
 
 def test_unknown_scene_names_the_known_ones():
@@ -67,7 +70,7 @@ def test_unknown_scene_names_the_known_ones():
 
 def test_missing_mesh_file():
     proc = run_cli("trace", "--scene", "/nonexistent/dir/mesh.obj", "--out", "x.trace")
-    assert_clean_error(proc)
+    assert_clean_error(proc, "/nonexistent/dir/mesh.obj", "no such file")
 
 
 def test_zero_resolution():
@@ -81,7 +84,7 @@ def test_unknown_ray_type_and_tracer():
 
 
 def test_usage_error_is_one_line():
-    assert_clean_error(run_cli("bench", "--no-such-flag"))
+    assert_clean_error(run_cli("bench", "--no-such-flag"), "--no-such-flag", "--help")
 
 
 def test_bench_rows_and_agreement():
@@ -158,7 +161,7 @@ def test_trace_writes_file_and_summary(tmp_path):
 def test_trace_bad_input_leaves_no_file(tmp_path):
     out = tmp_path / "never.trace"
     proc = run_cli("trace", "--scene", "room", "--resolution", "0x4", "--out", str(out))
-    assert_clean_error(proc)
+    assert_clean_error(proc, "resolution", "0x4")
     assert not out.exists()
 
 
@@ -512,4 +515,4 @@ def test_own_scene_bad_inputs_are_one_line(tmp_path):
         "end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 5\n"
     )
     assert_clean_error(run_cli("bench", "--scene", str(ply), *small), "vertex 5")
-    assert_clean_error(run_cli("table", "--scene", str(mesh), "--up", "w"))
+    assert_clean_error(run_cli("table", "--scene", str(mesh), "--up", "w"), "--up", "'w'")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import assume, event, given, settings
 from hypothesis import strategies as st
 
 from simt_sim.bvh.geometry import (
@@ -115,16 +115,24 @@ def test_box_clear_miss_is_miss_at_any_scale(center, half, origin, direction, ax
     assert n > f
 
 
+away = st.tuples(*[st.floats(1e-3, 1.0).map(float)] * 3)  # |component| > 0: no clamping
+signs = st.tuples(*[st.sampled_from([-1.0, 1.0])] * 3)
+inside = st.tuples(*[st.floats(0.1, 0.9)] * 3)  # a point of the box, as a share of its size
+
+
 @settings(max_examples=300, deadline=None)
-@given(lo=vec, size=vec, o=vec, d=vec)
-def test_box_agrees_with_float64_slabs_away_from_ties(lo, size, o, d):
-    """Sign-selected near/far planes give the textbook slab result (checked in float64)."""
+@given(lo=vec, size=vec, o=vec, d=away, sign=signs, aim=st.booleans(), at=inside)
+def test_box_agrees_with_float64_slabs_away_from_ties(lo, size, o, d, sign, aim, at):
+    """Sign-selected near/far planes give the textbook slab result (checked in float64);
+    half the rays are aimed at a point inside the box, so hits are checked as often as
+    misses (the clamped zero components are covered above)."""
     lo = np.array(lo)
     hi = lo + 0.01 + np.abs(size)
     o = 3.0 * np.array(o)
-    d = np.array(d)
-    if not np.all(np.abs(d) > 1e-3):
-        return  # the clamped cases are covered above
+    d = np.array(d) * np.array(sign)
+    if aim:
+        d = lo + np.array(at) * (hi - lo) - o
+    assume(np.all(np.abs(d) > 1e-3))
     lo32, hi32, o32, d32 = (np.asarray(v, F32) for v in (lo, hi, o, d))
     t0 = (lo32.astype(np.float64) - o32) / d32
     t1 = (hi32.astype(np.float64) - o32) / d32
@@ -133,6 +141,7 @@ def test_box_agrees_with_float64_slabs_away_from_ties(lo, size, o, d):
     n, f = box_interval(lo32, hi32, o32, d32)
     if abs(n64 - f64) > 1e-4 * (1.0 + abs(n64)):
         assert (n <= f) == (n64 <= f64)
+    event("hit" if n64 <= f64 else "miss")  # both are drawn (--hypothesis-show-statistics)
     if n64 <= f64:
         assert abs(n - n64) <= 1e-5 * (1.0 + abs(n64))
 
@@ -230,19 +239,28 @@ def test_degenerate_triangles_never_hit(p, q, s, origin, direction, e):
         assert not ok
 
 
+weights = st.tuples(*[st.floats(0.05, 1.0)] * 3)  # barycentric, before normalising
+
+
 @settings(max_examples=300, deadline=None)
-@given(tri=tri_strategy, origin=vec, direction=vec)
-def test_woop_agrees_with_float64_moller_trumbore_away_from_edges(tri, origin, direction):
+@given(tri=tri_strategy, origin=vec, direction=vec, aim=st.booleans(), bary=weights)
+def test_woop_agrees_with_float64_moller_trumbore_away_from_edges(
+    tri, origin, direction, aim, bary
+):
+    """The Woop test hits where float64 Moller-Trumbore does, at its distance, away from
+    edges and grazing angles; half the rays are aimed at a point inside the triangle (at
+    t = 1), so hits are checked as often as misses."""
     v = np.array(tri, np.float64)
     v32 = v.astype(F32)
     v = v32.astype(np.float64)
     o = np.array(origin, F32).astype(np.float64) * 3
     d = np.array(direction, F32).astype(np.float64)
+    if aim:
+        d = ((np.array(bary) / sum(bary)) @ v - o).astype(F32).astype(np.float64)
     e1, e2 = v[1] - v[0], v[2] - v[0]
     pv = np.cross(d, e2)
     det = e1 @ pv
-    if abs(det) < 1e-3 or np.linalg.norm(np.cross(e1, e2)) < 1e-2:
-        return
+    assume(abs(det) >= 1e-3 and np.linalg.norm(np.cross(e1, e2)) >= 1e-2)
     sv = o - v[0]
     u = sv @ pv / det
     qv = np.cross(sv, e1)
@@ -251,6 +269,8 @@ def test_woop_agrees_with_float64_moller_trumbore_away_from_edges(tri, origin, d
     bary = np.array([1 - u - w, u, w])
     ok, t32 = _tri_test(_woop(*v32), o, d)
     if bary.min() > 1e-3 and t > 1e-3:
+        event("hit")  # both are drawn (--hypothesis-show-statistics)
         assert ok and abs(t32 - t) <= 1e-4 * (1 + abs(t))
     elif bary.min() < -1e-3 or t < -1e-3:
+        event("miss")
         assert not ok

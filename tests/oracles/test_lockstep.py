@@ -239,14 +239,14 @@ def test_approximation_error_is_bounded(bvh, scheme, query):
             assert err["warp_instructions_rel_err"] != 0
 
 
-def test_independent_of_thread_count(bvh):
+def test_independent_of_thread_count(bvh, thread_counts):
     """Warps run in parallel; counters and hits must not depend on how many threads."""
     rays = make_rays(320, "closest", seed=10)
     scheme = "persistent_speculative_while_while"
     before = numba.get_num_threads()
     runs = []
     try:
-        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+        for threads in thread_counts:
             numba.set_num_threads(threads)
             runs.append(execute(bvh, rays, get_scheme(scheme), ir_for(scheme), GPU))
     finally:

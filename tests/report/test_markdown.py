@@ -22,7 +22,7 @@ def test_splice_refuses_a_page_without_its_markers() -> None:
     with pytest.raises(SimtSimError, match="needs one <!-- v:start -->"):
         splice("no markers here", "v", "x")
     twice = "<!-- t:start --><!-- t:end --><!-- t:start --><!-- t:end -->"
-    with pytest.raises(SimtSimError):
+    with pytest.raises(SimtSimError, match="needs one <!-- t:start -->"):
         splice(twice, "t", "x")
 
 

@@ -83,7 +83,9 @@ def test_plot_writes_every_figure(figures: Path) -> None:
 
 
 def test_pngs_are_real_pictures(figures: Path) -> None:
-    for png in figures.glob("*.png"):
+    pngs = sorted(figures.glob("*.png"))
+    assert pngs
+    for png in pngs:
         assert png.stat().st_size > 10_000, png
         img = (imread(png) * 255).astype(np.uint8)
         assert img.shape[-1] == 4, png
@@ -92,7 +94,9 @@ def test_pngs_are_real_pictures(figures: Path) -> None:
 
 
 def test_svgs_parse(figures: Path) -> None:
-    for svg in figures.glob("*.svg"):
+    svgs = sorted(figures.glob("*.svg"))
+    assert svgs
+    for svg in svgs:
         root = ET.parse(svg).getroot()
         assert root.tag.endswith("svg"), svg
         assert len(list(root.iter())) > 100, svg

@@ -51,7 +51,8 @@ def test_y_up_room_by_path_gets_interior_cameras_that_see_it(tmp_path, box_room,
 def test_winding_number_tells_a_solid_from_a_room(box_room):
     v, f = box_room
     centre = np.array([6.0, 4.5, 3.5])  # above the boxes
-    assert abs(winding_number(v[:8], f[:12], centre)) == pytest.approx(1.0)  # inward walls
+    # a room's walls face in: -1 seen from inside; the same walls turned out: +1
+    assert winding_number(v[:8], f[:12], centre) == pytest.approx(-1.0)
     assert winding_number(v[:8], f[:12, ::-1], centre) == pytest.approx(1.0)
     assert winding_number(v[:8], f[:12], centre + 100.0) == pytest.approx(0.0, abs=1e-9)
 

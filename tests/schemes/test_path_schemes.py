@@ -399,11 +399,11 @@ def test_warp_size_one_is_fully_efficient(paths) -> None:
     assert simulate_paths(paths, WAVEFRONT, WAVE_IRS, _gpu(1)).simd_efficiency == 1.0
 
 
-def test_independent_of_thread_count(paths) -> None:
+def test_independent_of_thread_count(paths, thread_counts) -> None:
     before = numba.get_num_threads()
     try:
         runs = []
-        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+        for threads in thread_counts:
             numba.set_num_threads(threads)
             m = mega_sim(paths, MEGA_IR, _gpu(), order="bounce")
             w = simulate_paths(paths, WAVEFRONT, WAVE_IRS, _gpu())

@@ -176,15 +176,15 @@ def test_results_do_not_depend_on_batch_split(scheme: str) -> None:
 
 
 @pytest.mark.parametrize("scheme", list(TRACE_SCHEMES))
-def test_results_do_not_depend_on_thread_count(scheme: str) -> None:
+def test_results_do_not_depend_on_thread_count(scheme: str, thread_counts) -> None:
     trace = synthetic_trace(32 * 300, seed=6, coherence=32, divergence=0.3)
     before = numba.get_num_threads()
     try:
-        numba.set_num_threads(1)
+        numba.set_num_threads(thread_counts[0])
         one = simulate_traces(
             [trace], get_scheme(scheme), ir_for(scheme), gpu_for(resident_warps=60)
         )
-        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+        numba.set_num_threads(thread_counts[1])
         two = simulate_traces(
             [trace], get_scheme(scheme), ir_for(scheme), gpu_for(resident_warps=60)
         )

@@ -11,6 +11,7 @@ import pytest
 import kernels_ir
 from simt_sim.bvh.build import build_bvh
 from simt_sim.rays.generate import paper_ray_batches, paper_rays, ray_stream
+from simt_sim.rays.morton import bounds3, morton6d_keys
 from simt_sim.scene.load import load_scene
 from simt_sim.schemes import get_scheme
 from simt_sim.simt.gpus import get_gpu
@@ -52,11 +53,16 @@ def test_secondary_batches_are_sorted_slices_of_the_unsorted_set(room):
     scene, tracer = room
     kw = {"cameras": [1, 3], "width": 24, "height": 20, "spp": 5, "seed": 1, "tracer": tracer}
     unsorted = paper_rays(scene, "ao", sort=False, **kw)
-    for k, piece in enumerate(paper_ray_batches(scene, "ao", batch=777, **kw)):
+    pieces = list(paper_ray_batches(scene, "ao", batch=777, **kw))
+    assert len(pieces) == -(-len(unsorted) // 777) > 1
+    for k, piece in enumerate(pieces):
         expected = unsorted.pixel[k * 777 : (k + 1) * 777]
         assert sorted(zip(piece.camera, piece.pixel, strict=True)) == sorted(
             zip(unsorted.camera[k * 777 : (k + 1) * 777], expected, strict=True)
         )
+        # in the piece's own 6D Morton order (its origins' bounds are the batch's)
+        keys = morton6d_keys(piece.origin, piece.direction, *bounds3(piece.origin))
+        assert np.all(keys[1:] >= keys[:-1])
 
 
 def test_streaming_memory_is_flat_in_the_ray_count(room):

@@ -155,7 +155,17 @@ def test_secondary_rays_start_at_hits_pushed_off_their_surface(room, room_paths)
         d = prev.direction[hit][keep]
         tri = hits.tri[hit][keep]
         expect, _ = spawn_points(scene, prev.origin[hit][keep], d, t, tri)
-        assert np.array_equal(p.extend_rays[b + 1].origin, expect)
+        origin = p.extend_rays[b + 1].origin
+        assert np.array_equal(origin, expect)  # the rows passed on are the survivors'
+        # and each lies just off its surface, on the side the ray came from (float64)
+        point = prev.origin[hit][keep].astype(np.float64) + d * t[:, None].astype(np.float64)
+        corner = scene.vertices.astype(np.float64)[scene.triangles[tri]]
+        n = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        n[np.einsum("ij,ij->i", n, d) > 0] *= -1
+        lift = np.einsum("ij,ij->i", origin - point, n)
+        scale = 1.0 + np.abs(point).max(axis=1)
+        assert np.all(lift > 0) and np.all(lift < 1e-3 * scale), (lift.min(), lift.max())
         assert np.allclose(np.linalg.norm(p.extend_rays[b + 1].direction, axis=1), 1, atol=1e-6)
 
 

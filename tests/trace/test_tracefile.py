@@ -123,7 +123,7 @@ def test_failed_save_leaves_no_file(recorded, tmp_path):
         yield from record(bvh, rays.slice(0, 64))
         raise RuntimeError("recording died")
 
-    with pytest.raises(RuntimeError):
+    with pytest.raises(RuntimeError, match="recording died"):
         save_trace(path, failing(), {})
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(SimtSimError, match="JSON"):

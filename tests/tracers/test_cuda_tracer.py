@@ -166,8 +166,10 @@ def test_kernels_compile_with_nvrtc_without_a_gpu():
     for kernel in TRACE_KERNELS:
         try:
             prog = nvrtc.createProgram(kernel_source(kernel), f"{kernel}.cu", [], [])
-        except Exception as exc:  # libnvrtc missing: an install problem, not a test result
-            pytest.skip(f"NVRTC unavailable: {exc}")
+        except (ImportError, OSError, RuntimeError) as exc:
+            if "nvrtc" not in str(exc).lower():
+                raise
+            pytest.skip(f"NVRTC unavailable: {exc}")  # an install problem, not a result
         try:
             nvrtc.compileProgram(prog, [*NVRTC_OPTIONS, "-arch=compute_90"])
             ptx = as_text(nvrtc.getPTX(prog))
