@@ -26,12 +26,14 @@ import numpy as np
 import pandas as pd
 
 import kernels_ir
-from simt_sim.bvh.layouts import tree_stats
+from kernels_ir.kernel_ir import WARP_SIZE
+from simt_sim.bvh.layouts import NODE_BYTES_OF, tree_stats
 from simt_sim.report.tables import FORMATS, emit
 from simt_sim.schemes import get_scheme
 from simt_sim.simt.footprint import decide
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.memory import (
+    LINE_BYTES,
     MemoryCounts,
     memory_columns,
     memory_counts,
@@ -52,10 +54,10 @@ def kth_fetch_proxy(trace: OpTrace, exact: MemoryCounts) -> dict[str, float]:
     ray = np.repeat(np.arange(trace.n_rays), np.diff(trace.offsets))
     node = trace.op <= TRAV_BOTH
     r = ray[node]
-    line = trace.addr[node].astype(np.int64) * 64 // 128
+    line = trace.addr[node].astype(np.int64) * NODE_BYTES_OF[trace.layout] // LINE_BYTES
     start = np.r_[0, np.flatnonzero(np.diff(r)) + 1]
     k = np.arange(r.size) - np.repeat(start, np.diff(np.r_[start, r.size]))
-    warp = r // 32
+    warp = r // WARP_SIZE
     steps = np.unique(np.stack([warp, k]), axis=1).shape[1]
     lines = np.unique(np.stack([warp, k, line]), axis=1).shape[1]
     per_step = exact.node_lines / exact.node_steps
@@ -86,7 +88,7 @@ def run(
         bvh = w.bvh
         trace = record_all(bvh, w.rays)
         footprint = tree_stats(bvh).bytes
-        proxy = kth_fetch_proxy(trace, memory_counts(trace, 32))
+        proxy = kth_fetch_proxy(trace, memory_counts(trace, WARP_SIZE))
         for gpu in gpus:
             sim = simulate_traces(
                 [trace], get_scheme("while_while"), kernels_ir.load("while_while", gpu.ir_arch), gpu

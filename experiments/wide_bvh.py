@@ -45,8 +45,8 @@ GPUS = ("gtx285", "rtx4090")
 #: binary-tree schemes beside the wide ones: the same kernels, and the 2012 kernel class
 #: (speculative dynamic fetch) that Ylitie et al. compare their compressed tree against
 BINARY_SCHEMES = ("while_while", "persistent_while_while", "speculative_dynamic_fetch")
-#: rays per ray type checked against the float64 reference (spread over the sample)
-CHECK_RAYS = 4096
+#: rays of each launch batch's sample checked against the float64 reference (spread over it)
+CHECK_RAYS_PER_BATCH = 1024
 
 
 def spec_for(scene: str, layout: str, args: argparse.Namespace) -> StudySpec:
@@ -91,7 +91,7 @@ def op_rows(scene: str, plan, args: argparse.Namespace) -> list[dict]:
             ).rays  # fmt: skip
             traces = {layout: record_all(trees[layout], picked) for layout in LAYOUTS}
             base = traces["bvh2"].hits
-            k = np.unique(np.linspace(0, len(picked) - 1, CHECK_RAYS // 4).astype(np.int64))
+            k = np.unique(np.linspace(0, len(picked) - 1, CHECK_RAYS_PER_BATCH).astype(np.int64))
             ref = ref_tracer.trace(picked.take(k))
             any_hit = picked.query == "any"
             for layout, tr in traces.items():

@@ -84,7 +84,13 @@ def load(kernel: str, arch: str = DEFAULT_ARCH, tests: str = DEFAULT_TESTS) -> K
             f"no KernelIR for kernel {kernel!r} arch {arch!r}; kernels: {', '.join(kernels)}; "
             f"archs: {', '.join(archs)}"
         )
-    return from_document(json.loads(entry.read_text()))
+    ir = from_document(json.loads(entry.read_text()))
+    if ir.tests != tests:
+        raise KernelIRError(
+            f"{entry.name} holds IR built with the {ir.tests} tests, not {tests}; rebuild it "
+            "(python -m kernels_ir build)"
+        )
+    return ir
 
 
 def from_document(doc: dict) -> KernelIR:
@@ -104,7 +110,7 @@ def from_document(doc: dict) -> KernelIR:
         registers=int(doc["registers"]),
         source_sha256=doc["source_sha256"],
         notes=notes,
-        tests=doc.get("tests", DEFAULT_TESTS),
+        tests=doc["tests"],
         bytes={b: {c: int(n) for c, n in row.items()} for b, row in doc.get("bytes", {}).items()},
         spins={b: {c: int(n) for c, n in row.items()} for b, row in doc.get("spins", {}).items()},
     )

@@ -446,7 +446,8 @@ SCHEME = SchemeInfo(
         "ideal work distribution: each fetch goes to the warp with the fewest instructions "
         "so far, and the SMs are perfectly balanced",
         "speculation replayed on the recorded streams: op counts per ray preserved, extra "
-        "node visits with a stale tmax are not modelled",
+        "node visits with a stale tmax are not modelled (the error against the exact "
+        "lockstep executor: docs/model_card.md, experiments/approximation_error.py)",
     ),
     replay=replay,
     warp_counts=warp_counts,

@@ -44,9 +44,8 @@ SCHEME = SchemeInfo(
     approximations=(
         *DYNAMIC_FETCH.approximations,
         "speculation replayed on the recorded streams: op counts per ray preserved, extra "
-        "node visits with a stale tmax are not modelled; against the exact lockstep "
-        "executor (Conference camera 0, 1024x768 primary, 32 secondary rays per hit of "
-        "256x192, GTX 285) warp instructions -1.4% primary, -0.4% AO, -3.0% diffuse",
+        "node visits with a stale tmax are not modelled (the error against the exact "
+        "lockstep executor: docs/model_card.md, experiments/approximation_error.py)",
     ),
     sampling_note=DYNAMIC_FETCH.sampling_note,
     params={"threshold": DEFAULT_THRESHOLD},

@@ -15,7 +15,7 @@ import math
 import statistics
 from collections.abc import Iterable, Sequence
 from dataclasses import replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import pandas as pd
 from tqdm import tqdm
@@ -52,7 +52,15 @@ def _not_applicable(plan: StudyPlan, ray_type: str, scheme: SchemeInfo, gpu: Gpu
     }
 
 
-def measure_actual(plan: StudyPlan, ray_type: str) -> tuple[dict[str, float], str]:
+class Device(NamedTuple):
+    """The GPU a measurement ran on, as its driver reports it."""
+
+    name: str
+    arch: str  # sm_XY, from the compute capability
+    sms: int
+
+
+def measure_actual(plan: StudyPlan, ray_type: str) -> tuple[dict[str, float], Device]:
     """Time each trace scheme's CUDA kernel on this machine's GPU on the ray type's rays.
 
     Returns measured MRays/s by scheme (median of
@@ -70,27 +78,31 @@ def measure_actual(plan: StudyPlan, ray_type: str) -> tuple[dict[str, float], st
         if s.launch is not None:
             _, secs = cu.trace_timed(wl.rays, s.launch)
             measured[s.name] = len(wl.rays) / statistics.median(secs) / 1e6
-    return measured, cu.device_name
+    return measured, Device(cu.device_name, cu.arch, cu.sms)
+
+
+def describes(gpu: GpuConfig, device: Device) -> bool:
+    """Whether ``gpu`` is the configuration of ``device``: its id (``h100``, ``rtx4090``)
+    appears in the device's name with spaces removed ("NVIDIA H100 80GB HBM3"), and its
+    architecture and SM count are the device's (so "titan" is not a TITAN RTX, nor the
+    SXM H100 a PCIe one)."""
+    return (
+        gpu.id in device.name.lower().replace(" ", "")
+        and gpu.arch == device.arch
+        and gpu.sms == device.sms
+    )
 
 
 def actual_columns(
-    measured: dict[str, float], device: str | None, scheme: str, gpu: GpuConfig, r: SimResult
+    measured: dict[str, float], device: Device | None, scheme: str, gpu: GpuConfig, r: SimResult
 ) -> dict:
-    """Measured MRays/s and its share of the upper bound, for the GPU config of the device.
-
-    A configuration matches the device when its id (``h100``, ``rtx4090``) appears in the
-    device's name with spaces removed ("NVIDIA H100 80GB HBM3"); other GPUs' rows get no
-    measured figure.
-    """
+    """Measured MRays/s and its share of the upper bound, for the GPU config of the device
+    (:func:`describes`); other GPUs' rows get no measured figure."""
     value = measured.get(scheme)
-    matches = device is not None and gpu.id in device.lower().replace(" ", "")
-    if value is None or not matches:
-        return {"mrays_actual": float("nan"), "pct_of_upper": float("nan"), "device": device}
-    return {
-        "mrays_actual": value,
-        "pct_of_upper": 100.0 * value / r.mrays_upper,
-        "device": device,
-    }
+    name = device.name if device is not None else None
+    if value is None or device is None or not describes(gpu, device):
+        return {"mrays_actual": float("nan"), "pct_of_upper": float("nan"), "device": name}
+    return {"mrays_actual": value, "pct_of_upper": 100.0 * value / r.mrays_upper, "device": name}
 
 
 def _sample_columns(

@@ -397,7 +397,7 @@ class CudaTracer:
             name = props["name"]
             self.device_name = name.decode() if isinstance(name, bytes) else str(name)
             self.arch = f"sm_{props['major']}{props['minor']}"
-            self._sms = int(self._device.attributes["MultiProcessorCount"])
+            self.sms = int(self._device.attributes["MultiProcessorCount"])
             self._bvh = {k: cp.asarray(packed[k]) for k in ("nodes", "woop", "tri_index")}
             self._root = np.int32(packed["root"])
             self._pool = cp.zeros(1, dtype=cp.int32)
@@ -451,7 +451,7 @@ class CudaTracer:
             raise SimtSimError(
                 f"{launch.kernel} cannot run {block} threads per block on this device"
             )
-        return DeviceLimits(self._sms, blocks * (block // WARP_SIZE))
+        return DeviceLimits(self.sms, blocks * (block // WARP_SIZE))
 
     def _prepare(self, packed: np.ndarray, any_hit: bool, launch: KernelLaunch) -> _Launch:
         """Upload packed rays and allocate the results of one launch."""
