@@ -149,26 +149,7 @@ def test_the_divergent_fallback_runs_only_for_a_diverged_warp() -> None:
     rows = [
         "S2R R0, SR_LANEID",
         "ISETP.GE.AND P0, PT, R0, {cut}, PT",
-        "@P0 EXIT",
-        "BRA.DIV `(.L_x_0)",
-        "VOTE.ANY R1, PT, PT",
-        ".L_x_1:",
-        "EXIT",
-        ".L_x_0:",
-        "MOV R1, 0x0",
-        "BRA `(.L_x_1)",
-    ]
-    whole = _run([r.format(cut="0x20") for r in rows])
-    assert whole.issued.tolist() == [1, 1, 1, 1, 1, 1, 0, 0]
-    # lanes 16..31 exited: the 16 left are every live lane, so still no fallback
-    half = _run([r.format(cut="0x10") for r in rows])
-    assert half.issued.tolist() == [1, 1, 1, 1, 1, 1, 0, 0]
-    # lanes 16..31 wait further on (alive, elsewhere): the 16 at the vote are a diverged
-    # warp, so they take the fallback and never issue the vote
-    apart = _run([
-        "S2R R0, SR_LANEID",
-        "ISETP.GE.AND P0, PT, R0, 0x10, PT",
-        "@P0 BRA `(.L_x_2)",
+        "@P0 {leave}",
         "BRA.DIV `(.L_x_0)",
         "VOTE.ANY R1, PT, PT",
         ".L_x_1:",
@@ -178,7 +159,17 @@ def test_the_divergent_fallback_runs_only_for_a_diverged_warp() -> None:
         "BRA `(.L_x_1)",
         ".L_x_2:",
         "EXIT",
-    ])  # fmt: skip
+    ]
+
+    def run(cut: str, leave: str = "EXIT"):
+        return _run([r.format(cut=cut, leave=leave) for r in rows])
+
+    assert run("0x20").issued.tolist() == [1, 1, 1, 1, 1, 1, 0, 0, 0]
+    # lanes 16..31 exited: the 16 left are every live lane, so still no fallback
+    assert run("0x10").issued.tolist() == [1, 1, 1, 1, 1, 1, 0, 0, 0]
+    # lanes 16..31 wait further on (alive, elsewhere): the 16 at the vote are a diverged
+    # warp, so they take the fallback and never issue the vote
+    apart = run("0x10", "BRA `(.L_x_2)")
     assert apart.issued.tolist() == [1, 1, 1, 1, 0, 1, 1, 1, 1]
     assert apart.lanes.tolist() == [32, 32, 32, 16, 0, 16, 16, 16, 16]
 
