@@ -43,7 +43,11 @@ def gpu_table() -> str:
                 **{p: lanes.get(p, "") for p in PIPES},
                 "peak GFLOPS": f"{g.peak_fp32_gflops:g}",
                 "max warps": g.max_warps_per_sm,
+                "launch warps": g.resident_warps_per_sm,
                 "registers": g.registers_per_sm,
+                "registers of": g.code_arch,
+                "L1 KiB": g.l1_kib,
+                "L2 KiB": g.l2_kib,
                 "DRAM GB/s": f"{g.dram_gbps:g}",
                 "IR": g.ir_arch,
             }

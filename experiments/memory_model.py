@@ -2,14 +2,16 @@
 
 Usage: python experiments/memory_model.py [--scene conference] [--camera 0]
        [--resolution 256x192] [--secondary-resolution 64x48] [--spp 8]
-       [--gpus gtx285,rtx2080ti,h100] [--format md|csv|json] [--out F]
+       [--gpus gtx285,rtx2080ti,h100] [--ways 16] [--format md|csv|json] [--out F]
 
 For one camera of one scene: primary rays at ``--resolution``, AO and diffuse rays spawned
 (``--spp`` per hit) from the primary hits at ``--secondary-resolution``, each recorded as
 one batch. Per ray type and GPU: whether ``auto`` turns the model on, the issue-bound
 MRays/s of while-while, and the memory columns with the model forced on (so a GPU whose L2
-holds the scene still shows what its caches would do). The ``proxy_*`` columns measure the
-simpler warp-step proxy the model does not use (a warp's step k = each lane's k-th node
+holds the scene still shows what its caches would do), in resident sets of while-while's
+occupancy and caches of ``--ways`` ways (default ``simt_sim.simt.memory.CACHE_WAYS``, a
+modelling choice this flag measures). The ``proxy_*`` columns measure the simpler
+warp-step proxy the model does not use (a warp's step k = each lane's k-th node
 fetch) against the while-while grouping it uses: relative error in node steps, in lines
 per node step and in node line requests. Default scene: ``conference`` when its mesh is
 present, else the built-in ``room``.
@@ -33,11 +35,13 @@ from simt_sim.schemes import get_scheme
 from simt_sim.simt.footprint import decide
 from simt_sim.simt.gpus import get_gpu
 from simt_sim.simt.memory import (
+    CACHE_WAYS,
     LINE_BYTES,
     MemoryCounts,
     memory_columns,
     memory_counts,
 )
+from simt_sim.simt.occupancy import kernel_occupancy
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.study.workload import make_workload, parse_resolution
 from simt_sim.trace.record import record_all
@@ -75,6 +79,7 @@ def run(
     secondary_resolution: tuple[int, int],
     spp: int,
     gpu_ids: tuple[str, ...],
+    ways: int = CACHE_WAYS,
 ) -> pd.DataFrame:
     """One row per ray type x GPU (see the module docstring)."""
     gpus = [get_gpu(g) for g in gpu_ids]
@@ -90,11 +95,11 @@ def run(
         footprint = tree_stats(bvh).bytes
         proxy = kth_fetch_proxy(trace, memory_counts(trace, WARP_SIZE))
         for gpu in gpus:
-            sim = simulate_traces(
-                [trace], get_scheme("while_while"), kernels_ir.load("while_while", gpu.ir_arch), gpu
-            )
+            ir = kernels_ir.load("while_while", gpu.ir_arch)
+            sim = simulate_traces([trace], get_scheme("while_while"), ir, gpu)
+            resident = gpu.sms * kernel_occupancy(gpu, ir, None).warps_per_sm
             t0 = time.perf_counter()
-            counts = memory_counts(trace, gpu.warp_size, gpu)
+            counts = memory_counts(trace, gpu.warp_size, gpu, resident_warps=resident, ways=ways)
             seconds = time.perf_counter() - t0
             cols = memory_columns(counts, gpu, True)
             del cols["mem_model"]
@@ -123,6 +128,7 @@ def main() -> None:
     ap.add_argument("--secondary-resolution", default="64x48", help="AO / diffuse spawn, WxH")
     ap.add_argument("--spp", type=int, default=8, help="secondary rays per primary hit")
     ap.add_argument("--gpus", default=",".join(GPUS))
+    ap.add_argument("--ways", type=int, default=CACHE_WAYS, help="the caches' associativity")
     ap.add_argument("--format", choices=FORMATS, default="md")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
@@ -133,6 +139,7 @@ def main() -> None:
         parse_resolution(args.secondary_resolution),
         args.spp,
         tuple(args.gpus.split(",")),
+        args.ways,
     )
     emit(df, args.format, args.out)
 

@@ -28,6 +28,7 @@ from kernels_ir.kernel_ir import BLOCKS, TRI_TEST_BLOCKS, KernelIR
 from simt_sim.atomic import write_atomic
 from simt_sim.rays.generate import PAPER_HEIGHT, PAPER_SPP, PAPER_WIDTH
 from simt_sim.report.markdown import block_table
+from simt_sim.scene.load import load_scene
 from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, executed_on
 from simt_sim.simt.result import INTERSECTION_BLOCKS, TRAVERSAL_BLOCKS, SimResult
 from simt_sim.study.published import PAPER_CSV, reference_dir
@@ -35,6 +36,7 @@ from simt_sim.study.run import run_study
 from simt_sim.study.spec import StudySpec
 from simt_sim.study.workload import parse_resolution
 from simt_sim.types.raybatch import TRACE_RAY_TYPES as RAY_TYPES
+from simt_sim.types.scene import Scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import secondary_order  # noqa: E402  (experiments/secondary_order.py)
@@ -398,8 +400,8 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   {arch}, the oldest target it offers), not GT200 code from 2009's compiler: a
   while-while traversal step is {ww_trav} instructions and a (watertight) Woop triangle
   test {ww_tri}, far leaner than the GT200 kernels. The mesh is not byte-identical
-  either (331K triangles in the file, 277K after dropping zero-area ones, against the
-  paper's 282K). The calibrated profile removes
+  either ({mesh_file} triangles in the file, {mesh_kept} after dropping zero-area ones,
+  against the paper's 282K). The calibrated profile removes
   the level; the ratios between schemes do not depend on it.
 - **Persistent while-while equals while-while (as in the paper).** Under ideal scheduling
   persistence changes only the fetch cost; the paper's simulator showed identical rows.
@@ -436,7 +438,8 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   instructions issued), but both only on a GPU with independent thread scheduling (Volta and
   later): the GTX 285's vote was one instruction for any warp, so the table charges
   neither. sm_90 inlines the vote but recomputes the ray's inverse direction inside
-  the traversal loop (17 instructions per step, docs/kernels_ir.md); with its costs the
+  the traversal loop (a step of {spec_trav_90} instructions against {arch}'s {spec_trav},
+  docs/kernels_ir.md); with its costs the
   errors are {spec_err_90}. To match the paper with {arch}'s costs, a speculative step would have to
   cost {spec_even}. Our replay
   also visits no nodes speculatively beyond the recorded
@@ -533,10 +536,11 @@ def deviations(
     bvh: str,
     packet: pd.DataFrame,
     main_table: pd.DataFrame,
+    scene: Scene,
 ) -> str:
     """:data:`DEVIATIONS` with the block costs of ``arch`` as ``gpu`` runs them, the
-    measured figures, the BVH verdict ``bvh``, the union replay's error ``packet`` and
-    each row's level against the paper (``main_table``)."""
+    measured figures, the BVH verdict ``bvh``, the union replay's error ``packet``, each
+    row's level against the paper (``main_table``) and the mesh's triangles (``scene``)."""
 
     def cost(kernel: str, block: str, target: str = arch) -> int:
         return executed_on(kernels_ir.load(kernel, target), gpu).cost(block)
@@ -562,6 +566,7 @@ def deviations(
     ii = calibrated[calibrated["scheme"] == "if_if"]["rel_error"].abs()
     ww_trav = cost("while_while", "trav_step")
     spec_trav = cost("persistent_speculative_while_while", "trav_step")
+    kept = scene.triangles.shape[0]
     slower = 1 - ratios[ratios["ratio"] == "if_if / while_while"]["paper"]
     return DEVIATIONS.format(
         arch=arch, bvh=bvh, nvcc=compiler_name(arch),
@@ -574,6 +579,9 @@ def deviations(
         ii_tri_35=tri_cost("if_if", kernels_ir.KEPLER_ARCH),
         ww_tri_35=tri_cost("while_while", kernels_ir.KEPLER_ARCH),
         spec_trav=spec_trav,
+        spec_trav_90=cost("persistent_speculative_while_while", "trav_step", "sm_90"),
+        mesh_kept=f"{kept / 1e3:.0f}K",
+        mesh_file=f"{(kept + scene.dropped['zero_area']) / 1e3:.0f}K",
         spec_spin=sum(
             kernels_ir.load("persistent_speculative_while_while", arch)
             .spins.get("trav_step", {})
@@ -725,6 +733,7 @@ def render(
             verdict,
             packet,
             main_table,
+            load_scene(spec.scene),
         ),
     ]
     return "\n".join(lines)

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from kernels_ir import KernelIR
-from kernels_ir.kernel_ir import RECONVERGE, SPIN_BLOCKS, WARP_SIZE
+from kernels_ir.kernel_ir import BLOCK_THREADS, RECONVERGE, SPIN_BLOCKS, WARP_SIZE
 from kernels_ir.pairing import PAIRING_ARCHS
 from simt_sim.errors import SimtSimError
 
@@ -83,8 +83,11 @@ _FIELDS: dict[str, type | tuple[type, ...]] = {
 
 #: fields an entry may leave out, with their default: ``pairing_arch`` names the
 #: architecture whose compiler-marked dual-issue pairs (``kernels_ir.pairing``) set the
-#: ``dual_issue`` limit of a GPU that dual-issues (Kepler); empty, the limit is not in force
-_OPTIONAL: dict[str, tuple[type, Any]] = {"pairing_arch": (str, "")}
+#: ``dual_issue`` limit of a GPU that dual-issues (Kepler); empty, the limit is not in force.
+#: ``registers_arch`` names the architecture whose committed code of a kernel stands for
+#: the GPU's own in its occupancy (GK104's sm_30, which no kept compiler emits, takes
+#: sm_35's); empty, the GPU's ``arch``
+_OPTIONAL: dict[str, tuple[type, Any]] = {"pairing_arch": (str, ""), "registers_arch": (str, "")}
 
 _FLOAT_FIELDS = ("clock_mhz", "dispatch", "peak_fp32_gflops", "shared_kib_per_sm", "dram_gbps")
 _POSITIVE = (
@@ -130,14 +133,17 @@ class GpuConfig:
         warp's allocation is rounded up to, shared memory (KiB).
     resident_warps_per_sm : int
         Warps per SM a persistent launch keeps when the kernel's own occupancy is not known
-        (the IR is another architecture's code), and the memory model's resident set.
+        (no code of the GPU's architecture is committed): the paper's launch on GT200, the
+        block limit on Fermi. At most ``max_warps_per_sm`` and what ``max_blocks_per_sm``
+        blocks of ``BLOCK_THREADS`` hold.
     l1_kib, l2_kib : int
         Data cache sizes (per SM, per GPU) for the optional memory model.
     dram_gbps : float
         DRAM bandwidth in GB/s (10^9 bytes/s), the bandwidth bound.
     arch : str
-        The GPU's own architecture (``sm_13`` for GT200): where a KernelIR is of this
-        architecture, its registers give the kernel's occupancy.
+        The GPU's own architecture (``sm_13`` for GT200): where a KernelIR of the kernel
+        is committed for it (or for ``registers_arch``), its registers give the kernel's
+        occupancy (:func:`simt_sim.simt.occupancy.kernel_occupancy`).
     ir_arch : str
         Architecture of the KernelIR the GPU is costed with.
     source : str
@@ -146,6 +152,9 @@ class GpuConfig:
         Where ``dispatch`` is 2 because the compiler pairs instructions (Kepler): the
         architecture whose marked pairs give each block's issue slots
         (``kernels_ir.pairing``); empty where no such limit applies.
+    registers_arch : str
+        The architecture whose committed code stands for the GPU's own in its occupancy,
+        where none of ``arch`` is (GK104: sm_35); empty: ``arch``.
     """
 
     id: str
@@ -172,6 +181,7 @@ class GpuConfig:
     ir_arch: str
     source: str
     pairing_arch: str = ""
+    registers_arch: str = ""
 
     @property
     def clock_hz(self) -> float:
@@ -198,6 +208,11 @@ class GpuConfig:
         """Warps a persistent launch keeps on the whole GPU when the kernel's own occupancy
         is not known (720 on GTX 285, the paper's launch)."""
         return self.sms * self.resident_warps_per_sm
+
+    @property
+    def code_arch(self) -> str:
+        """The architecture whose committed code of a kernel is this GPU's own code."""
+        return self.registers_arch or self.arch
 
     @property
     def independent_thread_scheduling(self) -> bool:
@@ -284,10 +299,21 @@ def _parse(entry: Any, where: str) -> GpuConfig:
     for key in ("l1_kib", "l2_kib", "shared_kib_per_sm"):
         if entry[key] < 0:
             raise SimtSimError(f"{label}: field {key} must be >= 0, got {entry[key]!r}")
-    if not _ARCH.fullmatch(entry["arch"]) or not _ARCH.fullmatch(entry["ir_arch"]):
+    archs = [entry["arch"], entry["ir_arch"], *filter(None, [entry["registers_arch"]])]
+    if not all(_ARCH.fullmatch(a) for a in archs):
         raise SimtSimError(
-            f"{label}: arch and ir_arch must name a compute capability as sm_XY (sm_13, "
-            f"sm_75), got {entry['arch']!r} and {entry['ir_arch']!r}"
+            f"{label}: arch, ir_arch and registers_arch must name a compute capability as "
+            f"sm_XY (sm_13, sm_75), got {', '.join(map(repr, archs))}"
+        )
+    launch_room = min(
+        entry["max_warps_per_sm"],
+        entry["max_blocks_per_sm"] * max(1, BLOCK_THREADS // entry["warp_size"]),
+    )
+    if entry["resident_warps_per_sm"] > launch_room:
+        raise SimtSimError(
+            f"{label}: resident_warps_per_sm {entry['resident_warps_per_sm']} exceeds the "
+            f"{launch_room} warps an SM holds in blocks of {BLOCK_THREADS} threads "
+            "(max_warps_per_sm, max_blocks_per_sm); lower it"
         )
     if entry["clock"] not in CLOCKS:
         raise SimtSimError(f"{label}: clock must be one of {', '.join(CLOCKS)}")

@@ -27,13 +27,15 @@ distinct 128-byte lines its lanes touch. The grouping is while-while's for every
 (scheme-independent): exact for while-while and persistent while-while, an approximation
 for the others (packet lanes share one node per step, so packets coalesce better).
 
-Caches (GPU-specific, optional): the warps of a batch run in resident sets of
-``gpu.resident_warps`` consecutive warps, warp ``i`` of a set on SM ``i mod sms``; within a
+Caches (GPU-specific, optional): the warps of a batch run in resident sets of as many
+consecutive warps as the GPU holds of the kernel (its occupancy on every SM, which a study
+passes; ``gpu.resident_warps`` by default), warp ``i`` of a set on SM ``i mod sms``; within a
 set, step ``k`` of every warp comes before step ``k + 1`` of any (warps progress at one
 rate). Every line a step touches is looked up in its SM's L1 and, on a miss, in the L2;
-an L2 miss is one line of DRAM traffic. Both caches are 16-way set-associative LRU (set
-= line mod sets), empty at the start of each :func:`memory_counts` call. Rays also move
-:data:`RAY_IO_BYTES` each through DRAM (ray in, hit out), perfectly coalesced.
+an L2 miss is one line of DRAM traffic. Both caches are set-associative LRU of
+:data:`CACHE_WAYS` ways (set = line mod sets), empty at the start of each
+:func:`memory_counts` call. Rays also move :data:`RAY_IO_BYTES` each through DRAM (ray in,
+hit out), perfectly coalesced.
 """
 
 from __future__ import annotations
@@ -66,7 +68,8 @@ TRI_BYTES = WOOP_FLOAT4_PER_TRI * FLOAT4_BYTES
 SENTINEL_BYTES = FLOAT4_BYTES
 #: DRAM bytes per ray outside the scene: origin and direction float4 in, hit index and t out
 RAY_IO_BYTES = 2 * FLOAT4_BYTES + 4 + 4
-#: associativity of the modelled L1 and L2
+#: associativity of the modelled L1 and L2: NVIDIA publishes neither caches' indexing, so
+#: this is a modelling choice; experiments/memory_model.py --ways measures what it moves
 CACHE_WAYS = 16
 
 # per-warp counter columns written by the walker
@@ -394,17 +397,25 @@ def _run_caches(n_steps, step_base, out_step_end, line_base, out_lines, sms, l1_
     return l1_miss, l2_miss, distinct, clock
 
 
-def _cache(n_caches: int, kib: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """Empty tags and LRU stamps (n_caches * sets, ways) of ``kib`` KiB caches; and sets."""
+def _cache(n_caches: int, kib: int, ways: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Empty tags and LRU stamps (n_caches * sets, ways) of ``kib`` KiB caches of at most
+    ``ways`` ways; and sets."""
     lines = kib * 1024 // LINE_BYTES
-    ways = min(CACHE_WAYS, lines)
+    ways = min(ways, lines)
     sets = lines // ways if ways else 0
     shape = (n_caches * sets, max(ways, 1))
     return np.full(shape, -1, np.int64), np.full(shape, -1, np.int64), sets
 
 
-def _cache_counts(a: tuple[np.ndarray, ...], w: int, any_hit: bool, node_bytes: int,
-                  gpu: GpuConfig) -> tuple[np.ndarray, tuple[int, int, int, int]]:  # fmt: skip
+def _cache_counts(
+    a: tuple[np.ndarray, ...],
+    w: int,
+    any_hit: bool,
+    node_bytes: int,
+    gpu: GpuConfig,
+    size: int,
+    ways: int,
+) -> tuple[np.ndarray, tuple[int, int, int, int]]:
     """Run the resident sets of the batch through the caches (see module docstring).
 
     Returns the per-warp counters (as :func:`_count_warps`) and (resident sets, distinct
@@ -424,9 +435,8 @@ def _cache_counts(a: tuple[np.ndarray, ...], w: int, any_hit: bool, node_bytes: 
         int(_woop_key(woop_top * FLOAT4_BYTES + TRI_BYTES - 1)),
     )
     seen = np.zeros(top_key + 1, np.int32)  # resident set that last touched each line key
-    l1_tags, l1_stamps, l1_sets = _cache(gpu.sms, gpu.l1_kib)
-    l2_tags, l2_stamps, l2_sets = _cache(1, gpu.l2_kib)
-    size = gpu.resident_warps
+    l1_tags, l1_stamps, l1_sets = _cache(gpu.sms, gpu.l1_kib, ways)
+    l2_tags, l2_stamps, l2_sets = _cache(1, gpu.l2_kib, ways)
     warp_ops = np.diff(offsets[np.minimum(np.arange(n_warps + 1) * w, n_rays)])
     most = max((int(warp_ops[s0 : s0 + size].sum()) for s0 in range(0, n_warps, size)), default=0)
     per_op = lines_per_op(node_bytes)
@@ -458,7 +468,14 @@ def _hits_end_rays(offsets: np.ndarray, op: np.ndarray) -> bool:
     return bool(ray_end[np.flatnonzero(op == TRI_HIT) + 1].all())
 
 
-def memory_counts(trace: OpTrace, warp_size: int, gpu: GpuConfig | None = None) -> MemoryCounts:
+def memory_counts(
+    trace: OpTrace,
+    warp_size: int,
+    gpu: GpuConfig | None = None,
+    *,
+    resident_warps: int = 0,
+    ways: int = CACHE_WAYS,
+) -> MemoryCounts:
     """Count the bytes, warp steps and lines of a batch; with ``gpu``, run its caches too.
 
     Parameters
@@ -470,6 +487,12 @@ def memory_counts(trace: OpTrace, warp_size: int, gpu: GpuConfig | None = None) 
     gpu : GpuConfig, optional
         Run the cache model with this GPU's L1, L2, SMs and resident warps (needed for
         :func:`memory_columns` when the model is on). Caches start empty in each call.
+    resident_warps : int, optional
+        Warps of the batch resident on the whole GPU at once: the kernel's occupancy times
+        the SMs (``StudyPlan.resident_warps``); 0, the GPU's documented launch figure.
+    ways : int, optional
+        The caches' associativity (:data:`CACHE_WAYS`; a cache of fewer lines is fully
+        associative).
     """
     if not 1 <= warp_size <= MAX_MASK_LANES:
         raise SimtSimError(
@@ -500,7 +523,12 @@ def memory_counts(trace: OpTrace, warp_size: int, gpu: GpuConfig | None = None) 
     if gpu is None:
         per_warp = _count_warps(offsets, op, addr, warp_size, any_hit, node_bytes)
     else:
-        per_warp, cache = _cache_counts((offsets, op, addr), warp_size, any_hit, node_bytes, gpu)
+        size = resident_warps or gpu.resident_warps
+        if size < 1 or ways < 1:
+            raise SimtSimError(f"resident_warps and ways must be >= 1, got {size} and {ways}")
+        per_warp, cache = _cache_counts(
+            (offsets, op, addr), warp_size, any_hit, node_bytes, gpu, size, ways
+        )
     tot = per_warp.sum(axis=0) if per_warp.shape[0] else np.zeros(_N_COLS, np.int64)
     return MemoryCounts(
         rays=trace.n_rays,

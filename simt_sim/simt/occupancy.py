@@ -1,18 +1,24 @@
 """Occupancy: how many warps of a kernel an SM keeps resident, from its registers.
 
 A persistent or dynamic-fetch launch runs exactly the warps the GPU holds at once, so the
-replay needs that number. It follows from the kernel's registers (in its KernelIR), its
-shared memory (the packet kernel's per-warp stack) and the block size of the launch,
-against the SM's limits (``GpuConfig``: blocks, warps, registers and their allocation
-unit, shared memory), as the CUDA occupancy calculator computes it. Registers of another
-architecture's code say nothing about this GPU's (sm_75 code on a GT200), so there the
-GPU's documented launch figure (``resident_warps_per_sm``) is used, and the card says so.
+replay needs that number. It follows from the kernel's registers, its shared memory (the
+packet kernel's per-warp stack) and the block size of the launch, against the SM's limits
+(``GpuConfig``: blocks, warps, registers and their allocation unit, shared memory), as the
+CUDA occupancy calculator computes it. The registers are those of the kernel's code for
+the GPU's own architecture (``GpuConfig.code_arch``): the IR it is costed with where that
+is its own, else the committed KernelIR of that architecture (the Kepler GPUs, costed with
+sm_75 code, hold the warps their sm_35 code's registers allow). Where no such code is
+committed (GT200, Fermi), the GPU's documented launch figure (``resident_warps_per_sm``)
+is used, and the card says so.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 
+import kernels_ir
+from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import (
     BLOCK_THREADS,
     STACK_ENTRY_BYTES,
@@ -49,17 +55,20 @@ class Occupancy:
 def kernel_occupancy(
     gpu: GpuConfig, ir: KernelIR, launch: KernelLaunch | None, *, block_threads: int = BLOCK_THREADS
 ) -> Occupancy:
-    """Resident warps per SM of ``ir``'s kernel launched in blocks of ``block_threads``."""
-    if ir.arch != gpu.arch or ir.registers <= 0:
+    """Resident warps per SM of ``ir``'s kernel launched in blocks of ``block_threads``,
+    with the registers of its code for ``gpu``'s own architecture."""
+    registers, code = own_registers(gpu, ir)
+    if registers <= 0:
         return Occupancy(
             gpu.resident_warps_per_sm,
             "launch",
             f"{gpu.resident_warps_per_sm} warps per SM: the GPU's documented launch figure "
-            f"({ir.arch} registers do not describe {gpu.arch} code)",
+            f"(no {gpu.code_arch} code of {ir.kernel} is committed; {ir.arch} registers do "
+            f"not describe it)",
         )
     warps_per_block = block_threads // gpu.warp_size
     unit = gpu.register_unit
-    regs_per_warp = -(-ir.registers * gpu.warp_size // unit) * unit
+    regs_per_warp = -(-registers * gpu.warp_size // unit) * unit
     shared = (
         warps_per_block * STACK_SIZE * STACK_ENTRY_BYTES if launch and launch.shared_stack else 0
     )
@@ -74,12 +83,31 @@ def kernel_occupancy(
     warps = blocks[limit] * warps_per_block
     if warps == 0:
         raise SimtSimError(
-            f"{ir.kernel} ({ir.registers} registers, blocks of {block_threads} threads) does "
+            f"{ir.kernel} ({registers} registers, blocks of {block_threads} threads) does "
             f"not fit one block on a {gpu.id} SM ({limit}); use smaller blocks"
         )
     return Occupancy(
         warps,
         limit,
-        f"{warps} warps per SM, set by {limit} ({ir.registers} registers per thread, "
-        f"blocks of {block_threads} threads, {gpu.arch} limits)",
+        f"{warps} warps per SM, set by {limit} ({registers} registers per thread in "
+        f"{code} code, blocks of {block_threads} threads, {gpu.arch} limits)",
     )
+
+
+def own_registers(gpu: GpuConfig, ir: KernelIR) -> tuple[int, str]:
+    """Registers per thread of ``ir``'s kernel in code for ``gpu``'s own architecture, and
+    that architecture; 0 where no such code is committed."""
+    arch = gpu.code_arch
+    if ir.arch == arch:
+        return ir.registers, arch
+    return _committed_registers(ir.kernel, arch, ir.tests), arch
+
+
+@cache
+def _committed_registers(kernel: str, arch: str, tests: str) -> int:
+    if not arch:
+        return 0
+    try:
+        return kernels_ir.load(kernel, arch, tests).registers
+    except KernelIRError:
+        return 0

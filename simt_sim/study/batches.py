@@ -64,13 +64,14 @@ class BatchResults:
         ``(scheme, gpu id)`` -> one SimResult per random group (one in all when not
         sampling); None for a group that drew no warp of this batch.
     memory : dict
-        GPU id -> the memory model's counts, for the GPUs it runs for.
+        ``(GPU id, resident warps)`` -> the memory model's counts, for the GPUs it runs
+        for and each of their resident sets (``StudyPlan.memory_sets``).
     """
 
     index: int
     rays: int
     results: dict[tuple[str, str], tuple[SimResult | None, ...]]
-    memory: dict[str, MemoryCounts]
+    memory: dict[tuple[str, int], MemoryCounts]
 
 
 def record_batch(plan: StudyPlan, ray_type: str, rays: RayBatch, index: int) -> RecordedBatch:
@@ -130,7 +131,11 @@ def replay_batch(plan: StudyPlan, recorded: RecordedBatch) -> BatchResults:
     """
     sampled = plan.spec.sampled
     trace, bounds = recorded.trace, recorded.bounds
-    memory = {g.id: memory_counts(trace, g.warp_size, g) for g in plan.gpus if plan.memory[g.id][0]}
+    memory = {
+        (g.id, r): memory_counts(trace, g.warp_size, g, resident_warps=r)
+        for g in plan.gpus
+        for r in plan.memory_sets(g, plan.trace_schemes)
+    }
     results: dict[tuple[str, str], list[SimResult | None]] = {}
     for start, stop in zip(bounds[:-1], bounds[1:], strict=True):
         piece = trace.slice(start, stop) if sampled else trace
@@ -138,11 +143,12 @@ def replay_batch(plan: StudyPlan, recorded: RecordedBatch) -> BatchResults:
         if sampled and rays is not None:
             rays = rays.slice(start, stop)
         for g in plan.gpus:
-            resident = None
-            if sampled:
-                resident = max(1, round(g.resident_warps * (stop - start) / recorded.rays))
             for s in plan.trace_schemes:
                 checkpoint()
+                resident = None
+                if sampled:
+                    share = (stop - start) / recorded.rays
+                    resident = max(1, round(plan.resident_warps(s, g) * share))
                 r = None
                 if stop > start:
                     ir = plan.irs[(s.kernel, g.ir_arch)]

@@ -21,6 +21,7 @@ from simt_sim.errors import SimtSimError
 from simt_sim.scene.load import load_scene
 from simt_sim.simt.footprint import decide
 from simt_sim.simt.gpus import GpuConfig, get_gpu
+from simt_sim.simt.occupancy import kernel_occupancy
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
 from simt_sim.study.spec import StudySpec
 from simt_sim.study.viewcheck import announce
@@ -84,6 +85,23 @@ class StudyPlan:
     def trace_ray_types(self) -> tuple[str, ...]:
         """The spec's ray types that are traced as ray batches (all but ``path``)."""
         return tuple(rt for rt in self.spec.ray_types if rt != PATH_RAYS)
+
+    def resident_warps(self, scheme: SchemeInfo, gpu: GpuConfig) -> int:
+        """Warps of ``scheme``'s kernel resident on the whole of ``gpu`` at once (its
+        occupancy times the SMs): a persistent launch's warps, the memory model's set. A
+        scheme of several kernels (wavefront) takes the fewest of theirs: the smallest
+        working set, so the bandwidth bound stays a bound."""
+        return gpu.sms * min(
+            kernel_occupancy(gpu, ir, scheme.launch).warps_per_sm
+            for ir in self.irs_for(scheme, gpu).values()
+        )
+
+    def memory_sets(self, gpu: GpuConfig, chosen: tuple[SchemeInfo, ...]) -> tuple[int, ...]:
+        """The resident warps the memory model runs ``gpu``'s caches with for the rows of
+        ``chosen``: one per distinct occupancy (none where the model is off)."""
+        if not self.memory[gpu.id][0]:
+            return ()
+        return tuple(sorted({self.resident_warps(s, gpu) for s in chosen}))
 
     def irs_for(self, scheme: SchemeInfo, gpu: GpuConfig) -> dict[str, KernelIR]:
         """The KernelIR of each of ``scheme``'s kernels on ``gpu``'s architecture."""

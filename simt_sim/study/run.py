@@ -214,9 +214,9 @@ def trace_rows(
             else:
                 merged = merge([b.results[(s.name, g.id)][0] for b in batches])
                 row = _full_row(merged, False)
-            on = plan.memory[g.id][0]
-            counts = sum((b.memory[g.id] for b in batches), MemoryCounts()) if on else None
-            merged, mem = _with_memory(plan, merged, counts or MemoryCounts(), g)
+            key = (g.id, plan.resident_warps(s, g))
+            counts = sum((b.memory.get(key, MemoryCounts()) for b in batches), MemoryCounts())
+            merged, mem = _with_memory(plan, merged, counts, g)
             row.update(mem)
             row.update(_roofline_columns(merged, row))
             row["bvh"] = spec.bvh
@@ -260,9 +260,12 @@ def path_rows(plan: StudyPlan, bar: tqdm) -> tuple[list[SimResult], list[dict]]:
             checkpoint()
             replayed[(s.name, g.id)] = simulate_paths(pt, s, plan.irs_for(s, g), g, scene=name)
     memory = {
-        g.id: sum((memory_counts(q, g.warp_size, g) for q in pt.queues("all")), MemoryCounts())
+        (g.id, r): sum(
+            (memory_counts(q, g.warp_size, g, resident_warps=r) for q in pt.queues("all")),
+            MemoryCounts(),
+        )
         for g in plan.gpus
-        if plan.memory[g.id][0]
+        for r in plan.memory_sets(g, plan.schemes)
     }
     bar.update(pt.n_rays)
     results, rows = [], []
@@ -270,7 +273,8 @@ def path_rows(plan: StudyPlan, bar: tqdm) -> tuple[list[SimResult], list[dict]]:
         for g in plan.gpus:
             merged = merge([replayed[(s.name, g.id)]])
             row = _full_row(merged, spec.sampled)
-            merged, mem = _with_memory(plan, merged, memory.get(g.id, MemoryCounts()), g)
+            counts = memory.get((g.id, plan.resident_warps(s, g)), MemoryCounts())
+            merged, mem = _with_memory(plan, merged, counts, g)
             row.update(mem)
             row.update(_roofline_columns(merged, row))
             row["bvh"] = spec.bvh

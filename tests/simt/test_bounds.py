@@ -115,11 +115,36 @@ def test_occupancy_from_registers_on_the_gpus_own_code() -> None:
 
 
 def test_occupancy_of_foreign_code_is_the_documented_launch() -> None:
-    """sm_75 registers say nothing about GT200 code: the paper's 24 warps per SM."""
+    """sm_75 registers say nothing about GT200 code: the paper's 24 warps per SM; nor
+    about Fermi's, whose 8 blocks of 128 threads hold 32 warps (not its 48-warp limit)."""
     g = get_gpu("gtx285")
     ir = KernelIR("persistent_while_while", "sm_75", {}, registers=41)
     occ = kernel_occupancy(g, ir, get_scheme("persistent_while_while").launch)
     assert (occ.warps_per_sm, occ.limit) == (24, "launch") and "sm_75" in occ.note
+    fermi = kernel_occupancy(get_gpu("gtx480"), ir, get_scheme("persistent_while_while").launch)
+    assert (fermi.warps_per_sm, fermi.limit) == (32, "launch")
+
+
+@pytest.mark.parametrize("gpu_id", ["titan", "gtx680"])
+def test_kepler_occupancy_is_its_own_codes(gpu_id: str) -> None:
+    """A Kepler GPU costed with sm_75 code holds the warps its sm_35 code's registers
+    allow (GK104 through ``registers_arch``): 40 registers x 32 lanes = 1280 per warp,
+    5120 per 4-warp block, 65536 / 5120 = 12 blocks, 48 warps; sm_75's own 42 registers
+    (1536 per warp: 10 blocks, 40 warps) are not used."""
+    g = get_gpu(gpu_id)
+    scheme = get_scheme("speculative_dynamic_fetch")
+    sm35 = load_ir(scheme.kernel, "sm_35", "published")
+    sm75 = load_ir(scheme.kernel, "sm_75", "published")
+    assert (sm35.registers, sm75.registers) == (40, 42)
+    occ = kernel_occupancy(g, sm75, scheme.launch)
+    assert (occ.warps_per_sm, occ.limit) == (48, "registers")
+    assert "40 registers per thread in sm_35 code" in occ.note
+    # a kernel whose sm_35 code fits 64 warps keeps them
+    ww = get_scheme("persistent_while_while")
+    assert load_ir("persistent_while_while", "sm_35", "published").registers == 32
+    assert (
+        kernel_occupancy(g, load_ir(ww.kernel, "sm_75", "published"), ww.launch).warps_per_sm == 64
+    )
 
 
 def test_occupancy_sets_the_persistent_replay_and_its_card() -> None:

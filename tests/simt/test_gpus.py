@@ -79,7 +79,8 @@ def test_packaged_table_has_every_gpu_with_sane_figures() -> None:
         assert gpu.warp_size == 32
         assert gpu.sms > 0 and gpu.clock_mhz > 0 and gpu.issue_rate > 0
         assert gpu.ir_arch in ("sm_75", "sm_80", "sm_89", "sm_90")
-        assert gpu.resident_warps_per_sm <= gpu.max_warps_per_sm
+        # the launch figure fits the SM: its warps and its blocks of 128 threads
+        assert gpu.resident_warps_per_sm <= min(gpu.max_warps_per_sm, 4 * gpu.max_blocks_per_sm)
         assert gpu.source
 
 
@@ -144,6 +145,15 @@ def test_unknown_id_lists_known_ids() -> None:
         (
             USER_GPU.format(id="x").replace("source =", 'pairing_arch = "sm_35"\nsource ='),
             "dual-issues.*dispatch is 1",
+        ),
+        (
+            USER_GPU.format(id="x").replace("source =", 'registers_arch = "kepler"\nsource ='),
+            "registers_arch must name",
+        ),
+        (
+            # 3 blocks of 128 threads hold 12 warps, fewer than the launch figure's 16
+            USER_GPU.format(id="x").replace("max_blocks_per_sm = 16", "max_blocks_per_sm = 3"),
+            "resident_warps_per_sm 16 exceeds the 12 warps",
         ),
         ("[[gpu]\n", "not valid TOML"),
         ("title = 'no gpus'\n", "no \\[\\[gpu\\]\\] entries"),

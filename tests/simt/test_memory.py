@@ -127,11 +127,12 @@ def ref_warp_steps(
 
 
 class RefLRU:
-    """Set-associative LRU cache of ``kib`` KiB, 16 ways (fewer if smaller), set = line mod sets."""
+    """Set-associative LRU cache of ``kib`` KiB, ``ways`` ways (fewer if smaller), set = line
+    mod sets."""
 
-    def __init__(self, kib: int) -> None:
+    def __init__(self, kib: int, ways: int = 16) -> None:
         lines = kib * 1024 // 128
-        self.ways = min(16, lines)
+        self.ways = min(ways, lines)
         self.sets = [OrderedDict() for _ in range(lines // self.ways)] if self.ways else []
 
     def hit(self, key: tuple[int, str]) -> bool:
@@ -147,8 +148,11 @@ class RefLRU:
         return False
 
 
-def ref_counts(trace: OpTrace, warp_size: int, gpu=None) -> dict:
-    """Every MemoryCounts counter, by the reference rules."""
+def ref_counts(
+    trace: OpTrace, warp_size: int, gpu=None, resident_warps: int = 0, ways: int = 16
+) -> dict:
+    """Every MemoryCounts counter, by the reference rules (resident sets of
+    ``resident_warps``, by default the GPU's launch figure; caches of ``ways`` ways)."""
     streams = [
         list(zip(trace.op[a:b].tolist(), trace.addr[a:b].tolist(), strict=True))
         for a, b in zip(trace.offsets[:-1], trace.offsets[1:], strict=True)
@@ -175,9 +179,9 @@ def ref_counts(trace: OpTrace, warp_size: int, gpu=None) -> dict:
             out["tri_rows"] += s.get("rows", 0)
     if gpu is None:
         return out
-    l1 = [RefLRU(gpu.l1_kib) for _ in range(gpu.sms)]
-    l2 = RefLRU(gpu.l2_kib)
-    size = gpu.resident_warps
+    l1 = [RefLRU(gpu.l1_kib, ways) for _ in range(gpu.sms)]
+    l2 = RefLRU(gpu.l2_kib, ways)
+    size = resident_warps or gpu.resident_warps
     for s0 in range(0, len(warps), size):
         members = warps[s0 : s0 + size]
         out["resident_sets"] += 1
@@ -307,6 +311,31 @@ def test_numba_equals_reference_on_random_traces(query: str, warp_size: int) -> 
     ref = ref_counts(tr, warp_size, gpu)
     assert as_dict(got) == ref
     assert 0 < got.l2_misses < got.l1_misses < got.lines  # the caches do hit and miss
+
+
+def test_resident_sets_and_ways_are_the_callers() -> None:
+    """A study passes the kernel's resident warps (its occupancy x SMs), which need not be
+    the GPU's launch figure: the sets, and so the caches' reuse, follow it."""
+    rng = np.random.default_rng(14)
+    tr = random_trace(rng, 301, "closest")  # 10 warps of 32
+    gpu = gpu_with(l1_kib=1, l2_kib=2, sms=2, warps_per_sm=2)  # launch figure: 4 warps
+    by_size = {}
+    for r in (0, 3, 10):
+        got = memory_counts(tr, 32, gpu, resident_warps=r)
+        assert as_dict(got) == ref_counts(tr, 32, gpu, resident_warps=r)
+        by_size[r] = got
+    assert [by_size[r].resident_sets for r in (0, 3, 10)] == [3, 4, 1]
+    # the associativity is a modelling choice (NVIDIA publishes no indexing): any works
+    for ways in (1, 2, 64):
+        got = memory_counts(tr, 32, gpu, ways=ways)
+        assert as_dict(got) == ref_counts(tr, 32, gpu, ways=ways)
+    # (not monotone: LRU on a cyclic pattern can miss more with more ways)
+    assert memory_counts(tr, 32, gpu, ways=1).l2_misses != memory_counts(tr, 32, gpu).l2_misses
+    assert by_size[10].working_set_lines != by_size[3].working_set_lines
+    with pytest.raises(SimtSimError, match="resident_warps and ways must be >= 1"):
+        memory_counts(tr, 32, gpu, resident_warps=-1)
+    with pytest.raises(SimtSimError, match="resident_warps and ways must be >= 1"):
+        memory_counts(tr, 32, gpu, ways=0)
 
 
 @pytest.fixture(scope="module")

@@ -8,8 +8,11 @@ import sys
 
 import pytest
 
+from simt_sim.simt.memory import memory_columns, memory_counts
+from simt_sim.study.plan import plan_study
 from simt_sim.study.run import run_study
 from simt_sim.study.spec import StudySpec
+from simt_sim.trace.record import record_all
 
 SMALL = dict(
     scene="room", ray_types=("primary",), schemes=("while_while", "packet"),
@@ -81,3 +84,32 @@ def test_path_rows_carry_the_memory_columns_and_the_queue_traffic():
     assert stored == wf.traffic[1]
     for r in results:
         assert r.mrays_upper == min(r.issue_bound, r.pipe_bound, r.bandwidth_bound)
+
+
+def test_each_rows_caches_run_with_its_kernels_resident_warps():
+    """On a GTX Titan persistent while-while's sm_35 code with the published tests (32
+    registers) holds 64 warps per SMX and dynamic fetch's (40) 48: the memory model runs
+    the batch's caches once per occupancy, and each row's columns are those of its own
+    kernel's resident sets (here 768 warps: one set of 896, or sets of 672 and 96)."""
+    spec = StudySpec(
+        scene="room", ray_types=("primary",), cameras="0", resolution=(192, 128), spp=1,
+        schemes=("persistent_while_while", "dynamic_fetch"), gpus=("titan",), memory="on",
+        tests="published",
+    )  # fmt: skip
+    plan = plan_study(spec)
+    titan = plan.gpus[0]
+    assert plan.memory_sets(titan, plan.trace_schemes) == (14 * 48, 14 * 64)
+    results, df = run_study(spec, progress=False)
+    rows = df.set_index("scheme")
+    trace = record_all(plan.tree, plan.workload("primary").rays)
+    for scheme, resident in (("persistent_while_while", 896), ("dynamic_fetch", 672)):
+        card = next(r.model_card for r in results if r.scheme == scheme)
+        assert card["resident_warps"] == resident
+        counts = memory_counts(trace, 32, titan, resident_warps=resident)
+        assert counts.resident_sets == (1 if resident == 896 else 2)
+        want = memory_columns(counts, titan, True)
+        for col in ("working_set_kib", "l1_hit_rate", "dram_bytes_per_ray", "bandwidth_bound"):
+            assert rows.loc[scheme, col] == pytest.approx(want[col], rel=1e-12), col
+    assert rows.loc["persistent_while_while", "working_set_kib"] != pytest.approx(
+        rows.loc["dynamic_fetch", "working_set_kib"]
+    )

@@ -13,7 +13,10 @@ import pytest
 from test_cli import SMALL, assert_clean_error, run_cli
 
 from simt_sim.errors import SimtSimError
+from simt_sim.schemes import get_scheme
 from simt_sim.simt.gpus import get_gpu
+from simt_sim.study.batches import record_batch, replay_batch
+from simt_sim.study.plan import plan_study
 from simt_sim.study.run import run_study
 from simt_sim.study.sampling import GROUPS, check_fraction, half_width, sample_warps, t_quantile_975
 from simt_sim.study.spec import StudySpec
@@ -207,3 +210,29 @@ def test_bad_sample_fraction_is_one_line_and_exit_2(tmp_path, bad):
     proc = run_cli("table", *SMALL, "--rays", "primary", "--sample", bad, "--out", str(out))
     assert_clean_error(proc, "sample")
     assert not out.exists()
+
+
+def test_sampled_persistent_groups_keep_their_kernels_share_of_its_occupancy() -> None:
+    """A sampled group of a persistent launch keeps the full launch's rays per resident
+    warp, from the kernel's own occupancy: on an H100 persistent while-while's sm_90 code
+    holds 48 warps per SM and persistent speculative while-while's 64 (not the GPU's
+    64-warp launch figure for both)."""
+    spec = replace(
+        _spec(0.125, 0), ray_types=("primary",), gpus=("h100",),
+        schemes=("persistent_while_while", "persistent_speculative_while_while"),
+    )  # fmt: skip
+    plan = plan_study(spec)
+    gpu = plan.gpus[0]
+    rays = plan.workload("primary").stream.batch(0, spec.launch_size)
+    recorded = record_batch(plan, "primary", rays, 0)
+    out = replay_batch(plan, recorded)
+    b = recorded.bounds
+    for scheme, per_sm in (
+        ("persistent_while_while", 48),
+        ("persistent_speculative_while_while", 64),
+    ):
+        assert plan.resident_warps(get_scheme(scheme), gpu) == gpu.sms * per_sm
+        for j, r in enumerate(out.results[(scheme, gpu.id)]):
+            if r is not None:
+                share = (b[j + 1] - b[j]) / recorded.rays
+                assert r.model_card["resident_warps"] == max(1, round(gpu.sms * per_sm * share))
