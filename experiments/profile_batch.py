@@ -5,10 +5,11 @@ Usage: python experiments/profile_batch.py [--scene conference] [--rays ao,diffu
 
 For each ray type, the first ``--repeats`` launch batches (2^20 rays) of one camera of
 the paper protocol are generated, recorded, run through the memory model (with the GPU's
-caches) and replayed under every traversal scheme, one stage after the other in this
-process; the table gives the median seconds of each stage over the batches (after a
-warm-up batch that pays numba's compilation). This is the per-batch step of
-``simt-sim table``, without the overlap of recording and replay it runs with.
+caches, once per distinct occupancy of the schemes' kernels, as a study runs it) and
+replayed under every traversal scheme, one stage after the other in this process; the
+table gives the median seconds of each stage over the batches (after a warm-up batch that
+pays numba's compilation). This is the per-batch step of ``simt-sim table``, without the
+overlap of recording and replay it runs with.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from simt_sim.rays.generate import PAPER_HEIGHT, PAPER_SPP, PAPER_WIDTH
 from simt_sim.schemes import get_scheme, names
 from simt_sim.simt.gpus import DEFAULT_GPU, get_gpu
 from simt_sim.simt.memory import memory_counts
+from simt_sim.simt.occupancy import kernel_occupancy
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.study.workload import make_workload, parse_resolution
 from simt_sim.trace.record import record_all
@@ -36,6 +38,10 @@ def profile(scene: str, ray_type: str, camera: str, resolution: tuple[int, int],
     gpu = get_gpu(gpu_id)
     wl = make_workload(scene, ray_type, cameras=camera, resolution=resolution, spp=spp)
     irs = {s: kernels_ir.load(s, gpu.ir_arch) for s in TRACE_SCHEMES}
+    resident_sets = {
+        gpu.sms * kernel_occupancy(gpu, irs[s], get_scheme(s).launch).warps_per_sm
+        for s in TRACE_SCHEMES
+    }
     batches = iter(wl.stream.batches())
     rows = []
     for _ in range(repeats + 1):
@@ -48,7 +54,8 @@ def profile(scene: str, ray_type: str, camera: str, resolution: tuple[int, int],
         trace = record_all(wl.bvh, rays)
         row["record"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        memory_counts(trace, gpu.warp_size, gpu)
+        for resident in resident_sets:
+            memory_counts(trace, gpu.warp_size, gpu, resident_warps=resident)
         row["memory_model"] = time.perf_counter() - t0
         for s in TRACE_SCHEMES:
             t0 = time.perf_counter()

@@ -402,6 +402,10 @@ def _cache(n_caches: int, kib: int, ways: int) -> tuple[np.ndarray, np.ndarray, 
     ``ways`` ways; and sets."""
     lines = kib * 1024 // LINE_BYTES
     ways = min(ways, lines)
+    if ways and lines % ways:
+        raise SimtSimError(
+            f"{ways} ways do not divide a {kib} KiB cache's {lines} lines; use a divisor"
+        )
     sets = lines // ways if ways else 0
     shape = (n_caches * sets, max(ways, 1))
     return np.full(shape, -1, np.int64), np.full(shape, -1, np.int64), sets

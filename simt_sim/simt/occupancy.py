@@ -39,7 +39,7 @@ class Occupancy:
     warps_per_sm : int
     limit : str
         ``registers``, ``warps``, ``blocks``, ``shared`` or ``launch`` (the GPU's
-        documented figure, used when the IR is not the GPU's own code).
+        documented figure, used where no code of the GPU's own architecture is committed).
     note : str
         One sentence for the model card.
     """
@@ -57,7 +57,7 @@ def kernel_occupancy(
 ) -> Occupancy:
     """Resident warps per SM of ``ir``'s kernel launched in blocks of ``block_threads``,
     with the registers of its code for ``gpu``'s own architecture."""
-    registers, code = own_registers(gpu, ir)
+    registers, code = _own_registers(gpu, ir)
     if registers <= 0:
         return Occupancy(
             gpu.resident_warps_per_sm,
@@ -94,7 +94,7 @@ def kernel_occupancy(
     )
 
 
-def own_registers(gpu: GpuConfig, ir: KernelIR) -> tuple[int, str]:
+def _own_registers(gpu: GpuConfig, ir: KernelIR) -> tuple[int, str]:
     """Registers per thread of ``ir``'s kernel in code for ``gpu``'s own architecture, and
     that architecture; 0 where no such code is committed."""
     arch = gpu.code_arch

@@ -22,6 +22,7 @@ from simt_sim.scene.load import load_scene
 from simt_sim.simt.footprint import decide
 from simt_sim.simt.gpus import GpuConfig, get_gpu
 from simt_sim.simt.occupancy import kernel_occupancy
+from simt_sim.simt.result import TRAVERSAL_BLOCKS
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
 from simt_sim.study.spec import StudySpec
 from simt_sim.study.viewcheck import announce
@@ -87,13 +88,15 @@ class StudyPlan:
         return tuple(rt for rt in self.spec.ray_types if rt != PATH_RAYS)
 
     def resident_warps(self, scheme: SchemeInfo, gpu: GpuConfig) -> int:
-        """Warps of ``scheme``'s kernel resident on the whole of ``gpu`` at once (its
-        occupancy times the SMs): a persistent launch's warps, the memory model's set. A
-        scheme of several kernels (wavefront) takes the fewest of theirs: the smallest
-        working set, so the bandwidth bound stays a bound."""
+        """Warps of ``scheme``'s traversal kernel resident on the whole of ``gpu`` at once
+        (its occupancy times the SMs): a persistent launch's warps, the memory model's set.
+        Of a scheme of several kernels, those that traverse (wavefront's extend and
+        connect) count, and the fewest of theirs: a smaller set touches fewer lines at
+        once, which keeps the bandwidth bound on the high side."""
         return gpu.sms * min(
-            kernel_occupancy(gpu, ir, scheme.launch).warps_per_sm
-            for ir in self.irs_for(scheme, gpu).values()
+            kernel_occupancy(gpu, self.irs[(k, gpu.ir_arch)], scheme.launch).warps_per_sm
+            for k, blocks in scheme.kernels.items()
+            if set(blocks) & set(TRAVERSAL_BLOCKS)
         )
 
     def memory_sets(self, gpu: GpuConfig, chosen: tuple[SchemeInfo, ...]) -> tuple[int, ...]:

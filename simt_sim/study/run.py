@@ -214,8 +214,10 @@ def trace_rows(
             else:
                 merged = merge([b.results[(s.name, g.id)][0] for b in batches])
                 row = _full_row(merged, False)
-            key = (g.id, plan.resident_warps(s, g))
-            counts = sum((b.memory.get(key, MemoryCounts()) for b in batches), MemoryCounts())
+            counts = MemoryCounts()
+            if plan.memory[g.id][0]:
+                key = (g.id, plan.resident_warps(s, g))
+                counts = sum((b.memory[key] for b in batches), counts)
             merged, mem = _with_memory(plan, merged, counts, g)
             row.update(mem)
             row.update(_roofline_columns(merged, row))
@@ -273,7 +275,8 @@ def path_rows(plan: StudyPlan, bar: tqdm) -> tuple[list[SimResult], list[dict]]:
         for g in plan.gpus:
             merged = merge([replayed[(s.name, g.id)]])
             row = _full_row(merged, spec.sampled)
-            counts = memory.get((g.id, plan.resident_warps(s, g)), MemoryCounts())
+            on = plan.memory[g.id][0]
+            counts = memory[(g.id, plan.resident_warps(s, g))] if on else MemoryCounts()
             merged, mem = _with_memory(plan, merged, counts, g)
             row.update(mem)
             row.update(_roofline_columns(merged, row))

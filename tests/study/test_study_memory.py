@@ -64,7 +64,8 @@ def test_cli_rejects_an_unknown_mode_in_one_line():
 
 def test_path_rows_carry_the_memory_columns_and_the_queue_traffic():
     """Path rows: the memory model counts the scene traffic of every extend and shadow
-    ray (the same for every scheme, as for trace rows); the wavefront's lanes store what
+    ray (the same for every scheme on GTX 285, whose kernels all keep the paper's launch
+    of 720 warps); the wavefront's lanes store what
     its queues hold (a next ray and a shadow ray per shaded hit), the megakernel's almost
     nothing, and its card gives launches per bounce and each kernel's bytes."""
     results, df = _table(
@@ -113,3 +114,24 @@ def test_each_rows_caches_run_with_its_kernels_resident_warps():
     assert rows.loc["persistent_while_while", "working_set_kib"] != pytest.approx(
         rows.loc["dynamic_fetch", "working_set_kib"]
     )
+
+
+def test_path_rows_run_the_caches_with_their_traversal_kernels_warps():
+    """On a GTX Titan (published tests, sm_35 registers) the megakernel's 58 registers
+    hold 32 warps per SMX, while-while's and the wavefront's extend and connect kernels'
+    36 hold 48 (its shade kernel, which reads no scene, does not count): the megakernel's
+    row has caches of its own, the wavefront's are while-while's."""
+    spec = StudySpec(
+        scene="room", ray_types=("path",), cameras="0", resolution=(192, 128), spp=1,
+        schemes=("while_while", "megakernel", "wavefront"), gpus=("titan",), memory="on",
+        tests="published", max_bounces=2,
+    )  # fmt: skip
+    plan = plan_study(spec)
+    titan = plan.gpus[0]
+    by_scheme = {s.name: plan.resident_warps(s, titan) for s in plan.schemes}
+    assert by_scheme == {"while_while": 14 * 48, "megakernel": 14 * 32, "wavefront": 14 * 48}
+    _, df = run_study(spec, progress=False)
+    rows = df.set_index("scheme")
+    cols = ["working_set_kib", "l1_hit_rate", "dram_bytes_per_ray", "bandwidth_bound"]
+    assert rows.loc["wavefront", cols].equals(rows.loc["while_while", cols])
+    assert rows.loc["megakernel", "working_set_kib"] < rows.loc["while_while", "working_set_kib"]
