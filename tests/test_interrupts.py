@@ -199,13 +199,23 @@ def test_twenty_interrupts_of_a_conference_table_end_cleanly(tmp_path, require_s
 # ---- in this process ------------------------------------------------------------------
 
 
+@pytest.fixture
+def usual_ctrl_c():
+    """This process with Python's usual Ctrl-C handler for the test, as a terminal starts
+    it, even when pytest runs with SIGINT ignored (a background job), where the CLI would
+    rightly leave Ctrl-C alone; the handler pytest had comes back after."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
 def _press() -> None:
     """Ctrl-C to this process, handled before returning."""
     os.kill(os.getpid(), signal.SIGINT)
     time.sleep(0.05)
 
 
-def test_write_atomic_stops_before_the_rename_when_interrupted(tmp_path):
+def test_write_atomic_stops_before_the_rename_when_interrupted(tmp_path, usual_ctrl_c):
     from simt_sim.atomic import write_atomic
 
     out = tmp_path / "table.md"
@@ -218,7 +228,7 @@ def test_write_atomic_stops_before_the_rename_when_interrupted(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["table.md"]
 
 
-def test_a_trace_file_is_not_written_when_interrupted(tmp_path, sphere_mesh):
+def test_a_trace_file_is_not_written_when_interrupted(tmp_path, sphere_mesh, usual_ctrl_c):
     from simt_sim.bvh.build import build_bvh
     from simt_sim.trace.record import record
     from simt_sim.trace.tracefile import save_trace
@@ -248,7 +258,7 @@ def test_checkpoint_is_a_no_op_outside_the_cli():
     assert not progress.interrupted()
 
 
-def test_the_handler_is_the_usual_one_again_after_the_cli():
+def test_the_handler_is_the_usual_one_again_after_the_cli(usual_ctrl_c):
     with progress.ctrl_c_checked():
         assert signal.getsignal(signal.SIGINT) is not signal.default_int_handler
         _press()
