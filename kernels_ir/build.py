@@ -195,23 +195,30 @@ def kernel_instructions(listing: str, kernel: str) -> list[SassInstruction]:
     return [i for i in parse_listing(listing) if i.function == kernel or i.function.startswith("$")]
 
 
-def place_kernel(kernel: str, instructions: list[SassInstruction]) -> Placement:
+def place_kernel(
+    kernel: str, instructions: list[SassInstruction], cuda_dir: Path = CUDA_DIR
+) -> Placement:
     """Where the IR charges each of ``kernel``'s ``instructions``
-    (:func:`kernels_ir.blocks.place_instructions` with its source's markers and loops)."""
-    source = (CUDA_DIR / f"{kernel}.cu").read_text()
+    (:func:`kernels_ir.blocks.place_instructions` with its source's markers and loops;
+    its ``.cu`` in ``cuda_dir``)."""
+    source = (cuda_dir / f"{kernel}.cu").read_text()
     owner, loops = parse_markers(source, f"{kernel}.cu"), parse_loops(source)
     return place_instructions(instructions, owner, f"{kernel}.cu", loops)
 
 
-def compile_listing(kernel: str, arch: str, tests: str = DEFAULT_TESTS) -> list[SassInstruction]:
-    """The SASS of one kernel as the IR build compiles it (same flags), for the walker."""
-    if kernel not in KERNELS:
+def compile_listing(
+    kernel: str, arch: str, tests: str = DEFAULT_TESTS, cuda_dir: Path = CUDA_DIR
+) -> list[SassInstruction]:
+    """The SASS of one kernel as the IR build compiles it (same flags), for the walker.
+    ``cuda_dir``: the folder of its ``.cu`` and headers (a variant outside the package,
+    as an experiment's)."""
+    if cuda_dir == CUDA_DIR and kernel not in KERNELS:
         raise KernelIRError(f"unknown kernel {kernel!r}; kernels: {', '.join(KERNELS)}")
     if arch not in ARCHS:
         raise KernelIRError(f"unknown arch {arch!r}; archs: {', '.join(ARCHS)}")
     tools = find_toolchain()
     with tempfile.TemporaryDirectory() as tmp:
-        return _compile(kernel, arch, tools, Path(tmp), tests)[2]
+        return _compile(kernel, arch, tools, Path(tmp), tests, cuda_dir)[2]
 
 
 def cubin_filename(kernel: str, arch: str, tests: str = DEFAULT_TESTS) -> str:

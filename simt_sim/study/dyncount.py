@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cache
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -147,12 +148,17 @@ def barrier_excess(instructions: list[SassInstruction], issued: np.ndarray) -> d
     return {i: n for i, n in excess.items() if n > 0}
 
 
-def walk_blocks(kernel: str, issued: np.ndarray, instructions: list[SassInstruction]) -> pd.Series:
+def walk_blocks(
+    kernel: str,
+    issued: np.ndarray,
+    instructions: list[SassInstruction],
+    cuda_dir: Path = CUDA_DIR,
+) -> pd.Series:
     """Issued warp instructions per IR block (a divergent-warp fallback of the traversal
     step is ``trav_diverged``, as the IR build names it; any other is :data:`FALLBACK`; a
     full-warp-only path is :data:`FULL_WARP`; a barrier's issues beyond its region's
     first, :func:`barrier_excess`, are ``reconverge``)."""
-    placement = place_kernel(kernel, instructions)
+    placement = place_kernel(kernel, instructions, cuda_dir)
     apart = barrier_excess(instructions, issued)
     out: dict[str, int] = {}
     for i, times in enumerate(issued):
@@ -183,21 +189,29 @@ class Walk:
 
 
 @cache
-def compiled(kernel: str, arch: str) -> Program:
+def compiled(kernel: str, arch: str, cuda_dir: Path = CUDA_DIR) -> Program:
     """``kernel``'s ``arch`` SASS, decoded: compiled once per process (an experiment walks
     each kernel on many workloads)."""
-    return Program(compile_listing(kernel, arch), kernel)
+    return Program(compile_listing(kernel, arch, cuda_dir=cuda_dir), kernel)
 
 
 def walk_kernel(
-    kernel: str, arch: str, tree: Tree, rays: RayBatch, *, persistent: bool, merge: bool = True
+    kernel: str,
+    arch: str,
+    tree: Tree,
+    rays: RayBatch,
+    *,
+    persistent: bool,
+    merge: bool = True,
+    cuda_dir: Path = CUDA_DIR,
 ) -> Walk:
     """Run ``kernel``'s ``arch`` SASS over ``tree`` (in the kernel's layout:
     :func:`~simt_sim.tracers.cuda_tracer.pack_tree`) on ``rays`` (whole warps, in order):
     one block per warp, or for a persistent kernel one warp that fetches every ray from
-    the pool. ``merge``: the walk's schedule (:func:`kernels_ir.emulate.run_warp`)."""
+    the pool. ``merge``: the walk's schedule (:func:`kernels_ir.emulate.run_warp`).
+    ``cuda_dir``: where its ``.cu`` is (a variant kernel of an experiment's)."""
     try:
-        program = compiled(kernel, arch)
+        program = compiled(kernel, arch, cuda_dir)
     except KernelIRError as exc:
         raise SimtSimError(str(exc)) from exc
     packed = pack_rays(rays)
@@ -216,7 +230,7 @@ def walk_kernel(
     warps = n // WARP_SIZE
     try:
         run = run_kernel(
-            program, arch, (CUDA_DIR / f"{kernel}.cu").read_text(), params,
+            program, arch, (cuda_dir / f"{kernel}.cu").read_text(), params,
             ctaids=[0] if persistent else range(warps), grid_dim=1 if persistent else warps,
             merge=merge,
         )  # fmt: skip
