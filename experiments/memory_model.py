@@ -41,7 +41,7 @@ from simt_sim.simt.memory import (
     memory_columns,
     memory_counts,
 )
-from simt_sim.simt.occupancy import kernel_occupancy
+from simt_sim.simt.occupancy import resident_warps
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.study.workload import make_workload, parse_resolution
 from simt_sim.trace.record import record_all
@@ -97,7 +97,7 @@ def run(
         for gpu in gpus:
             ir = kernels_ir.load("while_while", gpu.ir_arch)
             sim = simulate_traces([trace], get_scheme("while_while"), ir, gpu)
-            resident = gpu.sms * kernel_occupancy(gpu, ir, None).warps_per_sm
+            resident = resident_warps(gpu, ir, None)
             t0 = time.perf_counter()
             counts = memory_counts(trace, gpu.warp_size, gpu, resident_warps=resident, ways=ways)
             seconds = time.perf_counter() - t0

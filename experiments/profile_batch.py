@@ -24,7 +24,7 @@ from simt_sim.rays.generate import PAPER_HEIGHT, PAPER_SPP, PAPER_WIDTH
 from simt_sim.schemes import get_scheme, names
 from simt_sim.simt.gpus import DEFAULT_GPU, get_gpu
 from simt_sim.simt.memory import memory_counts
-from simt_sim.simt.occupancy import kernel_occupancy
+from simt_sim.simt.occupancy import resident_warps
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.study.workload import make_workload, parse_resolution
 from simt_sim.trace.record import record_all
@@ -38,10 +38,7 @@ def profile(scene: str, ray_type: str, camera: str, resolution: tuple[int, int],
     gpu = get_gpu(gpu_id)
     wl = make_workload(scene, ray_type, cameras=camera, resolution=resolution, spp=spp)
     irs = {s: kernels_ir.load(s, gpu.ir_arch) for s in TRACE_SCHEMES}
-    resident_sets = {
-        gpu.sms * kernel_occupancy(gpu, irs[s], get_scheme(s).launch).warps_per_sm
-        for s in TRACE_SCHEMES
-    }
+    resident_sets = {resident_warps(gpu, irs[s], get_scheme(s).launch) for s in TRACE_SCHEMES}
     batches = iter(wl.stream.batches())
     rows = []
     for _ in range(repeats + 1):

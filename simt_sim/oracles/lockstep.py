@@ -195,7 +195,7 @@ from simt_sim.simt.engine import (
     with_exits,
 )
 from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, executed_on, get_gpu, runs_in_rounds
-from simt_sim.simt.occupancy import kernel_occupancy
+from simt_sim.simt.occupancy import resident_warps as resident_warps_of
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult, check_ir
 from simt_sim.simt.scheme import SchemeInfo
@@ -1621,7 +1621,7 @@ def execute(
     persistent = scheme.persistent
     ir = executed_on(ir, g)
     if resident_warps is None:  # as the replay: SMs x the kernel's occupancy
-        r = g.sms * kernel_occupancy(g, ir, scheme.launch).warps_per_sm
+        r = resident_warps_of(g, ir, scheme.launch)
     else:
         r = int(resident_warps)
     if r < 1:

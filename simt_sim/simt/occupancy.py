@@ -94,6 +94,13 @@ def kernel_occupancy(
     )
 
 
+def resident_warps(gpu: GpuConfig, ir: KernelIR, launch: KernelLaunch | None) -> int:
+    """Warps of ``ir``'s kernel resident on the whole of ``gpu`` at once: its occupancy
+    (:func:`kernel_occupancy`) times the SMs. A persistent launch runs this many warps,
+    and the memory model's resident sets hold this many."""
+    return gpu.sms * kernel_occupancy(gpu, ir, launch).warps_per_sm
+
+
 def _own_registers(gpu: GpuConfig, ir: KernelIR) -> tuple[int, str]:
     """Registers per thread of ``ir``'s kernel in code for ``gpu``'s own architecture, and
     that architecture; 0 where no such code is committed."""

@@ -37,6 +37,7 @@ from simt_sim.simt.engine import (
 )
 from simt_sim.simt.gpus import GpuConfig, executed_on, runs_in_rounds
 from simt_sim.simt.occupancy import kernel_occupancy
+from simt_sim.simt.occupancy import resident_warps as resident_warps_of
 from simt_sim.simt.result import SimResult, check_ir, merge
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
 from simt_sim.types.optrace import OP_NAMES, STREAM_RULE, OpTrace
@@ -121,7 +122,7 @@ def trace_params(
     w = gpu.warp_size
     check_warp_size(w)
     if resident_warps is None:
-        resident_warps = gpu.sms * kernel_occupancy(gpu, executed, scheme.launch).warps_per_sm
+        resident_warps = resident_warps_of(gpu, executed, scheme.launch)
     if resident_warps < 1:
         raise SimtSimError(f"resident_warps must be >= 1, got {resident_warps}")
     return ReplayParams(

@@ -21,7 +21,7 @@ from simt_sim.errors import SimtSimError
 from simt_sim.scene.load import load_scene
 from simt_sim.simt.footprint import decide
 from simt_sim.simt.gpus import GpuConfig, get_gpu
-from simt_sim.simt.occupancy import kernel_occupancy
+from simt_sim.simt.occupancy import resident_warps
 from simt_sim.simt.result import TRAVERSAL_BLOCKS
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
 from simt_sim.study.spec import StudySpec
@@ -93,8 +93,8 @@ class StudyPlan:
         Of a scheme of several kernels, those that traverse (wavefront's extend and
         connect) count, and the fewest of theirs: a smaller set touches fewer lines at
         once, which keeps the bandwidth bound on the high side."""
-        return gpu.sms * min(
-            kernel_occupancy(gpu, self.irs[(k, gpu.ir_arch)], scheme.launch).warps_per_sm
+        return min(
+            resident_warps(gpu, self.irs[(k, gpu.ir_arch)], scheme.launch)
             for k, blocks in scheme.kernels.items()
             if set(blocks) & set(TRAVERSAL_BLOCKS)
         )
