@@ -11,6 +11,10 @@ from (per block, summed over the scenes and ray types).
 
     python experiments/dyncount.py              # room, cornell-box and conference
     python experiments/dyncount.py --scenes room --warps 4
+
+With ``--arch sm_35 --cuda11 DIR`` it walks the Kepler code instead (CUDA 11.8's ``ptxas``
+and ``nvdisasm`` in DIR, as ``python -m kernels_ir kepler`` builds it), replayed with the
+sm_35 IR on the GTX 680's rules, into the ``-sm_35`` blocks.
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ import pandas as pd
 
 from simt_sim.report.markdown import splice_file
 from simt_sim.study.dyncount import (
+    DEFAULT_GPU,
+    KEPLER_GPU,
     RESOLUTION,
     SPP,
     WARPS,
@@ -70,8 +76,16 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", default="room,cornell-box,conference")
     ap.add_argument("--warps", type=int, default=WARPS)
+    ap.add_argument("--kernels", default=",".join(KERNELS))
+    ap.add_argument("--arch", choices=("sm_75", "sm_35"), default="sm_75")
+    ap.add_argument("--cuda11", type=Path, help="CUDA 11.8's bin directory (for --arch sm_35)")
     ap.add_argument("--no-write", action="store_true", help="print only")
     args = ap.parse_args(argv)
+    kepler = args.arch == "sm_35"
+    if kepler and args.cuda11 is None:
+        ap.error("--arch sm_35 needs --cuda11 DIR (CUDA 11.8's ptxas and nvdisasm)")
+    gpu = KEPLER_GPU if kepler else DEFAULT_GPU
+    kernels = tuple(args.kernels.split(","))
     walked = walked_schemes()
     rows, blocks = [], []
     t0 = time.perf_counter()
@@ -79,8 +93,11 @@ def main(argv: list[str] | None = None) -> int:
         for ray_type in TRACE_RAY_TYPES:
             wl = make_workload(scene, ray_type, cameras="0", resolution=RESOLUTION, spp=SPP)
             rays = wl.rays.take(pick_warps(len(wl.rays.tmin), args.warps))
-            for kernel in KERNELS:
-                d = compare_counts(walked[kernel], scene, wl.bvh, rays)
+            for kernel in kernels:
+                d = compare_counts(
+                    walked[kernel], scene, wl.bvh, rays, gpu_id=gpu, arch=args.arch,
+                    cuda11=args.cuda11,
+                )  # fmt: skip
                 print(d.summary(), flush=True)
                 rows.append({
                     "kernel": kernel, "scene": scene, "rays": ray_type,
@@ -96,14 +113,17 @@ def main(argv: list[str] | None = None) -> int:
     per_block = pd.DataFrame(blocks)
     walked = table.groupby("kernel")["walk"].sum()
     share = per_block.groupby(["kernel", "block"])["diff"].sum().unstack(fill_value=0)
-    share = share.div(walked, axis=0).mul(100).round(1).reindex(KERNELS)
+    share = share.div(walked, axis=0).mul(100).round(1).reindex(kernels)
     share = share.loc[:, (share.abs() >= 0.1).any(axis=0)]
     seconds = time.perf_counter() - t0
-    command = "python experiments/dyncount.py" + (
-        f" --scenes {args.scenes}" if args.scenes != "room,cornell-box,conference" else ""
+    command = (
+        "python experiments/dyncount.py"
+        + (f" --scenes {args.scenes}" if args.scenes != "room,cornell-box,conference" else "")
+        + (" --arch sm_35 --cuda11 DIR" if kepler else "")
     )
+    rules = "sm_35 (CUDA 11.8), GTX 680 rules" if kepler else "sm_75, RTX 2080 Ti rules"
     header = (
-        f"`{command}` ({seconds:.0f} s; sm_75, RTX 2080 Ti rules, camera 0 at "
+        f"`{command}` ({seconds:.0f} s; {rules}, camera 0 at "
         f"{RESOLUTION[0]}x{RESOLUTION[1]}, {SPP} secondary rays per hit, {args.warps} warps "
         "spread over the image; the executor "
         "is the lockstep executor, simt_sim/oracles/lockstep.py, where a scheme has one)\n\n"
@@ -113,13 +133,14 @@ def main(argv: list[str] | None = None) -> int:
     print(share.to_string())
     print(ratios.to_string(index=False))
     if not args.no_write:
+        at = "-sm_35" if kepler else ""
         splice_file(DOC, {
-            "dyncount": header + table.to_markdown(index=False),
-            "dyncount-blocks": "Replay minus walk per block, in % of the walk's instructions "
+            f"dyncount{at}": header + table.to_markdown(index=False),
+            f"dyncount-blocks{at}": "Replay minus walk per block, in % of the walk's instructions "
             "(all scenes and ray types together; positive: the replay charges more):\n\n"
             + share.to_markdown(),
-            "dyncount-ratios": "The paper table's ratios on these warps (a scheme's speed over "
-            "while-while's on the same rays: while-while's warp instructions over the "
+            f"dyncount-ratios{at}": "The paper table's ratios on these warps (a scheme's speed "
+            "over while-while's on the same rays: while-while's warp instructions over the "
             "scheme's), counted by the replay and by the walk; `moves` is how far the walk's "
             "count moves the replay's ratio:\n\n" + ratios.to_markdown(index=False),
         })  # fmt: skip

@@ -92,6 +92,18 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--rays", default="primary", help="primary, ao or diffuse")
     d.add_argument("--warps", type=int, default=None, help="warps, spread over the image")
     d.add_argument("--gpu", default=None, help="GPU whose IR and rules the replay uses")
+    d.add_argument(
+        "--arch",
+        default=None,
+        help="code to walk and replay (default: the GPU's IR); sm_35 is Kepler's, replayed "
+        "on --gpu gtx680",
+    )
+    d.add_argument(
+        "--cuda11",
+        type=Path,
+        default=None,
+        help="CUDA 11.8's bin directory, to compile sm_35 code (default: the kept listings)",
+    )
     d.add_argument("--camera", type=int, default=None)
     d.add_argument("--spp", type=int, default=None, help="secondary rays per primary hit")
     d.add_argument(
@@ -121,7 +133,10 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if args.cmd == "kepler":
             paths = kepler.write(args.cuda11)
-            print(f"wrote {len(paths)} files: {paths[0]} and the sm_35 IR in {paths[1].parent}")
+            print(
+                f"wrote {len(paths)} files: {paths[0]}, the sm_35 IR in {IR_DIR} and the kept "
+                f"listings in {kepler.LISTING_DIR}"
+            )
             return 0
         if args.cmd == "cubins":
             kernels = tuple(args.kernel or KERNELS)
@@ -160,7 +175,10 @@ def _dyncount(args: argparse.Namespace) -> int:
     from simt_sim.scene.load import DEFAULT_SCENE
     from simt_sim.study.dyncount import dyncount, scheme_of_kernel
 
-    given = {"warps": args.warps, "gpu_id": args.gpu, "camera": args.camera, "spp": args.spp}
+    given = {
+        "warps": args.warps, "gpu_id": args.gpu, "camera": args.camera, "spp": args.spp,
+        "arch": args.arch, "cuda11": args.cuda11,
+    }  # fmt: skip
     try:
         result = dyncount(
             scheme_of_kernel(args.kernel), args.scene or DEFAULT_SCENE, args.rays,

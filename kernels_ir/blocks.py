@@ -43,6 +43,7 @@ from kernels_ir.kernel_ir import (
     POOL_TAKE,
     SPIN_BLOCKS,
     STEP_OUTCOMES,
+    TAKEN_BLOCKS,
 )
 from kernels_ir.sass import SassInstruction, base_opcode, branch_target, classify, region_end
 
@@ -285,9 +286,10 @@ def by_frequency(
       home loop): to ``L``'s own block if it runs on every iteration of ``L``, else to the
       block of the branch it sits in (:func:`_branch_block`);
     - ``L`` is its block's home, the block is conditional in ``L`` (some of its code runs
-      only on some iterations) and this instruction runs on every iteration (the ``if``'s
-      test, hoisted address arithmetic, the reconvergence after the ``if``): to ``L``'s
-      own block.
+      only on some iterations, or it is one of :data:`~kernels_ir.kernel_ir.TAKEN_BLOCKS`,
+      which the replay charges only where taken) and this instruction runs on every
+      iteration (the ``if``'s test, hoisted address arithmetic, the reconvergence after
+      the ``if``, a predicated body): to ``L``'s own block.
 
     - ``L`` shares its header with the loop around it and the instruction is in a join
       block both go round through (:attr:`kernels_ir.cfg.Loop.joins`): to ``L``'s own
@@ -369,7 +371,9 @@ def by_frequency(
             continue
         guard = (
             loop == home[block]
-            and loop in conditional.get(block, set())
+            and (
+                loop in conditional.get(block, set()) or loop is not None and block in TAKEN_BLOCKS
+            )
             and cfg.runs_every_iteration(i)
         )
         if guard or preheader and cfg.runs_every_iteration(i):

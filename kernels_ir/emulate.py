@@ -10,9 +10,13 @@ diverged ``if`` runs its sides one after the other and a loop runs until its las
 leaves it); the Volta-style convergence barriers (``BSSY``/``BSYNC``) make lanes wait for
 the others of their region, ``BREAK`` and ``EXIT`` release them, ``WARPSYNC`` waits for
 the lanes it names, and ``BRA.DIV`` takes the divergent-warp fallback exactly when the
-executing lanes are not all of the warp's live lanes. The result is a count per SASS
-instruction, which :func:`kernels_ir.blocks.place_instructions` groups into counts per
-block.
+executing lanes are not all of the warp's live lanes. Kepler (sm_35) code has no barriers
+but a reconvergence stack: ``SSY`` and ``PBK`` push a point where the lanes that execute
+them meet again, an instruction with the ``.S`` flag sends its lanes to the innermost
+``SSY``'s point and ``BRK`` to the innermost ``PBK``'s (popping any ``SSY`` above it),
+and lanes wait there until no live lane still holds that entry. The result is a count
+per SASS instruction, which :func:`kernels_ir.blocks.place_instructions` groups into
+counts per block.
 """
 
 from __future__ import annotations
@@ -23,28 +27,52 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kernels_ir.build import KEPLER_ARCH
 from kernels_ir.errors import KernelIRError
 from kernels_ir.opcodes import (
     LANES,
+    SEMANTICS,
     GlobalMemory,
     LaneState,
     Operand,
+    Semantics,
     read_bits,
     read_pred,
-    semantics,
     split_operands,
 )
-from kernels_ir.sass import SassInstruction, base_opcode, classify
+from kernels_ir.opcodes_kepler import KEPLER_SEMANTICS, condition
+from kernels_ir.sass import (
+    SassInstruction,
+    base_opcode,
+    branch_target,
+    classify,
+    pops_stack,
+    stack_pop,
+)
 
-PARAM_BASE = {"sm_75": 0x160, "sm_80": 0x160, "sm_86": 0x160, "sm_89": 0x160}
-"""Offset of the first kernel parameter in constant bank 0, per architecture the walker
-runs (the Turing/Ampere/Ada ABI; Hopper and Blackwell move parameters and add opcodes)."""
-BLOCK_DIM = 0x0
-"""``c[0x0][0x0]``: ``blockDim.x``; ``c[0x0][0xc]`` is ``gridDim.x``."""
-GRID_DIM = 0xC
-LOCAL_TOP = 0x28
-"""``c[0x0][0x28]``: the top of a thread's local-memory stack (the kernel subtracts its
-frame from it)."""
+
+@dataclass(frozen=True)
+class ConstantLayout:
+    """Where a launch's values sit in constant bank 0 of one architecture's ABI: the
+    first kernel parameter, ``blockDim.x``, ``gridDim.x`` and the top of a thread's
+    local-memory stack (the kernel subtracts its frame from it)."""
+
+    params: int
+    block_dim: int
+    grid_dim: int
+    local_top: int
+
+
+_TURING = ConstantLayout(params=0x160, block_dim=0x0, grid_dim=0xC, local_top=0x28)
+CONSTANT_LAYOUTS = {
+    "sm_75": _TURING, "sm_80": _TURING, "sm_86": _TURING, "sm_89": _TURING,
+    KEPLER_ARCH: ConstantLayout(params=0x140, block_dim=0x28, grid_dim=0x34, local_top=0x44),
+}  # fmt: skip
+"""Per architecture the walker runs (Turing to Ada share one ABI; Hopper and Blackwell
+move parameters and add opcodes). Kepler's layout is read off its code: the parameters
+from 0x140, ``ntid.x`` at 0x28 (``ctaid.x * ntid.x + tid.x``), the stack top at 0x44
+(``MOV R1, c[0x0][0x44]`` opens every kernel)."""
+WALKED_ARCHS = tuple(CONSTANT_LAYOUTS)
 LOCAL_BYTES = 4096
 MAX_STEPS = 50_000_000
 """Issued instructions after which one warp's run is stopped as a runaway."""
@@ -80,32 +108,50 @@ class Decoded:
     operands: tuple[Operand, ...]
     guard: Operand | None
     counted: bool
+    pops: bool
+    """A Kepler stack pop (``BRK``, an instruction with ``.S``)."""
+
+
+_POP_NOTE = re.compile(r'\s*\(\*"TARGET=[^"]*"\*\)')
 
 
 def _decode(instructions: Sequence[SassInstruction]) -> list[Decoded]:
     out = []
     for ins in instructions:
-        opcode, ops = split_operands(ins.text)
+        opcode, ops = split_operands(_POP_NOTE.sub("", ins.text))
         guard = split_operands(f"X {ins.guard}")[1][0] if ins.guard else None
-        out.append(
-            Decoded(
-                ins, base_opcode(opcode), opcode, tuple(ops), guard, classify(opcode) is not None
-            )
-        )
+        counted = classify(opcode) is not None
+        out.append(Decoded(ins, base_opcode(opcode), opcode, tuple(ops), guard, counted,
+                           stack_pop(ins)))  # fmt: skip
     return out
 
 
 _CONTROL = {
     "BRA", "EXIT", "BSSY", "BSYNC", "BREAK", "BMOV", "WARPSYNC", "YIELD", "NOP", "CALL", "RET",
+    "SSY", "PBK", "BRK",
 }  # fmt: skip
 
 
 class Program:
     """A kernel's instructions (the kernel function and the compiler subroutines it calls,
-    in listing order), decoded, with the index of every label and address."""
+    in listing order) for ``arch``, decoded, with the index of every label and address;
+    ``const2``: the compiler's constant bank 2 (Kepler code reads constants from it)."""
 
-    def __init__(self, instructions: Sequence[SassInstruction], kernel: str) -> None:
+    def __init__(
+        self,
+        instructions: Sequence[SassInstruction],
+        kernel: str,
+        arch: str = "sm_75",
+        const2: bytes = b"",
+    ) -> None:
+        if arch not in CONSTANT_LAYOUTS:
+            raise KernelIRError(
+                f"the SASS walker runs {', '.join(WALKED_ARCHS)} code, not {arch}; pick one"
+            )
         self.kernel = kernel
+        self.arch = arch
+        self.const2 = const2
+        self.table = KEPLER_SEMANTICS if arch == KEPLER_ARCH else SEMANTICS
         self.code = _decode(instructions)
         self.at_label = {lab: i for i, d in enumerate(self.code) for lab in d.ins.labels}
         self.at_offset = {d.ins.offset: i for i, d in enumerate(self.code)}
@@ -114,7 +160,23 @@ class Program:
                 self.at_label.setdefault(d.ins.function, i)
         for d in self.code:
             if d.base not in _CONTROL:
-                semantics(d.ins)  # refuse an unmodelled opcode before running anything
+                self.semantics(d)  # refuse an unmodelled opcode before running anything
+            if pops_stack(d.opcode) and not d.pops:
+                raise KernelIRError(
+                    f"{d.opcode} ({d.ins.function}+{d.ins.offset:#x}) pops the stack but has no "
+                    "nvdisasm TARGET note: pass the listing of nvdisasm -c -g -gi"
+                )
+
+    def semantics(self, d: Decoded) -> Semantics:
+        """The lane semantics of a non-control instruction (refused by name if the
+        architecture's table does not model it)."""
+        if d.base not in self.table:
+            raise KernelIRError(
+                f"SASS opcode {d.opcode} ({d.ins.function}+{d.ins.offset:#x}) is not modelled "
+                f"by the SASS walker for {self.arch}; add its semantics to kernels_ir/"
+                f"{'opcodes_kepler' if self.arch == KEPLER_ARCH else 'opcodes'}.py"
+            )
+        return self.table[d.base]
 
     def target(self, op: Operand) -> int:
         if op.text not in self.at_label:
@@ -152,9 +214,13 @@ def run_warp(
     ------
     KernelIRError
         On an unmodelled opcode, a memory access outside the buffers, a deadlock (lanes
-        waiting on a barrier no other lane can reach) or a runaway warp.
+        waiting on a barrier no other lane can reach), a stack pop that goes elsewhere
+        than nvdisasm says, a runaway warp, or unmerged lanes in Kepler code (which has
+        no independent thread scheduling).
     """
-    s = LaneState(const, memory, LOCAL_BYTES // 4, ctaid=ctaid)
+    if not merge and program.arch == KEPLER_ARCH:
+        raise KernelIRError("Kepler code runs merged: pre-Volta GPUs schedule a warp as one")
+    s = LaneState(const, memory, LOCAL_BYTES // 4, ctaid=ctaid, const2=program.const2)
     code = program.code
     n = len(code)
     issued = np.zeros(n, np.int64)
@@ -167,6 +233,9 @@ def run_warp(
     lane_ids = np.arange(LANES)
     together = np.zeros(LANES, np.int64)  # without merge: lanes of one id issue together
     current = 0  # the id of the group that issued last
+    stacks: list[list[_Entry]] = [[] for _ in range(LANES)]  # Kepler's reconvergence stack
+    parked = np.full(LANES, -1, np.int64)  # the entry a popped lane waits at
+    entries = 0
 
     def release() -> None:
         for b in range(16):
@@ -182,11 +251,14 @@ def run_warp(
                 pc[w] += 1
                 waiting[w] = -1
                 together[w] = together.max() + 1
+        for entry in set(parked[parked >= 0].tolist()):
+            if not any(e.id == entry for lane in lane_ids[alive] for e in stacks[lane]):
+                parked[parked == entry] = -1  # every lane that held it is there
 
     while True:
-        runnable = alive & (waiting < 0)
+        runnable = alive & (waiting < 0) & (parked < 0)
         if not runnable.any():
-            if (alive & (waiting >= 0)).any():
+            if (alive & ((waiting >= 0) | (parked >= 0))).any():
                 stuck = sorted(set(pc[alive].tolist()))
                 raise KernelIRError(f"{program.kernel}: warp deadlocked at {stuck}")
             break
@@ -207,8 +279,22 @@ def run_warp(
             lanes_sum[i] += int(group.sum())
         m = group & read_pred(s, d.guard) if d.guard is not None else group.copy()
         op = d.base
-        if op not in _CONTROL:
-            semantics(d.ins)(s, d.opcode, list(d.operands), m)
+        if d.pops:
+            if op not in _CONTROL:
+                program.semantics(d)(s, d.opcode, list(d.operands), m)
+            pc[group & ~m] += 1
+            for lane in lane_ids[m]:
+                entry = _pop(stacks[lane], op == "BRK", program, d)
+                pc[lane], parked[lane] = entry.target, entry.id
+            release()
+        elif op not in _CONTROL:
+            program.semantics(d)(s, d.opcode, list(d.operands), m)
+            pc[group] += 1
+        elif op in ("SSY", "PBK"):
+            entry = _Entry(entries, program.target(d.operands[-1]), op == "PBK")
+            entries += 1
+            for lane in lane_ids[m]:
+                stacks[lane].append(entry)
             pc[group] += 1
         elif op == "BRA":
             mods = d.opcode.split(".")
@@ -217,8 +303,10 @@ def run_warp(
                 take = m if diverged == ("DIV" in mods) else np.zeros(LANES, bool)
             else:
                 take = m
-                if len(d.operands) > 1:  # "@P0 BRA P2, target": both must hold
-                    take = take & read_pred(s, d.operands[0])
+                if len(d.operands) > 1:  # "@P0 BRA P2, target", "@P0 BRA CC.NEU, target"
+                    first = d.operands[0]
+                    held = condition(s, first.text) if first.kind == "cc" else read_pred(s, first)
+                    take = take & held
             pc[group] += 1
             pc[take] = program.target(d.operands[-1])
             if not merge and take.any() and (group & ~take).any():  # the group splits
@@ -261,6 +349,34 @@ def run_warp(
     return WarpRun(issued, lanes_sum)
 
 
+@dataclass(frozen=True)
+class _Entry:
+    """A Kepler reconvergence-stack entry: pushed by one issue of ``SSY`` (``brk`` false)
+    or ``PBK``, with the index of the instruction its lanes meet at."""
+
+    id: int
+    target: int
+    brk: bool
+
+
+def _pop(stack: list[_Entry], brk: bool, program: Program, d: Decoded) -> _Entry:
+    """Pop one lane's stack for ``d``: its top ``SSY`` entry for a ``.S`` pop, or down to
+    its top ``PBK`` entry for ``BRK``; the entry must send the lane where nvdisasm says."""
+    where = f"{program.kernel}+{d.ins.offset:#x}: {d.opcode}"
+    while stack:
+        entry = stack.pop()
+        if entry.brk == brk:
+            if program.at_label.get(branch_target(d.ins) or "") != entry.target:
+                raise KernelIRError(
+                    f"{where} pops to instruction {entry.target}, where nvdisasm names "
+                    f"{branch_target(d.ins)}"
+                )
+            return entry
+        if not brk:
+            raise KernelIRError(f"{where} finds a PBK entry on top of its lanes' stack")
+    raise KernelIRError(f"{where} finds no {'PBK' if brk else 'SSY'} entry on its lanes' stack")
+
+
 def _warpsync_mask(s: LaneState, d: Decoded, lanes: np.ndarray) -> np.ndarray:
     bits = read_bits(s, d.operands[0])
     first = int(np.flatnonzero(lanes)[0])
@@ -277,16 +393,17 @@ def constant_bank(
     grid_dim: int,
 ) -> bytes:
     """Constant bank 0 of a launch: launch dimensions, the local stack top, parameters."""
-    if arch not in PARAM_BASE:
+    if arch not in CONSTANT_LAYOUTS:
         raise KernelIRError(
-            f"the SASS walker runs {', '.join(PARAM_BASE)} code, not {arch}; pick one of those"
+            f"the SASS walker runs {', '.join(WALKED_ARCHS)} code, not {arch}; pick one of those"
         )
-    base = PARAM_BASE[arch]
+    at = CONSTANT_LAYOUTS[arch]
+    base = at.params
     end = base + max(off + size for off, size in layout.values())
     bank = bytearray(end + 16)
-    bank[BLOCK_DIM : BLOCK_DIM + 12] = np.array([block_dim, 1, 1], np.uint32).tobytes()
-    bank[GRID_DIM : GRID_DIM + 12] = np.array([grid_dim, 1, 1], np.uint32).tobytes()
-    bank[LOCAL_TOP : LOCAL_TOP + 4] = np.uint32(LOCAL_BYTES).tobytes()
+    bank[at.block_dim : at.block_dim + 12] = np.array([block_dim, 1, 1], np.uint32).tobytes()
+    bank[at.grid_dim : at.grid_dim + 12] = np.array([grid_dim, 1, 1], np.uint32).tobytes()
+    bank[at.local_top : at.local_top + 4] = np.uint32(LOCAL_BYTES).tobytes()
     missing = set(layout) - set(values)
     if missing:
         raise KernelIRError(f"no value for kernel parameters {sorted(missing)}")

@@ -15,17 +15,24 @@ per kernel and set of tests gives two documents:
   per block of that IR.
 
 `python -m kernels_ir build` neither writes nor checks these files (CI has no CUDA 11.8);
-a test checks that each was built from today's source.
+a test checks that each was built from today's source. :func:`compile_listing` gives the
+SASS walker the same code with the constants it reads (``python -m kernels_ir dyncount
+--arch sm_35 --cuda11 DIR``). The build also keeps the listings of
+:data:`KEPT_LISTINGS` (``kernels_ir/listings``), so that the walk of Kepler code runs, and
+is tested, where no CUDA 11.8 is at hand (:func:`kept_listing`).
 """
 
 from __future__ import annotations
 
+import json
 import re
+import struct
 import tempfile
 from pathlib import Path
 
 from kernels_ir.build import (
     CUDA_DIR,
+    DEFAULT_TESTS,
     IR_DIR,
     KEPLER_ARCH,
     KERNELS,
@@ -43,6 +50,7 @@ from kernels_ir.build import (
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import TESTS
 from kernels_ir.pairing import PAIRING_DIR, block_pairs, pair_marks
+from kernels_ir.sass import SassInstruction
 
 #: nvcc 13 flags that make the PTX the IR's code is compiled from (``build.FLAGS`` without
 #: ``-cubin`` and ptxas's options)
@@ -50,6 +58,12 @@ PTX_FLAGS = ("-arch=compute_75", "--ptx", "-O3", "-lineinfo", "-std=c++17")
 #: ptxas flags (``-v`` reports registers and spills, as in the CUDA 13 build)
 PTXAS_FLAGS = (f"-arch={KEPLER_ARCH}", "-O3", "-v")
 PTX_ISA = "7.8"
+LISTING_DIR = Path(__file__).resolve().parent / "listings"
+KEPT_LISTINGS = ("while_while", "speculative_dynamic_fetch")
+"""Kernels whose sm_35 listing (default tests) is kept: the simplest kernel and the Kepler
+class the GTX 680's and Titan's published rows are costed as."""
+_HEX = re.compile(r"\s*/\* 0x[0-9a-f]{16} \*/")
+_FILE = re.compile(r'(File ")[^"]*/([^"/]+")')
 
 
 def _version(tool: Path) -> str:
@@ -88,47 +102,127 @@ def retarget(ptx: str, arch: str = KEPLER_ARCH) -> str:
     return out
 
 
+def _compile(
+    kernel: str, tests: str, cuda11_bin: Path, work: Path, cuda_dir: Path = CUDA_DIR
+) -> tuple[str, bytes, str]:
+    """One kernel's sm_35 listing (``nvdisasm -c -hex -g -gi``), cubin and ptxas report."""
+    ptxas, nvdisasm = kepler_tools(cuda11_bin)
+    ptx, cubin = work / f"{kernel}.{tests}.ptx", work / f"{kernel}.{tests}.cubin"
+    nvcc = find_toolchain().nvcc
+    run_tool([str(nvcc), *PTX_FLAGS, *TEST_DEFINES[tests], "-o", str(ptx), f"{kernel}.cu"],
+             cuda_dir)  # fmt: skip
+    ptx.write_text(retarget(ptx.read_text()))
+    proc = run_tool([str(ptxas), *PTXAS_FLAGS, "-o", str(cubin), str(ptx)], cuda_dir)
+    listing = run_tool([str(nvdisasm), "-c", "-hex", "-g", "-gi", str(cubin)], cuda_dir).stdout
+    return listing, cubin.read_bytes(), proc.stdout + proc.stderr
+
+
+def elf_section(elf: bytes, name: str) -> bytes:
+    """The contents of section ``name`` of a little-endian ELF64 file (a cubin), or
+    ``b""`` if it has none."""
+    if elf[:4] != b"\x7fELF" or elf[4] != 2:
+        raise KernelIRError("not an ELF64 file: pass a cubin")
+    try:
+        (shoff,) = struct.unpack_from("<Q", elf, 0x28)
+        shentsize, shnum, shstrndx = struct.unpack_from("<HHH", elf, 0x3A)
+        headers = [struct.unpack_from("<IIQQQQ", elf, shoff + k * shentsize) for k in range(shnum)]
+    except struct.error as exc:
+        raise KernelIRError(f"a truncated ELF file ({exc}): pass a whole cubin") from exc
+    names_at, names_size = headers[shstrndx][4], headers[shstrndx][5]
+    names = elf[names_at : names_at + names_size]
+    for sh_name, _, _, _, offset, size in headers:
+        if names[sh_name : names.index(b"\0", sh_name)].decode() == name:
+            return elf[offset : offset + size]
+    return b""
+
+
+def compile_listing(
+    kernel: str, cuda11_bin: Path, tests: str = DEFAULT_TESTS, cuda_dir: Path = CUDA_DIR
+) -> tuple[list[SassInstruction], bytes]:
+    """``kernel``'s sm_35 instructions as :func:`build` compiles them, and the constant
+    bank 2 they read (the compiler's ``.nv.constant2`` section), for the SASS walker."""
+    with tempfile.TemporaryDirectory(prefix="kernels_ir_kepler_") as tmp:
+        listing, cubin, _ = _compile(kernel, tests, cuda11_bin, Path(tmp), cuda_dir)
+    return kernel_instructions(listing, kernel), elf_section(cubin, f".nv.constant2.{kernel}")
+
+
+def listing_filename(kernel: str) -> str:
+    return f"{kernel}.{KEPLER_ARCH}.json"
+
+
+def listing_document(kernel: str, listing: str, cubin: bytes, compiler: str) -> dict:
+    """A kept listing: the kernel's instructions and line table without the encodings,
+    source paths reduced to file names (the placement reads only those), one line per
+    entry, and the constant bank 2 its code reads."""
+    lines = [_FILE.sub(r"\1\2", _HEX.sub("", line)).rstrip() for line in listing.splitlines()]
+    return {
+        "kernel": kernel, "arch": KEPLER_ARCH, "tests": DEFAULT_TESTS,
+        "source_sha256": source_sha256(kernel), "compiler": compiler,
+        "constant2": elf_section(cubin, f".nv.constant2.{kernel}").hex(), "listing": lines,
+    }  # fmt: skip
+
+
+def kept_listing(kernel: str) -> tuple[list[SassInstruction], bytes]:
+    """A kept kernel's sm_35 instructions and constant bank 2, as :func:`compile_listing`
+    gives them.
+
+    Raises
+    ------
+    KernelIRError
+        If the kernel's listing is not kept or was built from another source.
+    """
+    if kernel not in KEPT_LISTINGS:
+        raise KernelIRError(
+            f"no kept sm_35 listing of {kernel} (kept: {', '.join(KEPT_LISTINGS)}); name "
+            "CUDA 11.8's bin directory (--cuda11 DIR) to compile it"
+        )
+    doc = json.loads((LISTING_DIR / listing_filename(kernel)).read_text())
+    if doc["source_sha256"] != source_sha256(kernel):
+        raise KernelIRError(
+            f"the kept sm_35 listing of {kernel} is of an older source; rebuild it: "
+            "python -m kernels_ir kepler --cuda11 DIR"
+        )
+    listing = "\n".join(doc["listing"])
+    return kernel_instructions(listing, kernel), bytes.fromhex(doc["constant2"])
+
+
 def build(cuda11_bin: Path) -> tuple[dict, dict[str, dict]]:
     """Compile every kernel with both sets of tests for Kepler; return the pairing document
-    and the IR documents by file name."""
+    and the documents to write by path: the IR and the kept listings."""
     ptxas, nvdisasm = kepler_tools(cuda11_bin)
     nvcc = find_toolchain()
     compiler = (
         f"{nvcc.version} PTX (compute_75, ISA {PTX_ISA}), {_version(ptxas)}, {_version(nvdisasm)}"
     )
     kernels: dict[str, dict] = {}
-    irs: dict[str, dict] = {}
+    docs: dict[Path, dict] = {}
     with tempfile.TemporaryDirectory(prefix="kernels_ir_kepler_") as tmp:
         work = Path(tmp)
         for kernel in KERNELS:
             entry: dict = {"source_sha256": source_sha256(kernel)}
             for tests in TESTS:
-                ptx, cubin = work / f"{kernel}.{tests}.ptx", work / f"{kernel}.{tests}.cubin"
-                ptx_flags = [*PTX_FLAGS, *TEST_DEFINES[tests]]
-                run_tool([str(nvcc.nvcc), *ptx_flags, "-o", str(ptx), f"{kernel}.cu"], CUDA_DIR)
-                ptx.write_text(retarget(ptx.read_text()))
-                proc = run_tool([str(ptxas), *PTXAS_FLAGS, "-o", str(cubin), str(ptx)], CUDA_DIR)
-                listing = run_tool(
-                    [str(nvdisasm), "-c", "-hex", "-g", "-gi", str(cubin)], CUDA_DIR
-                ).stdout
+                listing, cubin, report = _compile(kernel, tests, cuda11_bin, work)
+                if kernel in KEPT_LISTINGS and tests == DEFAULT_TESTS:
+                    docs[LISTING_DIR / listing_filename(kernel)] = listing_document(
+                        kernel, listing, cubin, compiler
+                    )
                 instructions = kernel_instructions(listing, kernel)
                 placed = place_kernel(kernel, instructions)
                 marks = pair_marks(listing, f"{kernel}.cu")
                 entry[tests] = block_pairs(instructions, placed, marks)
-                flags = [*ptx_flags, "ptxas", *PTXAS_FLAGS]
-                irs[ir_filename(kernel, KEPLER_ARCH, tests)] = ir_document(
-                    kernel, KEPLER_ARCH, tests, instructions, proc.stdout + proc.stderr, flags,
-                    compiler,
+                flags = [*PTX_FLAGS, *TEST_DEFINES[tests], "ptxas", *PTXAS_FLAGS]
+                docs[IR_DIR / ir_filename(kernel, KEPLER_ARCH, tests)] = ir_document(
+                    kernel, KEPLER_ARCH, tests, instructions, report, flags, compiler,
                 )  # fmt: skip
             kernels[kernel] = entry
-    return {"arch": KEPLER_ARCH, "compiler": compiler, "kernels": kernels}, irs
+    return {"arch": KEPLER_ARCH, "compiler": compiler, "kernels": kernels}, docs
 
 
-def write(cuda11_bin: Path, ir_dir: Path = IR_DIR, pairing_dir: Path = PAIRING_DIR) -> list[Path]:
-    """:func:`build` into ``pairing_dir/sm_35.json`` and ``ir_dir``; return the paths."""
-    pairing, irs = build(cuda11_bin)
-    docs = {pairing_dir / f"{KEPLER_ARCH}.json": pairing}
-    docs.update({ir_dir / name: doc for name, doc in irs.items()})
+def write(cuda11_bin: Path) -> list[Path]:
+    """:func:`build` into ``kernels_ir/pairs/sm_35.json``, ``kernels_ir/ir`` and
+    ``kernels_ir/listings``; return the paths."""
+    pairing, built = build(cuda11_bin)
+    docs = {PAIRING_DIR / f"{KEPLER_ARCH}.json": pairing, **built}
     for path, doc in docs.items():
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".json.tmp")

@@ -98,6 +98,11 @@ POOL_CLAIM = "pool_claim"
 """The block of a dynamic-fetch warp's claim on the pool, which a dry warp skips."""
 POOL_TAKE = "pool_take"
 """The build's block of the fetch loop's code after the warp's exit: a fetch that goes on."""
+TAKEN_BLOCKS = (*STEP_OUTCOMES, "postpone")
+"""Blocks the replay charges only on the steps where some lane takes them: code of theirs
+that runs on every iteration of their loop (a test, or all of it where the compiler
+predicates it, as sm_35 does with the speculative kernels' postponement) runs as often as
+the loop's own block."""
 SPIN_BLOCKS = ("refill_break", "idle_wait")
 """Blocks whose code is what the compiler puts on a path (a convergence spin before a warp
 vote, sm_75): a target that needs none (sm_80 on) leaves them empty."""

@@ -1,14 +1,16 @@
 """What each SASS instruction of the ray-tracing kernels does to one warp's lanes.
 
 A functional model of the Turing-generation (sm_75 .. sm_89) instructions nvcc emits for
-``kernels_ir/cuda``: registers, predicates, uniform registers, the constant bank, local
-and global memory, warp votes and shuffles. It is written from the PTX ISA and the CUDA
+``kernels_ir/cuda`` (Kepler's sm_35 code shares many: :mod:`kernels_ir.opcodes_kepler`):
+registers, predicates, uniform registers, the constant bank, local and global memory,
+warp votes and shuffles. It is written from the PTX ISA and the CUDA
 binary utilities' instruction-set reference, as far as these kernels need, so that
 :mod:`kernels_ir.emulate` can run a kernel's SASS and count what it issues without
 trusting the block map. Control flow (branches, convergence barriers, calls) is the
 walker's; this module only computes values. Arithmetic is IEEE float32 (``FFMA`` fused,
 rounded once); ``MUFU.RCP`` is taken as the correctly rounded reciprocal (the hardware's
-approximation is within 1 ulp of it). An opcode outside the model is refused by name.
+approximation is within 1 ulp of it). An opcode outside the model is refused by name
+(:class:`kernels_ir.emulate.Program`).
 """
 
 from __future__ import annotations
@@ -21,29 +23,33 @@ import numpy as np
 
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import WARP_SIZE
-from kernels_ir.sass import SassInstruction, base_opcode
 
 LANES = WARP_SIZE
 RZ = 255
 """Register index of ``RZ`` (reads 0, writes are dropped); ``URZ`` is 63, ``PT`` 7."""
 URZ = 63
 PT = 7
-_MASK32 = 0xFFFFFFFF
+MASK32 = 0xFFFFFFFF
 
 
 @dataclass
 class LaneState:
     """One warp's architectural state: ``r`` (256 x 32 uint32: ``r[i]`` is register ``Ri``
     of every lane), ``p`` (8 x 32 bool, ``P7`` = ``PT``), uniform ``ur``/``up``, the
-    constant bank 0 (bytes), per-lane local memory (32 x words) and global memory."""
+    constant bank 0 (bytes), per-lane local memory (32 x words) and global memory; for
+    Kepler code also the compiler's constant bank 2 and each lane's condition code
+    (``cc_carry``, ``cc_zero``: what a ``.CC`` instruction last wrote)."""
 
     const: bytes
     memory: GlobalMemory
     local_words: int
+    const2: bytes = b""
     r: np.ndarray = field(default_factory=lambda: np.zeros((256, LANES), np.uint32))
     p: np.ndarray = field(default_factory=lambda: np.zeros((8, LANES), bool))
     ur: np.ndarray = field(default_factory=lambda: np.zeros(64, np.uint32))
     up: np.ndarray = field(default_factory=lambda: np.zeros(8, bool))
+    cc_carry: np.ndarray = field(default_factory=lambda: np.zeros(LANES, bool))
+    cc_zero: np.ndarray = field(default_factory=lambda: np.zeros(LANES, bool))
     tid: np.ndarray = field(default_factory=lambda: np.arange(LANES, dtype=np.uint32))
     ctaid: int = 0
     shared_words: int = 4096
@@ -56,8 +62,11 @@ class LaneState:
         self.local = np.zeros((LANES, self.local_words), np.uint32)
         self.shared = np.zeros(self.shared_words, np.uint32)
 
-    def const_word(self, offset: int) -> int:
-        return int.from_bytes(self.const[offset : offset + 4], "little")
+    def const_word(self, offset: int, bank: int = 0) -> int:
+        data = {0: self.const, 2: self.const2}.get(bank)
+        if data is None or offset + 4 > len(data):
+            raise KernelIRError(f"constant c[{bank:#x}][{offset:#x}] outside the banks loaded")
+        return int.from_bytes(data[offset : offset + 4], "little")
 
 
 class GlobalMemory:
@@ -97,7 +106,10 @@ _REG = re.compile(
     r"^(?P<neg>-)?(?P<not>~)?(?P<abs>\|)?(?P<u>U)?R(?P<n>\d+|Z)(?P<mods>(?:\.\w+)*)\|?$"
 )
 _PRED_OP = re.compile(r"^(?P<not>!)?(?P<u>U)?P(?P<n>\d|T)$")
-_CONST = re.compile(r"^(?P<neg>-)?(?P<abs>\|)?c\[0x0\]\[(?P<off>0x[0-9a-f]+)\]\|?$")
+_CONST = re.compile(
+    r"^(?P<neg>-)?(?P<abs>\|)?c\[(?P<bank>0x[0-9a-f]+)\]\[(?P<off>0x[0-9a-f]+)\]\|?$"
+)
+_CONDITION = re.compile(r"^CC\.(?P<test>\w+)$")
 _MEM = re.compile(r"^\[(?P<base>[^\]+]+?)(?:\.64)?(?:\+(?P<rest>[^\]]+))?\]$")
 _SPECIAL = ("SR_TID.X", "SR_CTAID.X", "SR_LANEID", "SR_LTMASK", "SRZ")
 
@@ -106,7 +118,9 @@ _SPECIAL = ("SR_TID.X", "SR_CTAID.X", "SR_LANEID", "SR_LTMASK", "SRZ")
 class Operand:
     """One parsed source or destination operand."""
 
-    kind: str  # "r", "ur", "p", "up", "imm", "fimm", "const", "mem", "special", "label", "b"
+    # "r", "ur", "p", "up", "imm", "fimm", "const" (n: the bank), "mem", "special", "label",
+    # "b" (a convergence barrier), "cc" (a Kepler branch's condition-code test, in text)
+    kind: str
     n: int = 0
     neg: bool = False
     absolute: bool = False
@@ -120,7 +134,7 @@ class Operand:
 def _imm(tok: str) -> Operand | None:
     t = tok.strip()
     if re.fullmatch(r"-?0x[0-9a-f]+", t):
-        return Operand("imm", value=int(t, 16) & _MASK32, text=t)
+        return Operand("imm", value=int(t, 16) & MASK32, text=t)
     if t in ("+INF", "-INF", "+QNAN", "-QNAN"):
         f = {"+INF": np.inf, "-INF": -np.inf}.get(t, np.nan)
         return Operand("fimm", value=int(np.float32(f).view(np.uint32)), text=t)
@@ -146,9 +160,12 @@ def parse_operand(tok: str) -> Operand:
             "ur" if u else "r", n=n, neg=bool(m.group("neg")), absolute=bool(m.group("abs")),
             invert=bool(m.group("not")), text=t,
         )  # fmt: skip
+    if m := _CONDITION.match(t):
+        return Operand("cc", text=m.group("test"))
     if m := _CONST.match(t):
         return Operand(
-            "const", value=int(m.group("off"), 16), neg=bool(m.group("neg")),
+            "const", n=int(m.group("bank"), 16), value=int(m.group("off"), 16),
+            neg=bool(m.group("neg")),
             absolute=bool(m.group("abs")), text=t,
         )  # fmt: skip
     if m := _MEM.match(t):
@@ -190,7 +207,7 @@ def read_bits(s: LaneState, op: Operand) -> np.ndarray:
     if op.kind in ("imm", "fimm"):
         return np.full(LANES, op.value, np.uint32)
     if op.kind == "const":
-        return np.full(LANES, s.const_word(op.value), np.uint32)
+        return np.full(LANES, s.const_word(op.value, op.n), np.uint32)
     raise KernelIRError(f"operand {op.text!r} is not a value")
 
 
@@ -198,7 +215,7 @@ def read_int(s: LaneState, op: Operand) -> np.ndarray:
     """Integer value (int64, 0 .. 2^32-1 before negation) with ``-`` and ``~`` applied."""
     v = read_bits(s, op).astype(np.int64)
     if op.invert:
-        v = v ^ _MASK32
+        v = v ^ MASK32
     if op.neg and op.kind != "imm":
         v = -v
     if op.kind == "imm" and op.text.startswith("-"):
@@ -240,11 +257,22 @@ def write(s: LaneState, op: Operand, value: np.ndarray, lanes: np.ndarray) -> No
         raise KernelIRError(f"cannot write operand {op.text!r}")
 
 
+def signed32(v: np.ndarray) -> np.ndarray:
+    """32-bit words (int64, any sign) as signed 32-bit integers."""
+    v = v & MASK32
+    return np.where(v >= 1 << 31, v - (1 << 32), v)
+
+
+def bit_reverse(v: np.ndarray) -> np.ndarray:
+    """Each 32-bit word with its bits in reverse order."""
+    return np.array([int(f"{int(x) & MASK32:032b}"[::-1], 2) for x in v], np.int64)
+
+
 def _bits(value: np.ndarray) -> np.ndarray:
     value = np.asarray(value)
     if value.dtype == np.float32:
         return value.view(np.uint32)
-    return (value.astype(np.int64) & _MASK32).astype(np.uint32)
+    return (value.astype(np.int64) & MASK32).astype(np.uint32)
 
 
 def fma32(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -266,7 +294,9 @@ def fma32(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
         return s.astype(np.float32)  # overflow to +-inf as the hardware does
 
 
-def _cmp(name: str, a: np.ndarray, b: np.ndarray, unsigned_float: bool) -> np.ndarray:
+def compare(name: str, a: np.ndarray, b: np.ndarray, unsigned_float: bool) -> np.ndarray:
+    """``a cmp b`` for a compare named ``LT`` .. ``NE`` (``...U``: true on a NaN where
+    ``unsigned_float``)."""
     with np.errstate(invalid="ignore"):
         base = {
             "LT": a < b, "LE": a <= b, "GT": a > b, "GE": a >= b, "EQ": a == b, "NE": a != b,
@@ -279,7 +309,8 @@ def _cmp(name: str, a: np.ndarray, b: np.ndarray, unsigned_float: bool) -> np.nd
     return v
 
 
-def _bool_op(name: str, a: np.ndarray, c: np.ndarray) -> np.ndarray:
+def combine(name: str, a: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """A compare's result combined with a predicate (``AND``, ``OR``, ``XOR``)."""
     return {"AND": a & c, "OR": a | c, "XOR": a ^ c}[name]
 
 
@@ -373,10 +404,10 @@ def _fsel(s, opc, o, m):
 def _fsetp(s, opc, o, m):
     _, cmp, bop = opc.split(".")[:3]
     a, b = read_float(s, o[2]), read_float(s, o[3])
-    v = _cmp(cmp, a, b, unsigned_float=True)
+    v = compare(cmp, a, b, unsigned_float=True)
     c = read_pred(s, o[4])
-    write(s, o[0], _bool_op(bop, v, c), m)
-    write(s, o[1], _bool_op(bop, ~v, c), m)
+    write(s, o[0], combine(bop, v, c), m)
+    write(s, o[1], combine(bop, ~v, c), m)
 
 
 def _mufu(s, opc, o, m):
@@ -393,14 +424,13 @@ def _mufu(s, opc, o, m):
 def _isetp(s, opc, o, m):
     mods = opc.split(".")[1:]
     cmp, bop = mods[0], mods[-1]
-    a, b = read_int(s, o[2]) & _MASK32, read_int(s, o[3]) & _MASK32
+    a, b = read_int(s, o[2]) & MASK32, read_int(s, o[3]) & MASK32
     if "U32" not in mods:
-        a = np.where(a >= 1 << 31, a - (1 << 32), a)
-        b = np.where(b >= 1 << 31, b - (1 << 32), b)
-    v = _cmp(cmp, a, b, unsigned_float=False)
+        a, b = signed32(a), signed32(b)
+    v = compare(cmp, a, b, unsigned_float=False)
     c = read_pred(s, o[4])
-    write(s, o[0], _bool_op(bop, v, c), m)
-    write(s, o[1], _bool_op(bop, ~v, c), m)
+    write(s, o[0], combine(bop, v, c), m)
+    write(s, o[1], combine(bop, ~v, c), m)
 
 
 def _iadd3(s, opc, o, m):
@@ -415,29 +445,29 @@ def _iadd3(s, opc, o, m):
         total = total + sum(read_pred(s, x).astype(np.int64) for x in rest[3:5])
     write(s, dst, total, m)
     if carries_out:  # unsigned carry of the 32-bit add of the raw words
-        raw = sum((v & _MASK32) for v in vals)
+        raw = sum((v & MASK32) for v in vals)
         write(s, carries_out[0], (raw >> 32) > 0, m)
 
 
 def _imad(s, opc, o, m):
     mods = opc.split(".")[1:]
     if "WIDE" in mods:
-        a = read_int(s, o[1]) & _MASK32
-        b = read_int(s, o[2]) & _MASK32
+        a = read_int(s, o[1]) & MASK32
+        b = read_int(s, o[2]) & MASK32
         if "U32" not in mods:
-            a = np.where(a >= 1 << 31, a - (1 << 32), a)
-            b = np.where(b >= 1 << 31, b - (1 << 32), b)
+            a, b = signed32(a), signed32(b)
         c = o[3]
         if c.kind == "r":
             hi = s.r[c.n + 1] if c.n != RZ else np.zeros(LANES, np.uint32)
             cv = read_bits(s, c).astype(np.uint64) | (hi.astype(np.uint64) << np.uint64(32))
         elif c.kind == "const":
-            cv = np.full(LANES, s.const_word(c.value) | s.const_word(c.value + 4) << 32, np.uint64)
+            cv = s.const_word(c.value, c.n) | s.const_word(c.value + 4, c.n) << 32
+            cv = np.full(LANES, cv, np.uint64)
         else:
             cv = read_int(s, c).astype(np.uint64)
         prod = (a * b).astype(np.int64).astype(np.uint64)  # |a*b| < 2^63
         total = prod + cv
-        write(s, o[0], (total & np.uint64(_MASK32)).astype(np.int64), m)
+        write(s, o[0], (total & np.uint64(MASK32)).astype(np.int64), m)
         hi_reg = Operand("r", n=o[0].n + 1)
         write(s, hi_reg, (total >> np.uint64(32)).astype(np.int64), m)
         return
@@ -454,16 +484,16 @@ def _lea(s, opc, o, m):
     pout = rest.pop(0) if rest[0].kind == "p" else None
     if "HI" in mods:
         a, b, c, sh = rest[0], rest[1], rest[2], rest[3].value
-        lo = read_int(s, a) & _MASK32
-        hi = read_int(s, c) & _MASK32
+        lo = read_int(s, a) & MASK32
+        hi = read_int(s, c) & MASK32
         v = ((hi << sh) | (lo >> (32 - sh))) + read_int(s, b)
         if "X" in mods:
             v = v + read_pred(s, rest[4]).astype(np.int64)
         write(s, dst, v, m)
         return
     a, b, sh = rest[0], rest[1], rest[2].value
-    shifted = (read_int(s, a) & _MASK32) << sh
-    total = (shifted & _MASK32) + (read_int(s, b) & _MASK32)
+    shifted = (read_int(s, a) & MASK32) << sh
+    total = (shifted & MASK32) + (read_int(s, b) & MASK32)
     write(s, dst, total, m)
     if pout is not None:
         write(s, pout, (total >> 32) > 0, m)
@@ -471,19 +501,18 @@ def _lea(s, opc, o, m):
 
 def _shf(s, opc, o, m):
     mods = opc.split(".")[1:]
-    lo = read_int(s, o[1]) & _MASK32
-    sh = np.minimum(read_int(s, o[2]) & _MASK32, 32)
-    hi = read_int(s, o[3]) & _MASK32
+    lo = read_int(s, o[1]) & MASK32
+    sh = np.minimum(read_int(s, o[2]) & MASK32, 32)
+    hi = read_int(s, o[3]) & MASK32
     both = (hi << 32) | lo
     if mods[0] == "L":
         v = both << sh
         v = (v >> 32) if "HI" in mods else v
     elif "S32" in mods and "HI" in mods:
-        signed = np.where(hi >= 1 << 31, hi - (1 << 32), hi)
-        v = signed >> sh
+        v = signed32(hi) >> sh
     else:
         v = (hi >> sh) if "HI" in mods else (both >> sh)
-    write(s, o[0], v & _MASK32, m)
+    write(s, o[0], v & MASK32, m)
 
 
 def _lop3(s, opc, o, m):
@@ -506,7 +535,7 @@ def _sel(s, opc, o, m):
 
 
 def _prmt(s, opc, o, m):
-    a, sel, b = read_int(s, o[1]) & _MASK32, read_int(s, o[2]), read_int(s, o[3]) & _MASK32
+    a, sel, b = read_int(s, o[1]) & MASK32, read_int(s, o[2]), read_int(s, o[3]) & MASK32
     both = (b << 32) | a
     out = np.zeros(LANES, np.int64)
     for k in range(4):
@@ -529,12 +558,12 @@ def _i2f(s, opc, o, m):
 
 
 def _popc(s, opc, o, m):
-    v = read_int(s, o[1]) & _MASK32
+    v = read_int(s, o[1]) & MASK32
     write(s, o[0], np.array([bin(int(x)).count("1") for x in v], np.int64), m)
 
 
 def _flo(s, opc, o, m):
-    v = read_int(s, o[1]) & _MASK32
+    v = read_int(s, o[1]) & MASK32
     pos = np.array([int(x).bit_length() - 1 for x in v], np.int64)
     if ".SH" in opc:
         pos = np.where(pos >= 0, 31 - pos, -1)
@@ -542,8 +571,7 @@ def _flo(s, opc, o, m):
 
 
 def _brev(s, opc, o, m):
-    v = read_int(s, o[1]) & _MASK32
-    write(s, o[0], np.array([int(f"{int(x):032b}"[::-1], 2) for x in v], np.int64), m)
+    write(s, o[0], bit_reverse(read_int(s, o[1])), m)
 
 
 def _s2r(s, opc, o, m):
@@ -566,7 +594,7 @@ def _uldc(s, opc, o, m):
     n = 2 if ".64" in opc else 1
     for k in range(n):
         if o[0].n + k != URZ:
-            s.ur[o[0].n + k] = s.const_word(o[1].value + 4 * k)
+            s.ur[o[0].n + k] = s.const_word(o[1].value + 4 * k, o[1].n)
 
 
 def _locate(s: LaneState, space: str, addr: np.ndarray, lane: int, n: int):
@@ -606,17 +634,23 @@ def _storer(space: str) -> Semantics:
     return store
 
 
+def atomic_add(s: LaneState, mem: Operand, add: Operand, lanes: np.ndarray) -> np.ndarray:
+    """Add ``add`` to the global word at ``mem`` for each lane of ``lanes`` in turn (any
+    order is a valid serialisation); return the word each lane found."""
+    addr = address(s, mem, wide=True)
+    value = read_int(s, add)
+    old = np.zeros(LANES, np.int64)
+    for lane in np.flatnonzero(lanes):
+        buf, i = s.memory.index(int(addr[lane]), 1)
+        old[lane] = int(buf[i])
+        buf[i] = (int(buf[i]) + int(value[lane])) & MASK32
+    return old
+
+
 def _atomg(s, opc, o, m):
     if ".ADD" not in opc:
         raise KernelIRError(f"{opc} is not modelled")
-    addr = address(s, o[2], wide=True)
-    add = read_int(s, o[3])
-    old = np.zeros(LANES, np.int64)
-    for lane in np.flatnonzero(m):  # lanes in order: any order is a valid serialisation
-        buf, i = s.memory.index(int(addr[lane]), 1)
-        old[lane] = int(buf[i])
-        buf[i] = (int(buf[i]) + int(add[lane])) & _MASK32
-    write(s, o[1], old, m)
+    write(s, o[1], atomic_add(s, o[2], o[3], m), m)
 
 
 def _vote(s, opc, o, m):
@@ -668,14 +702,3 @@ SEMANTICS: dict[str, Semantics] = {
     "UISETP": _isetp, "USEL": _sel, "UMOV": _mov, "UIADD3": _iadd3, "R2UR": _mov,
     "HFMA2": _hfma2,
 }  # fmt: skip
-
-
-def semantics(ins: SassInstruction) -> Semantics:
-    """The lane semantics of a non-control instruction (refused by name if not modelled)."""
-    op = base_opcode(ins.opcode)
-    if op not in SEMANTICS:
-        raise KernelIRError(
-            f"SASS opcode {ins.opcode} ({ins.function}+{ins.offset:#x}) is not modelled by "
-            "the SASS walker; add its semantics to kernels_ir/opcodes.py"
-        )
-    return SEMANTICS[op]

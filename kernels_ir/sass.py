@@ -103,11 +103,12 @@ def classify(opcode: str) -> str | None:
     """
     base = base_opcode(opcode)
     if base in EXCLUDED:
-        return "control" if _pops(opcode) else None
+        return "control" if pops_stack(opcode) else None
     return _CLASS_OF.get(base, "other")
 
 
-def _pops(opcode: str) -> bool:
+def pops_stack(opcode: str) -> bool:
+    """A pre-Volta opcode that pops the reconvergence stack: ``BRK``, or one with ``.S``."""
     return base_opcode(opcode) == "BRK" or "S" in opcode.split(".")[1:]
 
 
@@ -115,7 +116,7 @@ def stack_pop(ins: SassInstruction) -> bool:
     """True for a pre-Volta instruction that pops the reconvergence stack: ``BRK`` or one
     with the ``.S`` flag (sm_35). Its lanes go on at the label that the matching ``PBK`` or
     ``SSY`` pushed, which nvdisasm notes beside it, so for control flow it is a branch."""
-    return _pops(ins.opcode) and _POP_TARGET.search(ins.text) is not None
+    return pops_stack(ins.opcode) and _POP_TARGET.search(ins.text) is not None
 
 
 def branch_target(ins: SassInstruction) -> str | None:

@@ -19,10 +19,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from kernels_ir import kepler
 from kernels_ir import load as load_ir
 from kernels_ir.blocks import UNATTRIBUTED
-from kernels_ir.build import CUDA_DIR, compile_listing, place_kernel
-from kernels_ir.emulate import PARAM_BASE, Program, run_kernel
+from kernels_ir.build import CUDA_DIR, KEPLER_ARCH, compile_listing, place_kernel
+from kernels_ir.emulate import WALKED_ARCHS, Program, run_kernel
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import BLOCKS, RECONVERGE, WARP_SIZE
 from kernels_ir.sass import SassInstruction, base_opcode, region_end
@@ -44,6 +45,9 @@ WALKED_LAYOUTS = ("bvh2", "bvh4", "cwbvh")
 DEFAULT_GPU = "rtx2080ti"
 """A GPU with independent thread scheduling whose IR is sm_75: the walk runs Volta-style
 code, divergent-warp fallbacks included, which the replay charges on such GPUs only."""
+KEPLER_GPU = "gtx680"
+"""The GPU a walk of sm_35 code is replayed on: Kepler, no independent thread scheduling
+(its launch occupancy does not enter: the walk runs one warp at a time)."""
 WARPS, RESOLUTION, SPP = 16, (256, 192), 4
 """The walk's default workload: warps spread over one camera's image, its size, and the
 secondary rays per primary hit (a walk takes seconds a warp)."""
@@ -189,10 +193,22 @@ class Walk:
 
 
 @cache
-def compiled(kernel: str, arch: str, cuda_dir: Path = CUDA_DIR) -> Program:
+def compiled(
+    kernel: str, arch: str, cuda_dir: Path = CUDA_DIR, cuda11: Path | None = None
+) -> Program:
     """``kernel``'s ``arch`` SASS, decoded: compiled once per process (an experiment walks
-    each kernel on many workloads)."""
-    return Program(compile_listing(kernel, arch, cuda_dir=cuda_dir), kernel)
+    each kernel on many workloads). sm_35 code comes from CUDA 11.8 in ``cuda11``
+    (:func:`kernels_ir.kepler.compile_listing`) or, without it, from the kept listings
+    (:func:`kernels_ir.kepler.kept_listing`)."""
+    if arch != KEPLER_ARCH:
+        return Program(compile_listing(kernel, arch, cuda_dir=cuda_dir), kernel, arch)
+    if cuda11 is None and cuda_dir == CUDA_DIR:
+        instructions, const2 = kepler.kept_listing(kernel)
+    elif cuda11 is None:
+        raise KernelIRError("compiling a variant kernel for sm_35 needs CUDA 11.8 (--cuda11 DIR)")
+    else:
+        instructions, const2 = kepler.compile_listing(kernel, cuda11, cuda_dir=cuda_dir)
+    return Program(instructions, kernel, arch, const2)
 
 
 def walk_kernel(
@@ -204,14 +220,16 @@ def walk_kernel(
     persistent: bool,
     merge: bool = True,
     cuda_dir: Path = CUDA_DIR,
+    cuda11: Path | None = None,
 ) -> Walk:
     """Run ``kernel``'s ``arch`` SASS over ``tree`` (in the kernel's layout:
     :func:`~simt_sim.tracers.cuda_tracer.pack_tree`) on ``rays`` (whole warps, in order):
     one block per warp, or for a persistent kernel one warp that fetches every ray from
     the pool. ``merge``: the walk's schedule (:func:`kernels_ir.emulate.run_warp`).
-    ``cuda_dir``: where its ``.cu`` is (a variant kernel of an experiment's)."""
+    ``cuda_dir``: where its ``.cu`` is (a variant kernel of an experiment's); ``cuda11``:
+    CUDA 11.8's bin directory, for sm_35 code."""
     try:
-        program = compiled(kernel, arch, cuda_dir)
+        program = compiled(kernel, arch, cuda_dir, cuda11)
     except KernelIRError as exc:
         raise SimtSimError(str(exc)) from exc
     packed = pack_rays(rays)
@@ -251,13 +269,17 @@ def dyncount(
     spp: int = SPP,
     camera: int = 0,
     merge: bool = True,
+    arch: str | None = None,
+    cuda11: Path | None = None,
 ) -> DynCount:
     """Count ``warps`` warps of ``scene``'s ``ray_type`` rays (camera ``camera``, spread
     over the image) with the SASS walk and with the replay of ``scheme`` (a name, or a
     record such as :func:`scheme_of_kernel` gives) on ``gpu_id`` (:func:`compare_counts`)."""
     wl = make_workload(scene, ray_type, cameras=str(camera), resolution=resolution, spp=spp)
     rays = wl.rays.take(pick_warps(len(wl.rays.tmin), warps))
-    return compare_counts(scheme, wl.scene.name, wl.bvh, rays, gpu_id=gpu_id, merge=merge)
+    return compare_counts(
+        scheme, wl.scene.name, wl.bvh, rays, gpu_id=gpu_id, merge=merge, arch=arch, cuda11=cuda11
+    )
 
 
 def compare_counts(
@@ -268,10 +290,15 @@ def compare_counts(
     *,
     gpu_id: str = DEFAULT_GPU,
     merge: bool = True,
+    arch: str | None = None,
+    cuda11: Path | None = None,
 ) -> DynCount:
     """Walk ``scheme``'s kernel over ``bvh`` (in the record's layout) on ``rays`` (whole
-    warps) and replay the recorded traces of the same rays on ``gpu_id``, whose IR
-    architecture the walk runs.
+    warps) and replay the recorded traces of the same rays on ``gpu_id``, both with the
+    code of ``arch`` (default: the GPU's IR architecture). Turing-to-Ada code is walked
+    for a GPU with independent thread scheduling (its divergent-warp fallbacks are
+    charged only there); Kepler's sm_35 code, compiled with CUDA 11.8 in ``cuda11``, for
+    one without (``KEPLER_GPU``).
 
     Persistent kernels run as one resident warp that fetches the rays from the pool in
     order, and the replay is given one resident warp to match. ``merge``: the walk's
@@ -288,17 +315,26 @@ def compare_counts(
             f"{scheme.kernel!r}"
         )
     gpu = get_gpu(gpu_id)
-    arch = gpu.ir_arch
-    if arch not in PARAM_BASE or not gpu.independent_thread_scheduling:
+    arch = arch or gpu.ir_arch
+    if arch not in WALKED_ARCHS:
         raise SimtSimError(
-            f"the SASS walker runs {', '.join(PARAM_BASE)} code as a GPU with independent "
-            f"thread scheduling does; {gpu_id} is costed with {arch}"
-            f"{'' if gpu.independent_thread_scheduling else ' and has none'}: pick another "
-            "--gpu (rtx2080ti, a100, rtx4090)"
+            f"the SASS walker runs {', '.join(WALKED_ARCHS)} code, not {arch}: pick another "
+            f"--gpu (rtx2080ti, a100, rtx4090; {KEPLER_GPU} with --arch {KEPLER_ARCH})"
         )
+    kepler_code = arch == KEPLER_ARCH
+    if gpu.independent_thread_scheduling == kepler_code:
+        raise SimtSimError(
+            f"{arch} code runs on a GPU {'without' if kepler_code else 'with'} independent "
+            f"thread scheduling, and {gpu_id} has {'it' if kepler_code else 'none'}: pick "
+            f"another --gpu ({KEPLER_GPU if kepler_code else DEFAULT_GPU})"
+        )
+    if kepler_code and not merge:
+        raise SimtSimError("Kepler code runs merged (no --split): its warps issue as one")
     kernel = scheme.kernel
     tree = make_tree(bvh, scheme.layout)
-    run = walk_kernel(kernel, arch, tree, rays, persistent=scheme.persistent, merge=merge)
+    run = walk_kernel(
+        kernel, arch, tree, rays, persistent=scheme.persistent, merge=merge, cuda11=cuda11
+    )
     trace = record_all(tree, rays)
     if rays.query == "any":  # any hit will do: agreeing is agreeing on occlusion
         agree = float(np.mean((run.hit_tri >= 0) == (trace.hits.tri >= 0)))

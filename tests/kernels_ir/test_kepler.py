@@ -25,7 +25,7 @@ from kernels_ir.build import (
     toolchain_available,
 )
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kepler import build, retarget
+from kernels_ir.kepler import KEPT_LISTINGS, LISTING_DIR, build, listing_filename, retarget
 from kernels_ir.kernel_ir import RECONVERGE
 from kernels_ir.pairing import PAIRING_DIR
 
@@ -72,8 +72,10 @@ def test_the_command_names_a_directory_without_the_tools_in_one_line(
     reason="needs CUDA 11.8's bin directory in SIMT_CUDA11_BIN and the cuda-toolchain extra",
 )
 def test_rebuilding_gives_the_committed_files() -> None:
-    pairing, irs = build(Path(os.environ["SIMT_CUDA11_BIN"]))
+    pairing, docs = build(Path(os.environ["SIMT_CUDA11_BIN"]))
     assert dumps(pairing) == (PAIRING_DIR / f"{KEPLER_ARCH}.json").read_text()
-    assert set(irs) == {ir_filename(k, KEPLER_ARCH, t) for k in KERNELS for t in TESTS}
-    for name, doc in irs.items():
-        assert json.loads(dumps(doc)) == json.loads((IR_DIR / name).read_text()), name
+    irs = {IR_DIR / ir_filename(k, KEPLER_ARCH, t) for k in KERNELS for t in TESTS}
+    kept = {LISTING_DIR / listing_filename(k) for k in KEPT_LISTINGS}
+    assert set(docs) == irs | kept
+    for path, doc in docs.items():
+        assert json.loads(dumps(doc)) == json.loads(path.read_text()), path.name
