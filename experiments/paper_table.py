@@ -657,9 +657,11 @@ def render(
         "between columns is the compiler's code alone. `sm_35` is Kepler code: the same "
         "PTX assembled by CUDA 11.8, the last compiler for Kepler (`python -m kernels_ir "
         "kepler`). It is the one pre-Volta target at hand, as the GTX 285 was: no "
-        "convergence barriers, a vote is one instruction. It is not the default because "
-        "only sm_75 and later have an independent count behind their IR (the SASS walker, "
-        "an H200's counters).",
+        "convergence barriers, a vote is one instruction. It costs the Kepler GPUs, its "
+        "counts checked by the SASS walker (`dyncount --arch sm_35`), but not the GTX "
+        "285: it is no more GT200's code than sm_75's is, and it uses Kepler's shuffles, "
+        "read-only loads and funnel shifts, so GT200 and Fermi keep the oldest CUDA 13 "
+        "target.",
         "",
         by_arch.reset_index().to_markdown(**fmt),
         "",

@@ -6,8 +6,8 @@ packet kernel's per-warp stack) and the block size of the launch, against the SM
 (``GpuConfig``: blocks, warps, registers and their allocation unit, shared memory), as the
 CUDA occupancy calculator computes it. The registers are those of the kernel's code for
 the GPU's own architecture (``GpuConfig.code_arch``): the IR it is costed with where that
-is its own, else the committed KernelIR of that architecture (the Kepler GPUs, costed with
-sm_75 code, hold the warps their sm_35 code's registers allow). Where no such code is
+is its own, else the committed KernelIR of that architecture (GK104, whose sm_30 no kept
+compiler emits, holds the warps its sm_35 code's registers allow). Where no such code is
 committed (GT200, Fermi), the GPU's documented launch figure (``resident_warps_per_sm``)
 is used, and the card says so.
 """

@@ -127,10 +127,10 @@ def test_occupancy_of_foreign_code_is_the_documented_launch() -> None:
 
 @pytest.mark.parametrize("gpu_id", ["titan", "gtx680"])
 def test_kepler_occupancy_is_its_own_codes(gpu_id: str) -> None:
-    """A Kepler GPU costed with sm_75 code holds the warps its sm_35 code's registers
-    allow (GK104 through ``registers_arch``): 40 registers x 32 lanes = 1280 per warp,
-    5120 per 4-warp block, 65536 / 5120 = 12 blocks, 48 warps; sm_75's own 42 registers
-    (1536 per warp: 10 blocks, 40 warps) are not used."""
+    """A Kepler GPU holds the warps its sm_35 code's registers allow (GK104 through
+    ``registers_arch``), whatever code it is costed with (here sm_75's): 40 registers x 32
+    lanes = 1280 per warp, 5120 per 4-warp block, 65536 / 5120 = 12 blocks, 48 warps;
+    sm_75's own 42 registers (1536 per warp: 10 blocks, 40 warps) are not used."""
     g = get_gpu(gpu_id)
     scheme = get_scheme("speculative_dynamic_fetch")
     sm35 = load_ir(scheme.kernel, "sm_35", "published")

@@ -10,6 +10,7 @@ import pytest
 from test_cli import SMALL, assert_clean_error, run_cli
 
 import kernels_ir
+from kernels_ir.kepler import KEPT_LISTINGS
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.gpus import executed_on, get_gpu, load_gpus
 
@@ -78,7 +79,7 @@ def test_packaged_table_has_every_gpu_with_sane_figures() -> None:
     for gpu in gpus.values():
         assert gpu.warp_size == 32
         assert gpu.sms > 0 and gpu.clock_mhz > 0 and gpu.issue_rate > 0
-        assert gpu.ir_arch in ("sm_75", "sm_80", "sm_89", "sm_90")
+        assert gpu.ir_arch in ("sm_35", "sm_75", "sm_80", "sm_89", "sm_90")
         assert gpu.source
         # the occupancy limits are the ones the source cites (CUDA C Programming Guide)
         assert f"{gpu.max_warps_per_sm} warps, {gpu.max_blocks_per_sm} blocks" in gpu.source
@@ -248,6 +249,18 @@ def test_kepler_pairs_by_its_compilers_marks_and_no_other_gpu_does() -> None:
     assert {pairing["gtx680"], pairing["titan"]} == {"sm_35"}
     assert all(g.dispatch == 2 for g in load_gpus().values() if g.pairing_arch)
     assert get_gpu("gtx680").figures()["pairing_arch"] == "sm_35"
+
+
+def test_kepler_is_costed_with_the_kepler_code_the_walker_checks() -> None:
+    """GTX 680 and Titan are costed with the committed sm_35 IR, whose counts the SASS walk
+    checks (the kept listing of the addendum's Kepler class, speculative dynamic fetch,
+    is what their published rows are costed as); GT200 and Fermi, whose code no kept
+    compiler emits, with sm_75's."""
+    arch = {g.id: g.ir_arch for g in load_gpus().values()}
+    assert (arch["gtx680"], arch["titan"]) == ("sm_35", "sm_35")
+    assert (arch["gtx285"], arch["gtx480"]) == ("sm_75", "sm_75")
+    assert "speculative_dynamic_fetch" in KEPT_LISTINGS
+    assert "SASS walker checks" in get_gpu("titan").source
 
 
 def test_a_gpu_without_independent_scheduling_runs_no_convergence_spin() -> None:
