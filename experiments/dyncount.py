@@ -76,7 +76,6 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", default="room,cornell-box,conference")
     ap.add_argument("--warps", type=int, default=WARPS)
-    ap.add_argument("--kernels", default=",".join(KERNELS))
     ap.add_argument("--arch", choices=("sm_75", "sm_35"), default="sm_75")
     ap.add_argument("--cuda11", type=Path, help="CUDA 11.8's bin directory (for --arch sm_35)")
     ap.add_argument("--no-write", action="store_true", help="print only")
@@ -85,7 +84,6 @@ def main(argv: list[str] | None = None) -> int:
     if kepler and args.cuda11 is None:
         ap.error("--arch sm_35 needs --cuda11 DIR (CUDA 11.8's ptxas and nvdisasm)")
     gpu = KEPLER_GPU if kepler else DEFAULT_GPU
-    kernels = tuple(args.kernels.split(","))
     walked = walked_schemes()
     rows, blocks = [], []
     t0 = time.perf_counter()
@@ -93,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         for ray_type in TRACE_RAY_TYPES:
             wl = make_workload(scene, ray_type, cameras="0", resolution=RESOLUTION, spp=SPP)
             rays = wl.rays.take(pick_warps(len(wl.rays.tmin), args.warps))
-            for kernel in kernels:
+            for kernel in KERNELS:
                 d = compare_counts(
                     walked[kernel], scene, wl.bvh, rays, gpu_id=gpu, arch=args.arch,
                     cuda11=args.cuda11,
@@ -113,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     per_block = pd.DataFrame(blocks)
     walked = table.groupby("kernel")["walk"].sum()
     share = per_block.groupby(["kernel", "block"])["diff"].sum().unstack(fill_value=0)
-    share = share.div(walked, axis=0).mul(100).round(1).reindex(kernels)
+    share = share.div(walked, axis=0).mul(100).round(1).reindex(KERNELS)
     share = share.loc[:, (share.abs() >= 0.1).any(axis=0)]
     seconds = time.perf_counter() - t0
     command = (

@@ -48,6 +48,7 @@ from kernels_ir.sass import (
     classify,
     pops_stack,
     stack_pop,
+    without_pop_note,
 )
 
 
@@ -112,13 +113,10 @@ class Decoded:
     """A Kepler stack pop (``BRK``, an instruction with ``.S``)."""
 
 
-_POP_NOTE = re.compile(r'\s*\(\*"TARGET=[^"]*"\*\)')
-
-
 def _decode(instructions: Sequence[SassInstruction]) -> list[Decoded]:
     out = []
     for ins in instructions:
-        opcode, ops = split_operands(_POP_NOTE.sub("", ins.text))
+        opcode, ops = split_operands(without_pop_note(ins.text))
         guard = split_operands(f"X {ins.guard}")[1][0] if ins.guard else None
         counted = classify(opcode) is not None
         out.append(Decoded(ins, base_opcode(opcode), opcode, tuple(ops), guard, counted,

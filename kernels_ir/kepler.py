@@ -103,18 +103,23 @@ def retarget(ptx: str, arch: str = KEPLER_ARCH) -> str:
 
 
 def _compile(
-    kernel: str, tests: str, cuda11_bin: Path, work: Path, cuda_dir: Path = CUDA_DIR
+    kernel: str, tests: str, tools: tuple[Path, Path, Path], work: Path, cuda_dir: Path = CUDA_DIR
 ) -> tuple[str, bytes, str]:
-    """One kernel's sm_35 listing (``nvdisasm -c -hex -g -gi``), cubin and ptxas report."""
-    ptxas, nvdisasm = kepler_tools(cuda11_bin)
+    """One kernel's sm_35 listing (``nvdisasm -c -hex -g -gi``), cubin and ptxas report,
+    with ``tools`` nvcc 13, then CUDA 11.8's ptxas and nvdisasm."""
+    nvcc, ptxas, nvdisasm = tools
     ptx, cubin = work / f"{kernel}.{tests}.ptx", work / f"{kernel}.{tests}.cubin"
-    nvcc = find_toolchain().nvcc
     run_tool([str(nvcc), *PTX_FLAGS, *TEST_DEFINES[tests], "-o", str(ptx), f"{kernel}.cu"],
              cuda_dir)  # fmt: skip
     ptx.write_text(retarget(ptx.read_text()))
     proc = run_tool([str(ptxas), *PTXAS_FLAGS, "-o", str(cubin), str(ptx)], cuda_dir)
     listing = run_tool([str(nvdisasm), "-c", "-hex", "-g", "-gi", str(cubin)], cuda_dir).stdout
     return listing, cubin.read_bytes(), proc.stdout + proc.stderr
+
+
+def constant_bank2(cubin: bytes, kernel: str) -> bytes:
+    """The constants ptxas put in ``kernel``'s bank 2 (the stack's sentinel, masks)."""
+    return elf_section(cubin, f".nv.constant2.{kernel}")
 
 
 def elf_section(elf: bytes, name: str) -> bytes:
@@ -141,9 +146,10 @@ def compile_listing(
 ) -> tuple[list[SassInstruction], bytes]:
     """``kernel``'s sm_35 instructions as :func:`build` compiles them, and the constant
     bank 2 they read (the compiler's ``.nv.constant2`` section), for the SASS walker."""
+    tools = (find_toolchain().nvcc, *kepler_tools(cuda11_bin))
     with tempfile.TemporaryDirectory(prefix="kernels_ir_kepler_") as tmp:
-        listing, cubin, _ = _compile(kernel, tests, cuda11_bin, Path(tmp), cuda_dir)
-    return kernel_instructions(listing, kernel), elf_section(cubin, f".nv.constant2.{kernel}")
+        listing, cubin, _ = _compile(kernel, tests, tools, Path(tmp), cuda_dir)
+    return kernel_instructions(listing, kernel), constant_bank2(cubin, kernel)
 
 
 def listing_filename(kernel: str) -> str:
@@ -158,7 +164,7 @@ def listing_document(kernel: str, listing: str, cubin: bytes, compiler: str) -> 
     return {
         "kernel": kernel, "arch": KEPLER_ARCH, "tests": DEFAULT_TESTS,
         "source_sha256": source_sha256(kernel), "compiler": compiler,
-        "constant2": elf_section(cubin, f".nv.constant2.{kernel}").hex(), "listing": lines,
+        "constant2": constant_bank2(cubin, kernel).hex(), "listing": lines,
     }  # fmt: skip
 
 
@@ -194,6 +200,7 @@ def build(cuda11_bin: Path) -> tuple[dict, dict[str, dict]]:
     compiler = (
         f"{nvcc.version} PTX (compute_75, ISA {PTX_ISA}), {_version(ptxas)}, {_version(nvdisasm)}"
     )
+    tools = (nvcc.nvcc, ptxas, nvdisasm)
     kernels: dict[str, dict] = {}
     docs: dict[Path, dict] = {}
     with tempfile.TemporaryDirectory(prefix="kernels_ir_kepler_") as tmp:
@@ -201,7 +208,7 @@ def build(cuda11_bin: Path) -> tuple[dict, dict[str, dict]]:
         for kernel in KERNELS:
             entry: dict = {"source_sha256": source_sha256(kernel)}
             for tests in TESTS:
-                listing, cubin, report = _compile(kernel, tests, cuda11_bin, work)
+                listing, cubin, report = _compile(kernel, tests, tools, work)
                 if kernel in KEPT_LISTINGS and tests == DEFAULT_TESTS:
                     docs[LISTING_DIR / listing_filename(kernel)] = listing_document(
                         kernel, listing, cubin, compiler

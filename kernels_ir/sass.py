@@ -25,6 +25,7 @@ _LABEL = re.compile(r"^(?P<name>\.L[\w$.]*):\s*$")
 _TARGET = re.compile(r"`\((?P<name>[\w$.]+)\)")
 #: nvdisasm's note of where a pre-Volta stack pop (``NOP.S``, ``BRK``) sends its lanes
 _POP_TARGET = re.compile(r"TARGET= (?P<name>[\w$.]+) ")
+_POP_NOTE = re.compile(r'\s*\(\*"TARGET=[^"]*"\*\)')
 _LINE = re.compile(r'^\s*//## File "(?P<file>[^"]*)", line (?P<line>\d+)(?P<rest>.*)$')
 _INLINED = re.compile(r'inlined at "(?P<file>[^"]*)", line (?P<line>\d+)')
 _INSN = re.compile(r"^\s*/\*(?P<off>[0-9a-f]{4,})\*/\s+(?P<text>[^;]*);")
@@ -117,6 +118,11 @@ def stack_pop(ins: SassInstruction) -> bool:
     with the ``.S`` flag (sm_35). Its lanes go on at the label that the matching ``PBK`` or
     ``SSY`` pushed, which nvdisasm notes beside it, so for control flow it is a branch."""
     return pops_stack(ins.opcode) and _POP_TARGET.search(ins.text) is not None
+
+
+def without_pop_note(text: str) -> str:
+    """An instruction's text without nvdisasm's note of where a stack pop goes."""
+    return _POP_NOTE.sub("", text)
 
 
 def branch_target(ins: SassInstruction) -> str | None:
