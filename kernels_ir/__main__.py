@@ -112,7 +112,8 @@ def main(argv: list[str] | None = None) -> int:
         help="lanes that went different ways issue apart until a convergence barrier, as "
         "on a GPU with independent thread scheduling (default: lanes at one address issue "
         "together, each barrier once per region, and the replay's per-group barrier "
-        "issues, reconverge, are left out)",
+        "issues, reconverge, are left out; sm_35 code always runs as its reconvergence "
+        "stack runs it)",
     )
     args = parser.parse_args(argv)
     if args.cmd == "dyncount":

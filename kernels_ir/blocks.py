@@ -45,7 +45,14 @@ from kernels_ir.kernel_ir import (
     STEP_OUTCOMES,
     TAKEN_BLOCKS,
 )
-from kernels_ir.sass import SassInstruction, base_opcode, branch_target, classify, region_end
+from kernels_ir.sass import (
+    SassInstruction,
+    base_opcode,
+    branch_target,
+    classify,
+    region_end,
+    stack_pop,
+)
 
 UNATTRIBUTED = "unattributed"
 _MARKER = re.compile(r"^\s*//\s*@(?P<kind>block|end)\b\s*(?P<name>\w*)\s*$")
@@ -593,7 +600,8 @@ class Placement(NamedTuple):
     ``shared``: the indices of code that two outcomes of a node step run in common
     (:func:`shared_outcomes`), each with every outcome it is charged to (``block`` is the
     first). ``rounds``: the blocks of loops that go round through a convergence barrier
-    the loop around them also closes at (:attr:`kernels_ir.kernel_ir.KernelIR.rounds`).
+    (or, in pre-Volta code, a stack pop's join) the loop around them also closes at
+    (:attr:`kernels_ir.kernel_ir.KernelIR.rounds`).
     """
 
     block: list[str]
@@ -688,6 +696,8 @@ def place_instructions(
     charged = {block[i] for i in kernel} | {o for outcomes in shared.values() for o in outcomes}
     run_elsewhere = frozenset(marked - charged - {None})
     full_warp = frozenset(full_warp_only(instructions))
+    # pre-Volta lanes wait where a stack pop sends them: the join is a pop's target
+    popped_to = {branch_target(instructions[i]) for i in kernel if stack_pop(instructions[i])}
     rounds = frozenset(
         block[kernel[cfg.starts[loop.header]]]
         for loop in cfg.loops.values()
@@ -695,6 +705,9 @@ def place_instructions(
             base_opcode(instructions[kernel[j]].opcode) == "BSYNC"
             for b in loop.joins
             for j in range(cfg.starts[b], cfg.last(b) + 1)
+        )
+        or any(
+            popped_to.intersection(instructions[kernel[cfg.starts[b]]].labels) for b in loop.joins
         )
     )
     return Placement(

@@ -14,9 +14,12 @@ executing lanes are not all of the warp's live lanes. Kepler (sm_35) code has no
 but a reconvergence stack: ``SSY`` and ``PBK`` push a point where the lanes that execute
 them meet again, an instruction with the ``.S`` flag sends its lanes to the innermost
 ``SSY``'s point and ``BRK`` to the innermost ``PBK``'s (popping any ``SSY`` above it),
-and lanes wait there until no live lane still holds that entry. The result is a count
-per SASS instruction, which :func:`kernels_ir.blocks.place_instructions` groups into
-counts per block.
+and lanes wait there until no live lane still holds that entry. Lanes that part at a
+branch there issue apart until such an entry releases them together, whatever addresses
+they pass: the stack runs one path to its pop, then the other, and never merges two by
+address (the speculative kernel's two ways into its leaf loop run it twice). The result
+is a count per SASS instruction, which :func:`kernels_ir.blocks.place_instructions`
+groups into counts per block.
 """
 
 from __future__ import annotations
@@ -206,18 +209,20 @@ def run_warp(
     reconvergence, the default). Without it, lanes that went different ways run as separate
     groups until a convergence barrier (``BSYNC``, ``WARPSYNC``) or an ``EXIT`` brings them
     together, as a GPU with independent thread scheduling need not merge them sooner; the
-    group that issued last goes on while it can.
+    group that issued last goes on while it can. Kepler code always runs so (``merge``
+    must be true), its groups rejoining where a stack entry releases them.
 
     Raises
     ------
     KernelIRError
         On an unmodelled opcode, a memory access outside the buffers, a deadlock (lanes
         waiting on a barrier no other lane can reach), a stack pop that goes elsewhere
-        than nvdisasm says, a runaway warp, or unmerged lanes in Kepler code (which has
-        no independent thread scheduling).
+        than nvdisasm says, a runaway warp, or ``merge`` false for Kepler code (whose
+        stack alone decides its schedule).
     """
     if not merge and program.arch == KEPLER_ARCH:
-        raise KernelIRError("Kepler code runs merged: pre-Volta GPUs schedule a warp as one")
+        raise KernelIRError("Kepler code has one schedule, its reconvergence stack's")
+    apart = not merge or program.arch == KEPLER_ARCH  # groups part at branches
     s = LaneState(const, memory, LOCAL_BYTES // 4, ctaid=ctaid, const2=program.const2)
     code = program.code
     n = len(code)
@@ -229,7 +234,7 @@ def run_warp(
     barrier = np.zeros((16, LANES), bool)
     steps = 0
     lane_ids = np.arange(LANES)
-    together = np.zeros(LANES, np.int64)  # without merge: lanes of one id issue together
+    together = np.zeros(LANES, np.int64)  # apart: lanes of one id issue together
     current = 0  # the id of the group that issued last
     stacks: list[list[_Entry]] = [[] for _ in range(LANES)]  # Kepler's reconvergence stack
     parked = np.full(LANES, -1, np.int64)  # the entry a popped lane waits at
@@ -251,7 +256,9 @@ def run_warp(
                 together[w] = together.max() + 1
         for entry in set(parked[parked >= 0].tolist()):
             if not any(e.id == entry for lane in lane_ids[alive] for e in stacks[lane]):
-                parked[parked == entry] = -1  # every lane that held it is there
+                w = parked == entry  # every lane that held it is there: one group again
+                parked[w] = -1
+                together[w] = together.max() + 1
 
     while True:
         runnable = alive & (waiting < 0) & (parked < 0)
@@ -263,7 +270,7 @@ def run_warp(
         steps += 1
         if steps > MAX_STEPS:
             raise KernelIRError(f"{program.kernel}: warp still running after {MAX_STEPS} issues")
-        if not merge:
+        if apart:
             mine = runnable & (together == current)
             if not mine.any():  # the last group is blocked or done: the lowest address goes
                 current = int(together[runnable][np.argmin(pc[runnable])])
@@ -307,7 +314,7 @@ def run_warp(
                     take = take & held
             pc[group] += 1
             pc[take] = program.target(d.operands[-1])
-            if not merge and take.any() and (group & ~take).any():  # the group splits
+            if apart and take.any() and (group & ~take).any():  # the group splits
                 together[take] = together.max() + 1
         elif op == "EXIT":
             alive &= ~m

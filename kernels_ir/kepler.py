@@ -59,9 +59,10 @@ PTX_FLAGS = ("-arch=compute_75", "--ptx", "-O3", "-lineinfo", "-std=c++17")
 PTXAS_FLAGS = (f"-arch={KEPLER_ARCH}", "-O3", "-v")
 PTX_ISA = "7.8"
 LISTING_DIR = Path(__file__).resolve().parent / "listings"
-KEPT_LISTINGS = ("while_while", "speculative_dynamic_fetch")
-"""Kernels whose sm_35 listing (default tests) is kept: the simplest kernel and the Kepler
-class the GTX 680's and Titan's published rows are costed as."""
+KEPT_LISTINGS = ("while_while", "speculative_dynamic_fetch", "persistent_speculative_while_while")
+"""Kernels whose sm_35 listing (default tests) is kept: the simplest kernel, the Kepler
+class the GTX 680's and Titan's published rows are costed as, and the kernel whose
+traversal loop a Kepler GPU runs in rounds (``KernelIR.rounds``)."""
 _HEX = re.compile(r"\s*/\* 0x[0-9a-f]{16} \*/")
 _FILE = re.compile(r'(File ")[^"]*/([^"/]+")')
 

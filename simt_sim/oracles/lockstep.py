@@ -31,9 +31,9 @@ an interior node to step, a leaf to enter, a triangle to test, or nothing):
   processes each lane's postponed leaf and, like while-while, any leaves that follow
   (``leaf_entry``, lockstep ``tri_test``). Traversal uses the lane's *current* ``tmax``,
   so a lane may step nodes its recorded stream skipped, and an any-hit lane may traverse
-  past its terminating leaf. Where the IR's traversal loop goes round through a barrier
-  the leaf loop's lanes also reach (``KernelIR.rounds``) on a GPU with independent
-  thread scheduling, the same steps run in rounds, as the replay's ``spec_rounds``.
+  past its terminating leaf. Where the IR's traversal loop goes round through a join the
+  leaf loop's lanes also reach (``KernelIR.rounds``) on a GPU that waits there
+  (``runs_in_rounds``), the same steps run in rounds, as the replay's ``spec_rounds``.
 - ``speculative_dynamic_fetch`` (the 2012 addendum's Kepler kernel): that speculative
   iteration on ``resident_warps`` warps sharing the batch's ray pool. The warp that has
   issued the fewest instructions so far runs its next iteration (ties: the lowest id),

@@ -19,10 +19,11 @@ group, the outer loop body mirrors the speculative kernel of Aila & Laine:
 One outer iteration is :func:`spec_outer_step`, shared with speculative dynamic fetch,
 which runs the same kernel body between refills.
 
-Where the compiled traversal loop goes round through a barrier that the lanes in the
-leaf loop also reach (sm_80 on: ``KernelIR.rounds``) and the GPU schedules threads
-independently, the lanes that left the loop wait there for the others' next step, and
-the warp runs in rounds instead (:func:`spec_rounds`; ``ReplayParams.rounds``).
+Where the compiled traversal loop goes round through a join that the lanes in the leaf
+loop also reach (``KernelIR.rounds``: a barrier from sm_80 on, a stack entry on sm_35) and
+the GPU waits there (:func:`~simt_sim.simt.gpus.runs_in_rounds`), the lanes that left
+the loop wait there for the others' next step, and the warp runs in rounds instead
+(:func:`spec_rounds`; ``ReplayParams.rounds``).
 
 Every group of lanes that reaches a convergence barrier apart issues it (``reconverge``),
 as in while-while: a step's outcomes, the postpone test, the traversal loop's exit

@@ -594,9 +594,9 @@ class ReplayParams:
     scheme : mapping
         The scheme's own parameters (``SchemeInfo.params`` with the caller's values).
     rounds : bool
-        The traversal loop goes round through a convergence barrier the lanes outside it
-        also reach, so the warp runs it in rounds (``KernelIR.rounds`` holds
-        ``trav_step``, on a GPU with independent thread scheduling).
+        The traversal loop goes round through a join the lanes outside it also reach and
+        the GPU waits there, so the warp runs it in rounds (``KernelIR.rounds`` holds
+        ``trav_step``: :func:`~simt_sim.simt.gpus.runs_in_rounds`).
     any_hit : bool
         The launch's rays end at their first hit (an ``"any"`` query), leaving their loops
         by the kernel's break on a hit, not by its loop exit (the cwbvh triangle loop's).

@@ -255,10 +255,13 @@ def executed_on(ir: KernelIR, gpu: GpuConfig) -> KernelIR:
 
 def runs_in_rounds(ir: KernelIR, gpu: GpuConfig) -> bool:
     """Whether ``gpu`` runs ``ir``'s traversal loop in rounds: its code closes each
-    iteration at a convergence barrier the lanes outside the loop also reach
-    (``KernelIR.rounds``), and the GPU schedules threads independently, so lanes wait
-    there (a GPU that reconverges on a stack has no such barrier)."""
-    return gpu.independent_thread_scheduling and "trav_step" in ir.rounds
+    iteration where the lanes outside the loop also arrive (``KernelIR.rounds``), and
+    the GPU makes them wait there. A convergence barrier (``BSYNC``, Volta's code on)
+    waits on a GPU that schedules threads independently; a reconvergence-stack entry
+    (``SSY``, Kepler's code) on one that does not."""
+    m = _ARCH.fullmatch(ir.arch)
+    barrier_code = m is not None and int(m.group(1)) >= ITS_FIRST_ARCH
+    return "trav_step" in ir.rounds and gpu.independent_thread_scheduling == barrier_code
 
 
 def _lanes(value: dict, label: str) -> tuple[tuple[str, int], ...]:

@@ -305,7 +305,8 @@ def compare_counts(
     lanes at one address issue together, as ideal reconvergence would, so each barrier
     is issued once per region and the replay's and executor's ``reconverge`` (issues by
     groups that arrive apart) are left out; without it lanes issue apart until a barrier
-    joins them, as a GPU with independent thread scheduling may run them.
+    joins them, as a GPU with independent thread scheduling may run them. Kepler code
+    runs as its reconvergence stack runs it (:func:`kernels_ir.emulate.run_warp`).
     """
     if not isinstance(scheme, SchemeInfo):
         scheme = schemes.get_scheme(scheme)
@@ -329,7 +330,9 @@ def compare_counts(
             f"another --gpu ({KEPLER_GPU if kepler_code else DEFAULT_GPU})"
         )
     if kepler_code and not merge:
-        raise SimtSimError("Kepler code runs merged (no --split): its warps issue as one")
+        raise SimtSimError(
+            "Kepler code has one schedule, its reconvergence stack's: leave out --split"
+        )
     kernel = scheme.kernel
     tree = make_tree(bvh, scheme.layout)
     run = walk_kernel(

@@ -142,9 +142,46 @@ def test_a_pop_that_goes_elsewhere_than_nvdisasm_says_is_refused() -> None:
         kepler_program(["PBK `(.L_x_1)", "BRK", ".L_x_1:", "EXIT"])
 
 
-def test_kepler_code_runs_merged_only() -> None:
+def test_paths_that_meet_before_their_pop_issue_apart() -> None:
+    """A stack runs one path of a branch to its pop, then the other: two paths that reach
+    one address before it (the speculative kernel's two ways into its leaf loop) issue it
+    apart, and only the entry's release joins them."""
+    result = run([
+        "S2R R0, SR_LANEID",
+        "ISETP.GE.AND P0, PT, R0, 0x10, PT",
+        "SSY `(.L_x_1)",
+        "@P0 BRA `(.L_x_0)",
+        "FADD R4, R4, 1",
+        ".L_x_0:",
+        "FADD R5, R5, 1",
+        "NOP.S -> .L_x_1",
+        ".L_x_1:",
+        "EXIT",
+    ])  # fmt: skip
+    assert result.issued.tolist() == [1, 1, 1, 1, 1, 2, 2, 1]
+    assert result.lanes[4:].tolist() == [16, 32, 32, 32]
+
+
+def test_lanes_that_leave_a_loop_apart_each_issue_its_exit_pop() -> None:
+    # lane i runs i + 1 iterations and leaves by the branch's fall-through to the pop
+    result = run([
+        "S2R R0, SR_LANEID",
+        "SSY `(.L_x_1)",
+        ".L_x_0:",
+        "IADD32I R0, R0, -0x1",
+        "ISETP.GE.AND P0, PT, R0, RZ, PT",
+        "@P0 BRA `(.L_x_0)",
+        "NOP.S -> .L_x_1",
+        ".L_x_1:",
+        "EXIT",
+    ])  # fmt: skip
+    assert result.issued.tolist() == [1, 1, 32, 32, 32, 32, 1]
+    assert result.lanes[5] == 32 and result.lanes[6] == 32
+
+
+def test_kepler_code_has_one_schedule() -> None:
     const = constant_bank("sm_35", {"out": (0, 8)}, {"out": 0}, block_dim=32, grid_dim=1)
-    with pytest.raises(KernelIRError, match="runs merged"):
+    with pytest.raises(KernelIRError, match="one schedule"):
         run_warp(kepler_program(["EXIT"]), const, GlobalMemory(), ctaid=0, merge=False)
 
 

@@ -23,7 +23,7 @@ from simt_sim.errors import SimtSimError
 from simt_sim.oracles.reference import reference_replay
 from simt_sim.schemes import SCHEMES, get_scheme
 from simt_sim.simt.engine import Counts, ReplayParams
-from simt_sim.simt.gpus import GpuConfig, issue_limited
+from simt_sim.simt.gpus import ITS_ONLY_BLOCKS, GpuConfig, issue_limited
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import SimResult, check_ir
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
@@ -310,6 +310,30 @@ def test_a_pre_volta_gpu_runs_the_rounds_code_in_phases() -> None:
     phases = simulate_traces([trace], get_scheme(SPECULATIVE), rounds_ir(SPECULATIVE), pre_volta)
     assert phases.executions["loop_control"] == 1 and phases.executions["leaf_entry"] == 2
     assert phases.block_instructions["reconverge"] == 0
+
+
+def test_a_pre_volta_gpu_runs_stack_code_that_closes_at_a_join_in_rounds() -> None:
+    """sm_35 code closes the traversal loop at the join an ``SSY`` names, which the leaf
+    loop's lanes also reach, and a stack keeps the lanes that popped there waiting: a GPU
+    without independent thread scheduling runs it in the same rounds as a Volta runs
+    sm_90's, its groups' arrivals at the join (and the vote's divergent-warp fallback)
+    costing nothing. A Volta given stack
+    code (and a Kepler given barrier code) runs phases: neither waits at the other's join."""
+    trace = trace_from_lists(CASE_SPECULATIVE)
+    scheme = get_scheme(SPECULATIVE)
+    kepler, volta = replace(gpu_for(2), arch="sm_30"), gpu_for(2)
+    stack_code = replace(rounds_ir(SPECULATIVE), arch="sm_35")
+    stack = simulate_traces([trace], scheme, stack_code, kepler)
+    barrier = simulate_traces([trace], scheme, rounds_ir(SPECULATIVE), volta)
+    assert stack.model_card["traversal_rounds"] and barrier.model_card["traversal_rounds"]
+    assert stack.executions == barrier.executions
+    for b, n in barrier.block_instructions.items():
+        assert stack.block_instructions[b] == (0 if b in ITS_ONLY_BLOCKS else n), b
+    assert barrier.block_instructions["reconverge"] > 0
+    for gpu, ir in ((volta, stack_code), (kepler, rounds_ir(SPECULATIVE))):
+        phases = simulate_traces([trace], scheme, ir, gpu)
+        assert not phases.model_card.get("traversal_rounds", False)
+        assert phases.executions["loop_control"] == 1 and phases.executions["leaf_entry"] == 2
 
 
 @pytest.mark.parametrize(("warp_size", "any_hit"), [(32, False), (4, True)])

@@ -12,7 +12,7 @@ from test_cli import SMALL, assert_clean_error, run_cli
 import kernels_ir
 from kernels_ir.kepler import KEPT_LISTINGS
 from simt_sim.errors import SimtSimError
-from simt_sim.simt.gpus import executed_on, get_gpu, load_gpus
+from simt_sim.simt.gpus import executed_on, get_gpu, load_gpus, runs_in_rounds
 
 IDS = ("gtx285", "gtx480", "gtx680", "titan", "rtx2080ti", "a100", "rtx4090", "h100", "h200")
 
@@ -275,3 +275,28 @@ def test_a_gpu_without_independent_scheduling_runs_no_convergence_spin() -> None
         assert pre_volta.cost("trav_step") == ir.cost("trav_step") - spin
         assert pre_volta.cost("trav_diverged") == 0
     assert executed_on(ir, get_gpu("rtx2080ti")) is ir
+
+
+def test_each_gpu_runs_the_speculative_loop_in_rounds_where_its_own_code_waits() -> None:
+    """Persistent speculative while-while's traversal loop closes at a join its leaf
+    loop's lanes also reach in sm_35 code (a stack entry) and sm_80 on (a barrier): the
+    Kepler GPUs and the Ampere and later ones run it in rounds with their code; GT200,
+    Fermi and Turing, costed with sm_75's latch per loop, do not; neither kind of GPU waits
+    at the other kind's join."""
+    kernel = "persistent_speculative_while_while"
+    rounds = {
+        g.id: runs_in_rounds(kernels_ir.load(kernel, g.ir_arch), g) for g in load_gpus().values()
+    }
+    assert {g for g, r in rounds.items() if r} == {
+        "gtx680",
+        "titan",
+        "a100",
+        "rtx4090",
+        "h100",
+        "h200",
+    }
+    assert not runs_in_rounds(kernels_ir.load(kernel, "sm_80"), get_gpu("gtx680"))
+    assert not runs_in_rounds(kernels_ir.load(kernel, "sm_35"), get_gpu("a100"))
+    assert not runs_in_rounds(
+        kernels_ir.load("speculative_dynamic_fetch", "sm_35"), get_gpu("titan")
+    )
