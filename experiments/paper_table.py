@@ -136,18 +136,19 @@ def ratio_table(res: dict[tuple[str, str], SimResult], paper: pd.DataFrame) -> p
     return pd.DataFrame(rows)
 
 
-def code_twin(plan: StudyPlan, arch: str) -> StudyPlan:
-    """``plan`` with a twin of its GPU costed with ``arch``'s code added. A re-cost keeps a
-    replay's schedule, and sm_35's code changes the schedule on a GPU without independent
-    thread scheduling: it runs the speculative traversal loop in rounds
-    (:func:`~simt_sim.simt.gpus.runs_in_rounds`), so that column is replayed again."""
+def code_twin(plan: StudyPlan, arch: str) -> tuple[StudyPlan, str]:
+    """``plan`` with a twin of its GPU costed with ``arch``'s code added, and the twin's id.
+    A re-cost keeps a replay's schedule, and sm_35's code changes the schedule on a GPU
+    without independent thread scheduling: it runs the speculative traversal loop in
+    rounds (:func:`~simt_sim.simt.gpus.runs_in_rounds`), so that column is replayed."""
     gpu = plan.gpus[0]
     twin = replace(gpu, id=f"{gpu.id}_{arch}", ir_arch=arch)
     irs = {(k, arch): kernels_ir.load(k, arch, plan.spec.tests) for k, _ in plan.irs}
-    return replace(
+    plan = replace(
         plan, gpus=(*plan.gpus, twin), irs={**plan.irs, **irs},
         memory={**plan.memory, twin.id: plan.memory[gpu.id]},
     )  # fmt: skip
+    return plan, twin.id
 
 
 def arch_sensitivity(
@@ -155,20 +156,24 @@ def arch_sensitivity(
     paper: pd.DataFrame,
     replayed: dict[str, dict[tuple[str, str], SimResult]],
 ) -> pd.DataFrame:
-    """Ratio errors with the same replays re-costed by every architecture's IR.
+    """Ratio errors with the same replays re-costed by every architecture's IR, or replayed
+    with it where its code changes the schedule (``replayed``, by arch: :func:`code_twin`).
 
     The replays do not depend on the costs for these schemes (:meth:`SimResult.recost`),
     so this isolates how much of each ratio's deviation is the compiler's code for one
-    target; ``replayed`` holds the replays of an arch whose code changes the schedule
-    (:func:`code_twin`). Rows: ratio x ray type; columns: arch; values: relative error to
+    target. Rows: ratio x ray type; columns: arch; values: relative error to
     the paper.
     """
     cols = {}
     for arch in kernels_ir.ALL_ARCHS:
-        recosted = replayed.get(arch) or {
-            key: r.recost(kernels_ir.load(r.model_card["ir_kernel"], arch))
-            for key, r in res.items()
-        }
+        recosted = (
+            replayed[arch]
+            if arch in replayed
+            else {
+                key: r.recost(kernels_ir.load(r.model_card["ir_kernel"], arch))
+                for key, r in res.items()
+            }
+        )
         cols[arch] = ratio_table(recosted, paper).set_index(["ratio", "ray_type"])["rel_error"]
     return pd.DataFrame(cols)
 
@@ -347,9 +352,9 @@ def main(argv: list[str] | None = None) -> int:
         build=PROTOCOL_BUILD,
     )
     t0 = time.perf_counter()
-    plan = code_twin(plan_study(spec), kernels_ir.KEPLER_ARCH)
+    plan, twin = code_twin(plan_study(spec), kernels_ir.KEPLER_ARCH)
     results, _ = run_plan(plan, progress=not args.quiet and sys.stderr.isatty())
-    stack = {(r.scheme, r.ray_type): r for r in results if r.gpu.id != args.gpu}
+    stack = {(r.scheme, r.ray_type): r for r in results if r.gpu.id == twin}
     results = [r for r in results if r.gpu.id == args.gpu]
     res = {(r.scheme, r.ray_type): r for r in results}
 
@@ -687,8 +692,9 @@ def render(
         f"`{r0.model_card['ir_arch']}`, the oldest target "
         f"{compiler_name(r0.model_card['ir_arch'])} offers). What moves "
         "between columns is the compiler's code alone; `sm_35`'s column is replayed "
-        "again, since on the GTX 285 that code also changes the schedule (persistent "
-        "speculative while-while runs its traversal loop in rounds, `KernelIR.rounds`). "
+        "with that code, since on a GPU without independent thread scheduling it also "
+        "changes the schedule (persistent speculative while-while runs its traversal "
+        "loop in rounds, `KernelIR.rounds`). "
         "`sm_35` is Kepler code: the same "
         "PTX assembled by CUDA 11.8, the last compiler for Kepler (`python -m kernels_ir "
         "kepler`). It is the one pre-Volta target at hand, as the GTX 285 was: no "

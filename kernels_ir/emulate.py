@@ -221,7 +221,9 @@ def run_warp(
         stack alone decides its schedule).
     """
     if not merge and program.arch == KEPLER_ARCH:
-        raise KernelIRError("Kepler code has one schedule, its reconvergence stack's")
+        raise KernelIRError(
+            "Kepler code has one schedule, its reconvergence stack's: leave out --split"
+        )
     apart = not merge or program.arch == KEPLER_ARCH  # groups part at branches
     s = LaneState(const, memory, LOCAL_BYTES // 4, ctaid=ctaid, const2=program.const2)
     code = program.code

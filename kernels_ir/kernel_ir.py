@@ -198,7 +198,7 @@ class KernelIR:
     def rounds(self) -> frozenset[str]:
         """The own blocks of loops that go round through a join the loop around them
         also closes at (``kernels_ir.cfg.Loop.joins`` holding a ``BSYNC``, or in sm_35
-        code where a stack pop sends lanes to the ``SSY``'s label): lanes that left such
+        code starting where a stack pop, ``.S`` or ``BRK``, sends its lanes): lanes that left such
         a loop rejoin the others at its every iteration, so the warp runs it in rounds
         (``trav_step``: sm_35's and sm_80 and later's persistent speculative
         while-while)."""

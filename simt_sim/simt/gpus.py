@@ -46,9 +46,10 @@ CLOCKS = ("shader", "sm")
 #: ``__any`` was one instruction for any warp
 ITS_FIRST_ARCH = 70
 #: the blocks only a GPU with independent thread scheduling runs: the vote's fallback, a
-#: convergence barrier issued again by lanes that reach it apart (pre-Volta GPUs rejoin
-#: lanes on a stack, with no instruction), and the convergence spins nvcc puts before a
-#: full-warp vote (``kernels_ir.SPIN_BLOCKS``); spins inside other blocks are ``KernelIR.spins``
+#: convergence barrier issued again by lanes that reach it apart (pre-Volta code has no
+#: barrier: its lanes rejoin at a stack entry, each group issuing its own pop, which its
+#: block's cost holds), and the convergence spins nvcc puts before a full-warp vote
+#: (``kernels_ir.SPIN_BLOCKS``); spins inside other blocks are ``KernelIR.spins``
 ITS_ONLY_BLOCKS = ("trav_diverged", RECONVERGE, *SPIN_BLOCKS)
 _ARCH = re.compile(r"sm_(\d+)")
 
@@ -218,8 +219,7 @@ class GpuConfig:
     def independent_thread_scheduling(self) -> bool:
         """Whether the GPU schedules a warp's threads independently (Volta and later), from
         its architecture (the IR's where it has none of its own)."""
-        m = _ARCH.fullmatch(self.arch or self.ir_arch)
-        return m is not None and int(m.group(1)) >= ITS_FIRST_ARCH
+        return barrier_code(self.arch or self.ir_arch)
 
     def figures(self) -> dict[str, Any]:
         """The figures as a plain dict (for model cards and tables), ``issue_rate`` added
@@ -259,9 +259,15 @@ def runs_in_rounds(ir: KernelIR, gpu: GpuConfig) -> bool:
     the GPU makes them wait there. A convergence barrier (``BSYNC``, Volta's code on)
     waits on a GPU that schedules threads independently; a reconvergence-stack entry
     (``SSY``, Kepler's code) on one that does not."""
-    m = _ARCH.fullmatch(ir.arch)
-    barrier_code = m is not None and int(m.group(1)) >= ITS_FIRST_ARCH
-    return "trav_step" in ir.rounds and gpu.independent_thread_scheduling == barrier_code
+    return "trav_step" in ir.rounds and gpu.independent_thread_scheduling == barrier_code(ir.arch)
+
+
+def barrier_code(arch: str) -> bool:
+    """Whether ``arch`` (``sm_XY``) is Volta's or later: its code rejoins lanes at
+    convergence barriers, its GPUs schedule threads independently; earlier code rejoins
+    them on a reconvergence stack."""
+    m = _ARCH.match(arch)
+    return m is not None and int(m.group(1)) >= ITS_FIRST_ARCH
 
 
 def _lanes(value: dict, label: str) -> tuple[tuple[str, int], ...]:

@@ -32,7 +32,7 @@ from simt_sim.bvh.layout import BVH
 from simt_sim.bvh.layouts import Tree, make_tree
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.lockstep import execute
-from simt_sim.simt.gpus import get_gpu
+from simt_sim.simt.gpus import barrier_code, get_gpu
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.scheme import TRACE, SchemeInfo
 from simt_sim.study.workload import make_workload
@@ -322,16 +322,12 @@ def compare_counts(
             f"the SASS walker runs {', '.join(WALKED_ARCHS)} code, not {arch}: pick another "
             f"--gpu (rtx2080ti, a100, rtx4090; {KEPLER_GPU} with --arch {KEPLER_ARCH})"
         )
-    kepler_code = arch == KEPLER_ARCH
+    kepler_code = not barrier_code(arch)
     if gpu.independent_thread_scheduling == kepler_code:
         raise SimtSimError(
             f"{arch} code runs on a GPU {'without' if kepler_code else 'with'} independent "
             f"thread scheduling, and {gpu_id} has {'it' if kepler_code else 'none'}: pick "
             f"another --gpu ({KEPLER_GPU if kepler_code else DEFAULT_GPU})"
-        )
-    if kepler_code and not merge:
-        raise SimtSimError(
-            "Kepler code has one schedule, its reconvergence stack's: leave out --split"
         )
     kernel = scheme.kernel
     tree = make_tree(bvh, scheme.layout)

@@ -179,6 +179,31 @@ def test_lanes_that_leave_a_loop_apart_each_issue_its_exit_pop() -> None:
     assert result.lanes[5] == 32 and result.lanes[6] == 32
 
 
+def test_a_group_parked_at_a_join_goes_on_when_the_lanes_holding_it_leave() -> None:
+    """The lower half waits at the join for the upper half, which leaves the region
+    another way: by EXIT, or by a BRK that drops the join's entry on its way to the
+    loop's. Either releases the lower half as a group of its own."""
+    for leave in ("EXIT", "BRK -> .L_x_2"):
+        result = run([
+            "S2R R0, SR_LANEID",
+            "PBK `(.L_x_2)",
+            "ISETP.GE.AND P0, PT, R0, 0x10, PT",
+            "SSY `(.L_x_1)",
+            "@P0 BRA `(.L_x_0)",
+            "NOP.S -> .L_x_1",
+            ".L_x_0:",
+            leave,
+            ".L_x_1:",
+            "FADD R6, R6, 1",
+            "BRK -> .L_x_2",
+            ".L_x_2:",
+            "EXIT",
+        ])  # fmt: skip
+        assert result.issued.tolist() == [1] * 10, leave
+        together = 16 if leave == "EXIT" else 32  # lanes that broke meet after the loop
+        assert result.lanes.tolist() == [32, 32, 32, 32, 32, 16, 16, 16, 16, together], leave
+
+
 def test_kepler_code_has_one_schedule() -> None:
     const = constant_bank("sm_35", {"out": (0, 8)}, {"out": 0}, block_dim=32, grid_dim=1)
     with pytest.raises(KernelIRError, match="one schedule"):

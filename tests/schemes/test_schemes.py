@@ -302,23 +302,14 @@ def test_speculative_rounds_by_hand(ops: list[list[int]], table: dict) -> None:
     assert {b: (ref.executions[b], ref.active[b]) for b in BLOCKS if ref.executions[b]} == table
 
 
-def test_a_pre_volta_gpu_runs_the_rounds_code_in_phases() -> None:
-    """A GPU that reconverges on a stack runs the same code in phases, and its barriers'
-    issues by groups apart cost nothing there."""
-    pre_volta = replace(gpu_for(2), arch="sm_13")
-    trace = trace_from_lists(CASE_SPECULATIVE)
-    phases = simulate_traces([trace], get_scheme(SPECULATIVE), rounds_ir(SPECULATIVE), pre_volta)
-    assert phases.executions["loop_control"] == 1 and phases.executions["leaf_entry"] == 2
-    assert phases.block_instructions["reconverge"] == 0
-
-
 def test_a_pre_volta_gpu_runs_stack_code_that_closes_at_a_join_in_rounds() -> None:
     """sm_35 code closes the traversal loop at the join an ``SSY`` names, which the leaf
     loop's lanes also reach, and a stack keeps the lanes that popped there waiting: a GPU
     without independent thread scheduling runs it in the same rounds as a Volta runs
     sm_90's, its groups' arrivals at the join (and the vote's divergent-warp fallback)
-    costing nothing. A Volta given stack
-    code (and a Kepler given barrier code) runs phases: neither waits at the other's join."""
+    costing nothing. A Volta given stack code (and a pre-Volta GPU given barrier code, its
+    barriers' issues by groups apart costing nothing) runs phases: neither waits at the
+    other's join."""
     trace = trace_from_lists(CASE_SPECULATIVE)
     scheme = get_scheme(SPECULATIVE)
     kepler, volta = replace(gpu_for(2), arch="sm_30"), gpu_for(2)
@@ -334,6 +325,7 @@ def test_a_pre_volta_gpu_runs_stack_code_that_closes_at_a_join_in_rounds() -> No
         phases = simulate_traces([trace], scheme, ir, gpu)
         assert not phases.model_card.get("traversal_rounds", False)
         assert phases.executions["loop_control"] == 1 and phases.executions["leaf_entry"] == 2
+        assert (phases.block_instructions["reconverge"] == 0) == (gpu is kepler)
 
 
 @pytest.mark.parametrize(("warp_size", "any_hit"), [(32, False), (4, True)])
