@@ -161,8 +161,7 @@ def arch_sensitivity(
 
     The replays do not depend on the costs for these schemes (:meth:`SimResult.recost`),
     so this isolates how much of each ratio's deviation is the compiler's code for one
-    target. Rows: ratio x ray type; columns: arch; values: relative error to
-    the paper.
+    target. Rows: ratio x ray type; columns: arch; values: relative error to the paper.
     """
     cols = {}
     for arch in kernels_ir.ALL_ARCHS:
