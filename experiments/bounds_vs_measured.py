@@ -19,8 +19,10 @@ from pathlib import Path
 
 import pandas as pd
 
+from kernels_ir import DEFAULT_TESTS
 from simt_sim.report.markdown import splice_file
 from simt_sim.simt.gpus import PIPES, load_gpus
+from simt_sim.study.protocol import PAPER_TESTS
 from simt_sim.study.published import check_published
 from simt_sim.study.sampling import check_fraction
 
@@ -74,8 +76,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=MODEL_CARD)
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    check = check_published(args.sample, "published", progress=sys.stderr.isatty())
-    watertight = check_published(args.sample, "watertight", progress=sys.stderr.isatty())
+    check = check_published(args.sample, PAPER_TESTS, progress=sys.stderr.isatty())
+    watertight = check_published(args.sample, DEFAULT_TESTS, progress=sys.stderr.isatty())
     secs = time.perf_counter() - t0
     print(check.to_string(), file=sys.stderr)
     stamp = (

@@ -19,3 +19,8 @@ PAPER_PROTOCOL = MappingProxyType(
 """The protocol as :class:`~simt_sim.study.spec.StudySpec` fields: every camera at 1024x768,
 32 secondary rays per primary hit, and the tree built with spatial splits, as the paper's
 builder made it (the measured kernels after it ran on such trees too)."""
+
+PAPER_TESTS = "published"
+"""The box and triangle tests Aila & Laine's kernels ran (``kernels_ir.kernel_ir.TESTS``):
+the published bounds and the reproduced table cost the kernels with them, since the
+paper's simulator counted its kernels' instructions and the measured kernels ran them."""

@@ -15,7 +15,7 @@ import pandas as pd
 
 from simt_sim.errors import SimtSimError
 from simt_sim.scene.load import scenes_dir
-from simt_sim.study.protocol import PAPER_PROTOCOL
+from simt_sim.study.protocol import PAPER_PROTOCOL, PAPER_TESTS
 from simt_sim.study.run import run_study
 from simt_sim.study.spec import StudySpec
 from simt_sim.types.raybatch import TRACE_RAY_TYPES
@@ -111,7 +111,7 @@ def bound_check(table: pd.DataFrame, measured: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
-def published_spec(sample: float = 1 / 32, tests: str = "published") -> StudySpec:
+def published_spec(sample: float = 1 / 32, tests: str = PAPER_TESTS) -> StudySpec:
     """The study that simulates every published measurement: Conference at the paper's
     protocol (:data:`~simt_sim.study.protocol.PAPER_PROTOCOL`: all cameras, 1024x768, 32
     secondary rays per hit, the tree with spatial splits), each measured scheme on
@@ -131,7 +131,7 @@ def published_spec(sample: float = 1 / 32, tests: str = "published") -> StudySpe
 
 
 def check_published(
-    sample: float = 1 / 32, tests: str = "published", *, progress: bool = False
+    sample: float = 1 / 32, tests: str = PAPER_TESTS, *, progress: bool = False
 ) -> pd.DataFrame:
     """:func:`bound_check` of a fresh :func:`published_spec` study."""
     _, table = run_study(published_spec(sample, tests), progress=progress)

@@ -12,6 +12,7 @@ import pytest
 
 import kernels_ir
 from simt_sim.simt.gpus import executed_on
+from simt_sim.study.protocol import PAPER_TESTS
 from simt_sim.study.run import run_study
 from simt_sim.study.spec import StudySpec
 
@@ -19,8 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
 import paper_table  # noqa: E402
 
 
-@pytest.fixture(scope="module")
-def results():
+def _study(tests: str) -> dict:
     spec = StudySpec(
         scene="room",
         ray_types=paper_table.RAY_TYPES,
@@ -29,9 +29,22 @@ def results():
         cameras="0",
         resolution=(32, 24),
         spp=2,
+        tests=tests,
     )
     res, _ = run_study(spec, progress=False)
     return {(r.scheme, r.ray_type): r for r in res}
+
+
+@pytest.fixture(scope="module")
+def results():
+    return _study(kernels_ir.DEFAULT_TESTS)
+
+
+@pytest.fixture(scope="module")
+def published_results():
+    """The table's own tests (the paper's kernels'), other than simt-sim's default."""
+    assert PAPER_TESTS != kernels_ir.DEFAULT_TESTS
+    return _study(PAPER_TESTS)
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +64,7 @@ def test_break_even_change_puts_each_ratio_on_the_papers(results, paper) -> None
         num, den = paper_table.RATIOS[row["ratio"]]
         for rt in paper_table.RAY_TYPES:
             r = results[(num, rt)]
-            ir = kernels_ir.load(r.model_card["ir_kernel"], r.model_card["ir_arch"])
+            ir = paper_table._ir_of(r)
             assert executed_on(ir, r.gpu).cost(row["block"]) == row["cost"]
             new_cost = row["cost"] + round(row[rt])
             if new_cost < 0:  # the "less than zero instructions" case: no IR can say it
@@ -121,3 +134,39 @@ def test_calibrated_costs_scale_what_the_gpu_runs(results) -> None:
     for block in ir.blocks:
         assert same.cost(block) == runs.cost(block), block
     assert r.recost(same).warp_instructions == r.warp_instructions
+
+
+def _errors(res, paper) -> pd.Series:
+    return paper_table.ratio_table(res, paper).set_index(["ratio", "ray_type"])["rel_error"]
+
+
+def test_each_target_is_costed_with_the_tables_own_tests(published_results, paper) -> None:
+    """Re-costed with its own target and tests, a replay is itself: the by-target column
+    of the table's target is the table (it was once costed with the default tests)."""
+    r = published_results[("while_while", "primary")]
+    by_arch = paper_table.arch_sensitivity(
+        published_results, paper, {kernels_ir.KEPLER_ARCH: published_results}
+    )
+    own = by_arch[r.model_card["ir_arch"]]
+    assert np.allclose(own.to_numpy(), _errors(published_results, paper).to_numpy())
+
+
+def test_tests_sensitivity_costs_the_same_replays_with_each_set(
+    results, published_results, paper
+) -> None:
+    """The table's tests come first and are the table; the other column is what the
+    other set's IR costs on the same replays: a replay made with those tests, as the
+    tests change costs, not schedules."""
+    by_tests = paper_table.tests_sensitivity(published_results, paper)
+    assert list(by_tests.columns) == [PAPER_TESTS, kernels_ir.DEFAULT_TESTS]
+    assert np.array_equal(
+        by_tests[PAPER_TESTS].to_numpy(), _errors(published_results, paper).to_numpy()
+    )
+    assert np.allclose(
+        by_tests[kernels_ir.DEFAULT_TESTS].to_numpy(), _errors(results, paper).to_numpy()
+    )
+    assert not np.allclose(by_tests[PAPER_TESTS], by_tests[kernels_ir.DEFAULT_TESTS])
+    ww = published_results[("while_while", "primary")]
+    assert paper_table._tri_cost_of(ww, PAPER_TESTS) < paper_table._tri_cost_of(
+        ww, kernels_ir.DEFAULT_TESTS
+    )
