@@ -270,7 +270,7 @@ def packet_union(args) -> pd.DataFrame:
     runs = secondary_order.measure(
         args.scene, parse_resolution(args.resolution), args.spp, args.gpu, PACKET_WINDOWS,
         ray_types=RAY_TYPES, orders={default: secondary_order.ORDERS[default]},
-        build=PROTOCOL_BUILD,
+        build=PROTOCOL_BUILD, tests=args.tests,
     )  # fmt: skip
     m = runs.set_index(["ray_type", "scheme", "how"])
     rows = []
@@ -446,11 +446,40 @@ def _tests_of(r: SimResult) -> str:
     return r.model_card["ir_tests"]
 
 
-def _tri_cost_of(r: SimResult, tests: str) -> int:
-    """Instructions of one triangle test and all its stages in ``r``'s kernel costed with
-    ``tests``, as ``r``'s GPU runs it."""
-    ir = kernels_ir.load(r.model_card["ir_kernel"], r.model_card["ir_arch"], tests)
-    return sum(executed_on(ir, r.gpu).cost(b) for b in TRI_TEST_BLOCKS)
+TESTS_SAID = {
+    PAPER_TESTS: "the arithmetic of Aila & Laine's kernels (one-FFMA slabs, Woop's test "
+    "against 0 and 1) that the paper's simulator counted and its kernels ran",
+    kernels_ir.DEFAULT_TESTS: "simt-sim's own, which also hit a ray on a shared edge or "
+    "vertex once and only once",
+}
+"""What each set of box and triangle tests (``kernels_ir.kernel_ir.TESTS``) is."""
+
+
+def _tests_text(tests: str, ww: SimResult) -> str:
+    """The paragraph before the tests' table: which tests the table costs with, which the
+    column beside it, and what a while-while triangle test costs with each (``ww``)."""
+    other = next(t for t in kernels_ir.TESTS if t != tests)
+    arch = ww.model_card["ir_arch"]
+
+    def tri(kind: str) -> int:
+        return executed_cost("while_while", TRI_TEST_BLOCKS, arch, kind, ww.gpu)
+
+    return (
+        f"The table costs the kernels with the `{tests}` tests, {TESTS_SAID[tests]}; the "
+        f"column beside it with the `{other}` ones, {TESTS_SAID[other]}. A while-while "
+        f"triangle test with all its stages is {tri(tests)} instructions on `{arch}` with "
+        f"the `{tests}` tests and {tri(other)} with the `{other}` ones, as `{ww.gpu.id}` "
+        "runs them. The replays above, costed with each set:"
+    )
+
+
+def executed_cost(
+    kernel: str, blocks: tuple[str, ...], arch: str, tests: str, gpu: GpuConfig
+) -> int:
+    """Instructions of ``blocks`` of ``kernel``'s ``arch`` IR with ``tests``, as ``gpu``
+    runs them (:func:`executed_on`): the figures the prose quotes."""
+    ir = executed_on(kernels_ir.load(kernel, arch, tests), gpu)
+    return sum(ir.cost(b) for b in blocks)
 
 
 def _ir_of(r: SimResult) -> KernelIR:
@@ -471,7 +500,7 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   {pww_ratio} of while-while's speed (errors {pww_err}): besides the fetch, nvcc compiles
   the persistent kernel's traversal step to {pww_trav} instructions against
   while-while's {ww_trav} ({tests} tests; {pww_trav_o} against {ww_trav_o} with the
-  {other_tests} ones, which put the rows within {pww_err_o} of each other).
+  {other_tests} ones, which put the rows at most {pww_err_o} apart).
 - **if-if versus while-while.** The paper's simulated if-if was {ii_paper_slower} *slower* than
   while-while; ours is {ii_ratio} of while-while's speed. The mechanism both share is
   right: if-if raises traversal SIMD efficiency (see the table) and lowers intersection
@@ -528,11 +557,12 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   of 1 makes it the paper's if-if), persistent speculative while-while and packet.
   Compiled by nvcc 13 for sm_75 (fast math, as the release builds them; one query kind
   per build; loops not unrolled) and counted per block by hand from the SASS, as the
-  GTX 285 runs them: their while-while step is 62 instructions (ours 53: it scales the
-  ray origin by the inverse direction and counts the loop's iterations on every step),
-  their speculative step 73 (ours 67), their triangle test's first stage (`tri_test`)
-  28 in while-while and 21 in the speculative kernel (ours 22 in both, published
-  tests), their if-if step and loop control 54 and 20 (ours 48 and 20). On the lockstep
+  GTX 285 runs them, against ours with the same published tests: their while-while
+  step is 62 instructions (ours 53: it scales the ray origin by the inverse direction
+  and counts the loop's iterations on every step), their speculative step 73 (ours 67),
+  their triangle test's first stage (`tri_test`) 28 in while-while and 21 in the
+  speculative kernel (ours 22 in both), their if-if step and loop control 54 and 20
+  (ours 48 and 20). On the lockstep
   executor's counts for 1/32 of the protocol's warps (GTX 285, published tests), costed
   both ways: with theirs, speculative / while-while is -7.4 / -8.6 / -10.5% from the
   paper (ours -14.6 / -15.3 / -18.3% on that sample), so about half of that gap is in
@@ -649,11 +679,11 @@ def deviations(
     row's level against the paper (``main_table``), the mesh's triangles (``scene``) and the
     other tests' costs and errors (``by_tests``)."""
 
-    def cost(kernel: str, block: str, target: str = arch) -> int:
-        return executed_on(kernels_ir.load(kernel, target, tests), gpu).cost(block)
+    def cost(kernel: str, block: str, target: str = arch, kind: str = tests) -> int:
+        return executed_cost(kernel, (block,), target, kind, gpu)
 
     def tri_cost(kernel: str, target: str = arch) -> int:
-        return sum(cost(kernel, b, target) for b in TRI_TEST_BLOCKS)
+        return executed_cost(kernel, TRI_TEST_BLOCKS, target, tests, gpu)
 
     def span(label: str, col: str = "ours") -> str:
         v = ratios[ratios["ratio"] == label][col]
@@ -675,9 +705,6 @@ def deviations(
     ww_trav = cost("while_while", "trav_step")
     other_tests = next(t for t in by_tests.columns if t != tests)
 
-    def other_cost(kernel: str, block: str) -> int:
-        return executed_on(kernels_ir.load(kernel, arch, other_tests), gpu).cost(block)
-
     spec_trav = cost("persistent_speculative_while_while", "trav_step")
     kept = scene.triangles.shape[0]
     slower = 1 - ratios[ratios["ratio"] == "if_if / while_while"]["paper"]
@@ -685,8 +712,8 @@ def deviations(
         arch=arch, tests=tests, bvh=bvh, nvcc=compiler_name(arch), other_tests=other_tests,
         pww_ratio=span("persistent / while_while"), pww_err=errs("persistent / while_while"),
         pww_trav=cost("persistent_while_while", "trav_step"),
-        pww_trav_o=other_cost("persistent_while_while", "trav_step"),
-        ww_trav_o=other_cost("while_while", "trav_step"),
+        pww_trav_o=cost("persistent_while_while", "trav_step", kind=other_tests),
+        ww_trav_o=cost("while_while", "trav_step", kind=other_tests),
         pww_err_o=f"{by_tests[other_tests].loc['persistent / while_while'].abs().max():.1%}",
         ii_paper_slower=f"{100 * slower.min():.0f}-{slower.max():.0%}",
         ww_trav=ww_trav, ww_tri=tri_cost("while_while"),
@@ -772,19 +799,7 @@ def render(
         "",
         "## The same ratios with each set of box and triangle tests",
         "",
-        f"The table costs the kernels with the `{spec.tests}` tests"
-        + (
-            ": the arithmetic of Aila & Laine's kernels (one-FFMA slabs, Woop's test against "
-            "0 and 1), which the paper's simulator counted and its kernels ran"
-            if spec.tests == PAPER_TESTS
-            else ""
-        )
-        + f". simt-sim's own kernels use `{kernels_ir.DEFAULT_TESTS}` ones, which also hit "
-        "a ray on a shared edge or vertex once and only once; their triangle test is "
-        f"{_tri_cost_of(ww0, kernels_ir.DEFAULT_TESTS)} instructions in while-while on "
-        f"`{ww0.model_card['ir_arch']}` against the published "
-        f"{_tri_cost_of(ww0, PAPER_TESTS)} (`tri_test` and its stages, as `{ww0.gpu.id}` "
-        "runs them). The replays above, costed with each set:",
+        _tests_text(spec.tests, ww0),
         "",
         by_tests.reset_index().to_markdown(**fmt),
         "",

@@ -88,15 +88,16 @@ def measure(
     ray_types: tuple[str, ...] = RAY_TYPES,
     orders: dict[str, int | None] = ORDERS,
     build: str = PROTOCOL_BUILD,
+    tests: str = kernels_ir.DEFAULT_TESTS,
 ) -> pd.DataFrame:
     """One row per ray type x order x scheme: MRays/s of the replay (and the exact packet)
     on ``count`` windows of the protocol's stream, over the tree ``build_bvh`` makes with
-    method ``build``. Primary rays keep their pixel order whatever ``orders`` says (the
-    paper sorts only secondary rays)."""
+    method ``build``, the kernels costed with ``tests``. Primary rays keep their pixel
+    order whatever ``orders`` says (the paper sorts only secondary rays)."""
     scene = load_scene(scene_name)
     bvh = build_bvh(scene.vertices, scene.triangles, method=build)
     gpu = get_gpu(gpu_id)
-    irs = {s: kernels_ir.load(s, gpu.ir_arch) for s in (BASE, *SCHEMES)}
+    irs = {s: kernels_ir.load(s, gpu.ir_arch, tests) for s in (BASE, *SCHEMES)}
     rows = []
     for rt in ray_types:
         stream = ray_stream(

@@ -1,6 +1,8 @@
 """Aila & Laine's test protocol, written down once: ``--paper`` on every command, the study
 that judges the bounds against published measurements and the experiments that reproduce
-the paper's table all take it from here."""
+the paper's table all take it from here. The tests the paper's kernels ran
+(:data:`PAPER_TESTS`) are the kernels' arithmetic, not the workload: the studies take them,
+``--paper`` leaves them to ``--tests``."""
 
 from __future__ import annotations
 
