@@ -38,7 +38,7 @@ from simt_sim.report.tables import (
 from simt_sim.scene.load import DEFAULT_SCENE
 from simt_sim.simt.footprint import MODES as MEMORY_MODES
 from simt_sim.simt.gpus import DEFAULT_GPU
-from simt_sim.study.protocol import PAPER_PROTOCOL
+from simt_sim.study.protocol import PAPER_PROTOCOL, PAPER_TESTS
 from simt_sim.types.optrace import DEFAULT_LAYOUT, LAYOUTS
 from simt_sim.types.raybatch import TRACE_RAY_TYPES
 
@@ -106,7 +106,8 @@ def _add_workload_args(
         help=f"the paper's protocol: {PAPER['resolution']}, {PAPER['spp']} secondary rays per "
         "hit, every camera (instead of --resolution, --spp and --camera), on the tree with "
         f"spatial splits (--bvh-build {PAPER_PROTOCOL['build']}) unless --bvh-build names "
-        "another",
+        f"another, costed with the paper's tests (--tests {PAPER_TESTS}) unless --tests "
+        "names others",
     )
     p.set_defaults(workload_defaults={"resolution": resolution, "spp": spp, "camera": camera})
     p.add_argument("--seed", type=int, default=0, help="sample seed (default: %(default)s)")
@@ -158,10 +159,10 @@ def _add_tests_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--tests",
         choices=TESTS,
-        default=DEFAULT_TESTS,
+        default=None,
         help="box and triangle tests the kernels are costed with: watertight (simt-sim's "
         "tracers) or published (Aila & Laine's arithmetic, which the published "
-        "measurements ran; default: %(default)s)",
+        f"measurements ran; default: {DEFAULT_TESTS}, with --paper {PAPER_TESTS})",
     )
 
 
@@ -784,9 +785,12 @@ def _resolve_workload(args: argparse.Namespace) -> None:
     defaults = getattr(args, "workload_defaults", None)
     if defaults is None:
         return
-    if args.bvh_build is None:  # a tree choice, not the workload: --bvh-build overrides --paper
-        paper = args.paper and not getattr(args, "trace", None)
+    paper = args.paper and not getattr(args, "trace", None)
+    # the tree and the tests are not the workload: --bvh-build and --tests override --paper
+    if args.bvh_build is None:
         args.bvh_build = PAPER_PROTOCOL["build"] if paper else DEFAULT_METHOD
+    if getattr(args, "tests", DEFAULT_TESTS) is None:
+        args.tests = PAPER_TESTS if paper else DEFAULT_TESTS
     given = [k for k in defaults if getattr(args, k) is not None]
     if getattr(args, "trace", None):
         fixed = given + [k for k in ("scene", "rays") if getattr(args, k) != _DEFAULTS[k]]

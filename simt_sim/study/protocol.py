@@ -2,7 +2,7 @@
 that judges the bounds against published measurements and the experiments that reproduce
 the paper's table all take it from here. The tests the paper's kernels ran
 (:data:`PAPER_TESTS`) are the kernels' arithmetic, not the workload: the studies take them,
-``--paper`` leaves them to ``--tests``."""
+and ``--paper`` picks them unless ``--tests`` names others."""
 
 from __future__ import annotations
 

@@ -8,10 +8,11 @@ from pathlib import Path
 
 from test_cli import assert_clean_error, run_cli
 
+from kernels_ir.kernel_ir import DEFAULT_TESTS
 from simt_sim import cli
 from simt_sim.bvh.build import DEFAULT_METHOD
 from simt_sim.cli import main
-from simt_sim.study.protocol import PAPER_PROTOCOL
+from simt_sim.study.protocol import PAPER_PROTOCOL, PAPER_TESTS
 from simt_sim.trace.tracefile import load_trace, read_meta, save_trace
 
 
@@ -66,21 +67,28 @@ def test_paper_selects_the_protocol_and_refuses_what_it_replaces() -> None:
 
 def test_paper_builds_the_papers_tree_unless_another_is_named(monkeypatch) -> None:
     """``--paper`` is the protocol the paper table and the published bounds run (its
-    workload and the tree with spatial splits); a named ``--bvh-build`` keeps its tree."""
+    workload, the tree with spatial splits and the published tests); a named
+    ``--bvh-build`` keeps its tree and a named ``--tests`` its tests."""
     seen: dict[str, object] = {}
     for name in ("cmd_table", "cmd_bench"):
         monkeypatch.setattr(cli, name, lambda args: seen.update(vars(args)) or 0)
 
     def resolved(*argv: str) -> tuple[object, ...]:
+        seen.clear()
         assert main([*argv, "--quiet"]) == 0
         return seen["resolution"], seen["spp"], seen["camera"], seen["bvh_build"]
 
     w, h = PAPER_PROTOCOL["resolution"]
     paper = (f"{w}x{h}", PAPER_PROTOCOL["spp"], PAPER_PROTOCOL["cameras"])
     assert resolved("table", "--paper") == (*paper, PAPER_PROTOCOL["build"])
+    assert seen["tests"] == PAPER_TESTS != DEFAULT_TESTS
     assert resolved("bench", "--paper", "--bvh-build", "binned") == (*paper, "binned")
+    assert "tests" not in seen  # bench runs tracers: it costs nothing
     assert resolved("table")[3] == DEFAULT_METHOD != PAPER_PROTOCOL["build"]
+    assert seen["tests"] == DEFAULT_TESTS
     assert resolved("table", "--bvh-build", "sweep")[3] == "sweep"
+    resolved("table", "--paper", "--tests", DEFAULT_TESTS)
+    assert seen["tests"] == DEFAULT_TESTS
 
 
 def test_trace_refuses_a_file_the_disk_cannot_hold(tmp_path, monkeypatch, capsys) -> None:
