@@ -22,7 +22,6 @@ import time
 
 import pandas as pd
 
-import kernels_ir
 from simt_sim.bvh.build import build_bvh
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.lockstep import METRICS, approximation_error
@@ -30,7 +29,7 @@ from simt_sim.rays.generate import PAPER_SPP, paper_rays
 from simt_sim.report.tables import FORMATS, emit
 from simt_sim.scene.load import load_scene
 from simt_sim.schemes import get_scheme
-from simt_sim.simt.gpus import DEFAULT_GPU, get_gpu
+from simt_sim.simt.gpus import DEFAULT_GPU, costed_ir, get_gpu
 from simt_sim.study.workload import parse_resolution
 from simt_sim.tracers.numba_tracer import trace
 
@@ -74,7 +73,7 @@ def run(
             tracer=lambda r: trace(bvh, r),
         )  # fmt: skip
         for scheme in schemes:
-            ir = kernels_ir.load(scheme, gpu.ir_arch)
+            ir = costed_ir(scheme, gpu)
             t0 = time.perf_counter()
             err = approximation_error(bvh, rays, get_scheme(scheme), ir, gpu, scene=scene.name)
             row = {"scene": scene.name, "ray_type": ray_type, "scheme": scheme, "rays": len(rays)}

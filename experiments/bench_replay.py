@@ -40,12 +40,11 @@ from collections.abc import Callable
 import numba
 import numpy as np
 
-import kernels_ir
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
 from simt_sim.bvh.build import build_bvh
 from simt_sim.scene.load import load_scene
 from simt_sim.schemes import SCHEMES, get_scheme
-from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, get_gpu
+from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, costed_ir, get_gpu
 from simt_sim.simt.replay import simulate_paths, simulate_traces
 from simt_sim.simt.result import SimResult
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
@@ -61,7 +60,7 @@ def _synthetic_ir(scheme: SchemeInfo, gpu: GpuConfig) -> KernelIR:
 
 
 def _recorded_ir(scheme: SchemeInfo, gpu: GpuConfig) -> KernelIR:
-    return kernels_ir.load(scheme.kernel, gpu.ir_arch)
+    return costed_ir(scheme.kernel, gpu)
 
 
 def _recorded_trace(scene: str, resolution: tuple[int, int], spp: int, layout: str) -> OpTrace:
@@ -107,7 +106,7 @@ def _path_replays(pt: PathTrace, gpu: GpuConfig, schemes) -> dict[str, Callable[
     for s in schemes:
         scheme = SCHEMES[s]
         if scheme.kind == PATH:  # each with its own parameters (the megakernel's ray order)
-            irs = {k: kernels_ir.load(k, gpu.ir_arch) for k in scheme.kernels}
+            irs = {k: costed_ir(k, gpu) for k in scheme.kernels}
             out[s] = functools.partial(simulate_paths, pt, scheme, irs, gpu)
     return out
 

@@ -24,12 +24,12 @@ import numpy as np
 import pandas as pd
 
 import kernels_ir
-from kernels_ir.kernel_ir import BLOCKS, TRI_TEST_BLOCKS, KernelIR
+from kernels_ir.kernel_ir import BALLOT_FREE_TWINS, BLOCKS, TRI_TEST_BLOCKS, KernelIR
 from simt_sim.atomic import write_atomic
 from simt_sim.rays.generate import PAPER_HEIGHT, PAPER_SPP, PAPER_WIDTH
 from simt_sim.report.markdown import block_table
 from simt_sim.scene.load import load_scene
-from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, executed_on
+from simt_sim.simt.gpus import DEFAULT_GPU, GpuConfig, costed_ir, executed_on
 from simt_sim.simt.result import INTERSECTION_BLOCKS, TRAVERSAL_BLOCKS, SimResult
 from simt_sim.study.plan import StudyPlan, plan_study
 from simt_sim.study.protocol import PAPER_TESTS
@@ -144,7 +144,7 @@ def code_twin(plan: StudyPlan, arch: str) -> tuple[StudyPlan, str]:
     rounds (:func:`~simt_sim.simt.gpus.runs_in_rounds`), so that column is replayed."""
     gpu = plan.gpus[0]
     twin = replace(gpu, id=f"{gpu.id}_{arch}", ir_arch=arch)
-    irs = {(k, arch): kernels_ir.load(k, arch, plan.spec.tests) for k, _ in plan.irs}
+    irs = {(k, twin.id): costed_ir(k, twin, plan.spec.tests) for k, g in plan.irs if g == gpu.id}
     plan = replace(
         plan, gpus=(*plan.gpus, twin), irs={**plan.irs, **irs},
         memory={**plan.memory, twin.id: plan.memory[gpu.id]},
@@ -408,6 +408,7 @@ def main(argv: list[str] | None = None) -> int:
     by_tests = tests_sensitivity(res, paper)
     even = break_even(res, paper)
     packet = packet_union(args)
+    ballot = ballot_sensitivity(res, paper)
 
     # 3. calibrated profile: fit to while-while only, predict the rest
     factors = fit_factors({rt: res[("while_while", rt)] for rt in RAY_TYPES}, paper)
@@ -435,7 +436,7 @@ def main(argv: list[str] | None = None) -> int:
 
     doc = render(
         spec, main_table, ratios, by_arch, by_tests, even, calibrated, factors, seconds,
-        results, trees, by_bvh, packet,
+        results, trees, by_bvh, packet, ballot,
     )  # fmt: skip
     write_atomic(args.out, doc)
     print(doc)
@@ -478,7 +479,7 @@ def executed_cost(
 ) -> int:
     """Instructions of ``blocks`` of ``kernel``'s ``arch`` IR with ``tests``, as ``gpu``
     runs them (:func:`executed_on`): the figures the prose quotes."""
-    ir = executed_on(kernels_ir.load(kernel, arch, tests), gpu)
+    ir = executed_on(costed_ir(kernel, gpu, tests, arch), gpu)
     return sum(ir.cost(b) for b in blocks)
 
 
@@ -600,10 +601,8 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   counters are within {packet_gpu} of its count, and the SASS walk of the compiled kernel
   within {packet_walk} (docs/gpu_results.md, docs/kernels_ir.md). What it leaves is the kernels'
   code: our packet `trav_step` is {packet_trav} instructions against while-while's
-  {ww_trav} (its ballots' divergent-warp fallbacks never run, as every lane stays in the
-  packet loop), and the paper's GT200 packet kernel (its own shared-stack code) may have
-  paid more per node than its while-while; no GT200 compiler or GPU is at hand to count
-  it. To match the paper, our packet node visit would have to cost {packet_even}. Which
+  {ww_trav}. {ballot_text} To match the paper, our packet node visit would have to cost
+  {packet_even}. Which
   row carries the diffuse gap: ours over the paper's MRays/s (the first table's last
   column) moves from AO to diffuse by {packet_level} for packet and by {per_ray_level}
   for {per_ray_names}. The per-ray schemes move together, so the move cancels in their
@@ -614,6 +613,44 @@ DEVIATIONS = """## Why our numbers differ from the paper's
   (docs/speed_accuracy.md: a lower resolution moves the packet figures most) and with the
   order of the secondary rays (docs/secondary_order.md measures by how much).
 """
+
+
+def ballot_sensitivity(res: dict[tuple[str, str], SimResult], paper: pd.DataFrame) -> pd.Series:
+    """Packet / while-while errors by ray type with the packet rows re-costed with the
+    kernel that ballots (``packet.cu``): what costing a GPU without a warp ballot with the
+    ballot-free twin (:func:`~simt_sim.simt.gpus.costed_ir`) changes, on the same
+    executions."""
+    costed = {
+        key: r.recost(kernels_ir.load("packet", r.model_card["ir_arch"], _tests_of(r)))
+        if r.scheme == "packet"
+        else r
+        for key, r in res.items()
+    }
+    t = ratio_table(costed, paper)
+    return t[t["ratio"] == "packet / while_while"].set_index("ray_type")["rel_error"]
+
+
+def _ballot_text(gpu: GpuConfig, arch: str, tests: str, ballot: pd.Series) -> str:
+    """What the packet rows' order vote costs on ``gpu``: the ballot, or (a GPU without
+    one) the twin's sum in shared memory, with the errors the ballot would give."""
+    both = executed_cost("packet", ("trav_both",), arch, tests, gpu)
+    if gpu.warp_ballot:
+        return (
+            f"`{gpu.id}` has a warp ballot, so the order vote of a step that visits both "
+            f"children is one (`trav_both`: {both} instructions)."
+        )
+    with_ballot = executed_on(kernels_ir.load("packet", arch, tests), gpu).cost("trav_both")
+    errors = ", ".join(f"{rt} {e:+.1%}" for rt, e in ballot.items())
+    return (
+        f"`{gpu.id}` has no warp ballot (GT200 votes with `__any` and `__all`; "
+        "`__ballot` and `__popc` came with Fermi), so the table costs its packet kernel "
+        f"with `{BALLOT_FREE_TWINS['packet']}.cu`, ours with the order vote summed in "
+        "shared memory in five exchanges, as Aila & Laine's released packet kernel sums "
+        f"its own: a step that visits both children adds {both} instructions "
+        f"(`trav_both`) where the ballot adds {with_ballot} (its Kepler code walked: "
+        'docs/kernels_ir.md, "Packet\'s ballot-free twin"). Costed with the ballot that '
+        f"GPU lacks, the errors would be {errors}."
+    )
 
 
 def compiler_name(arch: str) -> str:
@@ -673,11 +710,13 @@ def deviations(
     packet: pd.DataFrame,
     main_table: pd.DataFrame,
     scene: Scene,
+    ballot: pd.Series,
 ) -> str:
     """:data:`DEVIATIONS` with the block costs of ``arch`` and ``tests`` as ``gpu`` runs them, the
     measured figures, the BVH verdict ``bvh``, the union replay's error ``packet``, each
-    row's level against the paper (``main_table``), the mesh's triangles (``scene``) and the
-    other tests' costs and errors (``by_tests``)."""
+    row's level against the paper (``main_table``), the mesh's triangles (``scene``), the
+    other tests' costs and errors (``by_tests``) and packet's errors with the ballot
+    (``ballot``: :func:`ballot_sensitivity`)."""
 
     def cost(kernel: str, block: str, target: str = arch, kind: str = tests) -> int:
         return executed_cost(kernel, (block,), target, kind, gpu)
@@ -739,6 +778,7 @@ def deviations(
         spec_err_35=errs("speculative / while_while", by_arch[kernels_ir.KEPLER_ARCH]),
         packet_err=errs("packet / while_while"),
         packet_trav=cost("packet", "trav_step"),
+        ballot_text=_ballot_text(gpu, arch, tests, ballot),
         spec_div=kernels_ir.load("persistent_speculative_while_while", arch, tests).cost(
             "trav_diverged"
         ),
@@ -760,7 +800,7 @@ def deviations(
 
 def render(
     spec, main_table, ratios, by_arch, by_tests, even, calibrated, factors, seconds, results,
-    trees, by_bvh, packet,
+    trees, by_bvh, packet, ballot,
 ) -> str:  # fmt: skip
     fmt = {"floatfmt": ".3g", "index": False}
     r0 = results[0]
@@ -899,6 +939,7 @@ def render(
             packet,
             main_table,
             load_scene(spec.scene),
+            ballot,
         ),
     ]
     return "\n".join(lines)

@@ -19,10 +19,9 @@ import time
 
 import pandas as pd
 
-import kernels_ir
 from simt_sim.rays.generate import PAPER_HEIGHT, PAPER_SPP, PAPER_WIDTH
 from simt_sim.schemes import get_scheme, names
-from simt_sim.simt.gpus import DEFAULT_GPU, get_gpu
+from simt_sim.simt.gpus import DEFAULT_GPU, costed_ir, get_gpu
 from simt_sim.simt.memory import memory_counts
 from simt_sim.simt.occupancy import resident_warps
 from simt_sim.simt.replay import simulate_traces
@@ -37,7 +36,7 @@ def profile(scene: str, ray_type: str, camera: str, resolution: tuple[int, int],
     """Seconds per stage (columns) of each timed batch (rows) of one ray type."""
     gpu = get_gpu(gpu_id)
     wl = make_workload(scene, ray_type, cameras=camera, resolution=resolution, spp=spp)
-    irs = {s: kernels_ir.load(s, gpu.ir_arch) for s in TRACE_SCHEMES}
+    irs = {s: costed_ir(s, gpu) for s in TRACE_SCHEMES}
     resident_sets = {resident_warps(gpu, irs[s], get_scheme(s).launch) for s in TRACE_SCHEMES}
     batches = iter(wl.stream.batches())
     rows = []

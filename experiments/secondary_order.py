@@ -41,7 +41,7 @@ from simt_sim.rays.generate import (
 )
 from simt_sim.scene.load import load_scene
 from simt_sim.schemes import get_scheme
-from simt_sim.simt.gpus import DEFAULT_GPU, get_gpu
+from simt_sim.simt.gpus import DEFAULT_GPU, costed_ir, get_gpu
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import merge
 from simt_sim.study.protocol import PAPER_PROTOCOL
@@ -97,7 +97,7 @@ def measure(
     scene = load_scene(scene_name)
     bvh = build_bvh(scene.vertices, scene.triangles, method=build)
     gpu = get_gpu(gpu_id)
-    irs = {s: kernels_ir.load(s, gpu.ir_arch, tests) for s in (BASE, *SCHEMES)}
+    irs = {s: costed_ir(s, gpu, tests) for s in (BASE, *SCHEMES)}
     rows = []
     for rt in ray_types:
         stream = ray_stream(

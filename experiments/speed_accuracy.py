@@ -43,13 +43,13 @@ import pandas as pd  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from approximation_error import run as approximation_run  # noqa: E402
 
-import kernels_ir  # noqa: E402
 from simt_sim.atomic import write_atomic  # noqa: E402
 from simt_sim.rays.generate import PAPER_HEIGHT, PAPER_SPP, PAPER_WIDTH
 from simt_sim.schemes import SCHEMES, get_scheme, names  # noqa: E402
-from simt_sim.simt.gpus import (
+from simt_sim.simt.gpus import (  # noqa: E402
     DEFAULT_GPU,
-    get_gpu,  # noqa: E402
+    costed_ir,
+    get_gpu,
 )
 from simt_sim.simt.replay import simulate_traces  # noqa: E402
 from simt_sim.study.run import run_study  # noqa: E402
@@ -118,7 +118,7 @@ def pool_order(
         shuffled = ordered.take((rng.permutation(n_warps)[:, None] * w + np.arange(w)).ravel())
         traces = {"ordered": record_all(wl.bvh, ordered), "shuffled": record_all(wl.bvh, shuffled)}
         for s in POOL_SCHEMES:
-            ir = kernels_ir.load(s, gpu.ir_arch)
+            ir = costed_ir(s, gpu)
             r = {k: simulate_traces([t], get_scheme(s), ir, gpu) for k, t in traces.items()}
             rows.append(
                 {

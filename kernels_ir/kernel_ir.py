@@ -142,6 +142,14 @@ def kernel_layout(kernel: str) -> str:
     return head if head in KERNEL_LAYOUTS[1:] else "bvh2"
 
 
+#: kernels that vote with ``__ballot`` and the twin of each that a GPU without a warp
+#: ballot (GT200, before Fermi's compute capability 2.0) runs in their place: the twin
+#: (``kernels_ir/cuda/<twin>.cu``) sums the vote in shared memory and has the kernel's
+#: blocks. The dynamic-fetch kernels ballot too; their class came with Fermi and Kepler
+#: and has no twin
+BALLOT_FREE_TWINS = {"packet": "packet_shared_vote"}
+
+
 #: the box and triangle tests a kernel can be built with (``common.cuh``): the watertight
 #: ones simt-sim's tracers use, or the published arithmetic of Aila & Laine's kernels
 #: (one-FFMA slabs, Woop's test against 0 and 1), which the published measurements ran

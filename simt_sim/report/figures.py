@@ -140,7 +140,7 @@ def study_figures(
         for s in plan.schemes:
             if not has_warp_counts(s):
                 continue
-            ir = plan.irs[(s.kernel, gpu.ir_arch)]
+            ir = plan.irs[(s.kernel, gpu.id)]
             wc = warp_counts(trace, s, ir, gpu, launch=(plan.tree, wl.rays))
             eff = wc.efficiency[np.arange(trace.n_rays) // gpu.warp_size]
             images = [plots.to_image(v, wl.rays.pixel, width, height) for v in (

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from kernels_ir.kernel_ir import KernelIR
+from kernels_ir.kernel_ir import BALLOT_FREE_TWINS, KernelIR
 from simt_sim.simt.gpus import GpuConfig
 
 
@@ -31,11 +31,12 @@ def model_card(
     """The card of a result of ``scheme`` costed with ``irs`` on ``gpu``.
 
     ``ir_kernel``, ``ir_arch``, ``ir_compiler`` and ``ir_tests`` join the IRs' values (one
-    each for a one-kernel scheme); ``ir_blocks`` are the blocks the replay charges, which an IR the
-    result is re-costed with must have (``blocks``); ``ir_arch_note`` says when the IR is
-    not the GPU's own; ``bounds_in_force`` names the roofline's limits (issue, dual issue
-    where the GPU's pairing is known, and pipe; a study adds bandwidth where the memory
-    model runs); ``extra`` entries follow in the order given.
+    each for a one-kernel scheme); ``ir_blocks`` are the blocks the replay charges, which an
+    IR the result is re-costed with must have (``blocks``); ``ir_arch_note`` says when the
+    IR is not the GPU's own, ``ir_kernel_note`` when it is a ballot-free twin;
+    ``bounds_in_force`` names the roofline's limits (issue, dual issue where the GPU's
+    pairing is known, and pipe; a study adds bandwidth where the memory model runs);
+    ``extra`` entries follow in the order given.
     """
     card: dict[str, Any] = {
         "scheme": scheme,
@@ -53,5 +54,18 @@ def model_card(
     foreign = _joined([ir.arch for ir in irs if ir.arch != gpu.ir_arch])
     if foreign:
         card["ir_arch_note"] = f"costed with {foreign}; the GPU's table entry names {gpu.ir_arch}"
+    card.update(twin_note(irs, gpu))
     card.update(extra)
     return card
+
+
+def twin_note(irs: Sequence[KernelIR], gpu: GpuConfig) -> dict[str, str]:
+    """``ir_kernel_note`` where ``irs`` hold a ballot-free twin (a GPU without a warp
+    ballot is costed with it), else nothing."""
+    twins = [ir.kernel for ir in irs if ir.kernel in BALLOT_FREE_TWINS.values()]
+    if not twins:
+        return {}
+    return {
+        "ir_kernel_note": f"costed with {_joined(twins)}, the kernel's vote summed in shared "
+        f"memory: {gpu.id} has no warp ballot"
+    }

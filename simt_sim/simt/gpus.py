@@ -15,8 +15,16 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import kernels_ir
 from kernels_ir import KernelIR
-from kernels_ir.kernel_ir import BLOCK_THREADS, RECONVERGE, SPIN_BLOCKS, WARP_SIZE
+from kernels_ir.kernel_ir import (
+    BALLOT_FREE_TWINS,
+    BLOCK_THREADS,
+    DEFAULT_TESTS,
+    RECONVERGE,
+    SPIN_BLOCKS,
+    WARP_SIZE,
+)
 from kernels_ir.pairing import PAIRING_ARCHS
 from simt_sim.errors import SimtSimError
 
@@ -45,6 +53,9 @@ CLOCKS = ("shader", "sm")
 #: ``_sync`` warp vote has a divergent-warp fallback; GT200's, Fermi's and Kepler's
 #: ``__any`` was one instruction for any warp
 ITS_FIRST_ARCH = 70
+#: the first architecture with a warp ballot (Fermi, sm_20: ``__ballot`` and ``__popc``);
+#: GT200 (sm_13) votes with ``__any`` and ``__all`` only
+BALLOT_FIRST_ARCH = 20
 #: the blocks only a GPU with independent thread scheduling runs: the vote's fallback, a
 #: convergence barrier issued again by lanes that reach it apart (pre-Volta code has no
 #: barrier: its lanes rejoin at a stack entry, each group issuing its own pop, which its
@@ -221,6 +232,12 @@ class GpuConfig:
         its architecture (the IR's where it has none of its own)."""
         return barrier_code(self.arch or self.ir_arch)
 
+    @property
+    def warp_ballot(self) -> bool:
+        """Whether the GPU has a warp ballot (Fermi and later), from its architecture (the
+        IR's where it has none of its own)."""
+        return _arch_number(self.arch or self.ir_arch) >= BALLOT_FIRST_ARCH
+
     def figures(self) -> dict[str, Any]:
         """The figures as a plain dict (for model cards and tables), ``issue_rate`` added
         and the lanes flattened (``lanes_fp32`` ...)."""
@@ -234,7 +251,19 @@ class GpuConfig:
             if name == "dispatch":
                 out["issue_rate"] = self.issue_rate
         out["independent_thread_scheduling"] = self.independent_thread_scheduling
+        out["warp_ballot"] = self.warp_ballot
         return out
+
+
+def costed_ir(
+    kernel: str, gpu: GpuConfig, tests: str = DEFAULT_TESTS, arch: str | None = None
+) -> KernelIR:
+    """The committed IR ``gpu`` is costed with for ``kernel``: the code of its ``ir_arch``
+    (or of ``arch``) and, on a GPU without a warp ballot, the kernel's ballot-free twin
+    (``kernels_ir.kernel_ir.BALLOT_FREE_TWINS``), as that GPU could not run a ballot."""
+    if not gpu.warp_ballot:
+        kernel = BALLOT_FREE_TWINS.get(kernel, kernel)
+    return kernels_ir.load(kernel, arch or gpu.ir_arch, tests)
 
 
 def executed_on(ir: KernelIR, gpu: GpuConfig) -> KernelIR:
@@ -266,8 +295,13 @@ def barrier_code(arch: str) -> bool:
     """Whether ``arch`` (``sm_XY``) is Volta's or later: its code rejoins lanes at
     convergence barriers, its GPUs schedule threads independently; earlier code rejoins
     them on a reconvergence stack."""
+    return _arch_number(arch) >= ITS_FIRST_ARCH
+
+
+def _arch_number(arch: str) -> int:
+    """``XY`` of ``sm_XY`` (0 for a name that is not one)."""
     m = _ARCH.match(arch)
-    return m is not None and int(m.group(1)) >= ITS_FIRST_ARCH
+    return int(m.group(1)) if m else 0
 
 
 def _lanes(value: dict, label: str) -> tuple[tuple[str, int], ...]:

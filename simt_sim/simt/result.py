@@ -18,10 +18,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from kernels_ir.kernel_ir import BLOCKS, CLASSES, DEFAULT_TESTS, KernelIR
+from kernels_ir.kernel_ir import BALLOT_FREE_TWINS, BLOCKS, CLASSES, DEFAULT_TESTS, KernelIR
 from kernels_ir.pairing import UNMAPPED_SHARE, block_pair_counts
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.bounds import dual_issue_bound, issue_bound, pipe_bound, roofline
+from simt_sim.simt.card import twin_note
 from simt_sim.simt.engine import Counts, class_mix, cost_vector, lane_traffic
 from simt_sim.simt.gpus import GpuConfig, executed_on, runs_in_rounds
 
@@ -30,9 +31,12 @@ INTERSECTION_BLOCKS = ("leaf_entry", "tri_test", "tri_u", "tri_v", "tri_hit")
 
 
 def check_ir(ir: KernelIR, kernel: str, blocks: Sequence[str]) -> None:
-    """Refuse an IR of another kernel than ``kernel``, or one lacking one of ``blocks`` (those
-    the replay charges: ``SchemeInfo.kernels[kernel]``)."""
-    if ir.kernel != kernel:
+    """Refuse an IR of another kernel than ``kernel`` or its ballot-free twin, either way
+    round (a GPU without a warp ballot is costed with the twin:
+    ``simt_sim.simt.gpus.costed_ir``), or one lacking one of ``blocks`` (those the replay
+    charges: ``SchemeInfo.kernels[kernel]``)."""
+    base = next((k for k, twin in BALLOT_FREE_TWINS.items() if twin == kernel), kernel)
+    if ir.kernel not in (base, BALLOT_FREE_TWINS.get(base, base)):
         raise SimtSimError(
             f"KernelIR is for kernel {ir.kernel!r} but the scheme runs {kernel!r}; "
             f"load the IR of {kernel!r}"
@@ -313,6 +317,8 @@ class SimResult:
             ir_tests=ir.tests,
             recosted=True,
         )
+        card.pop("ir_kernel_note", None)
+        card.update(twin_note([ir], self.gpu))
         if c.warp_totals is not None:
             card["schedule"] = "dropped on re-costing (warp loads follow the costs)"
         return replace(

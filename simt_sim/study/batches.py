@@ -151,7 +151,7 @@ def replay_batch(plan: StudyPlan, recorded: RecordedBatch) -> BatchResults:
                     resident = max(1, round(plan.resident_warps(s, g) * share))
                 r = None
                 if stop > start:
-                    ir = plan.irs[(s.kernel, g.ir_arch)]
+                    ir = plan.irs[(s.kernel, g.id)]
                     r = simulate_launch(
                         plan.tree, rays, piece, s, ir, g, scene=plan.scene.name,
                         resident_warps=resident,

@@ -20,7 +20,6 @@ import numpy as np
 import pandas as pd
 
 from kernels_ir import kepler
-from kernels_ir import load as load_ir
 from kernels_ir.blocks import UNATTRIBUTED
 from kernels_ir.build import CUDA_DIR, KEPLER_ARCH, compile_listing, place_kernel
 from kernels_ir.emulate import WALKED_ARCHS, Program, run_kernel
@@ -32,7 +31,7 @@ from simt_sim.bvh.layout import BVH
 from simt_sim.bvh.layouts import Tree, make_tree
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.lockstep import execute
-from simt_sim.simt.gpus import barrier_code, get_gpu
+from simt_sim.simt.gpus import barrier_code, costed_ir, get_gpu
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.scheme import TRACE, SchemeInfo
 from simt_sim.study.workload import make_workload
@@ -329,7 +328,8 @@ def compare_counts(
             f"thread scheduling, and {gpu_id} has {'it' if kepler_code else 'none'}: pick "
             f"another --gpu ({KEPLER_GPU if kepler_code else DEFAULT_GPU})"
         )
-    kernel = scheme.kernel
+    ir = costed_ir(scheme.kernel, gpu, arch=arch)  # a GPU without a ballot: the twin's
+    kernel = ir.kernel
     tree = make_tree(bvh, scheme.layout)
     run = walk_kernel(
         kernel, arch, tree, rays, persistent=scheme.persistent, merge=merge, cuda11=cuda11
@@ -339,7 +339,6 @@ def compare_counts(
         agree = float(np.mean((run.hit_tri >= 0) == (trace.hits.tri >= 0)))
     else:
         agree = float(np.mean(run.hit_tri == trace.hits.tri))
-    ir = load_ir(kernel, arch)
     resident = 1 if scheme.persistent else None
     result = simulate_traces([trace], scheme, ir, gpu, scene=scene, resident_warps=resident)
     exact = None

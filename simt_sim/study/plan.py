@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import kernels_ir
 from kernels_ir.kernel_ir import KernelIR
 from simt_sim import progress, schemes
 from simt_sim.bvh.build import build_bvh
@@ -20,7 +19,7 @@ from simt_sim.bvh.layouts import NODE_BYTES_OF, Tree, make_tree, tree_stats
 from simt_sim.errors import SimtSimError
 from simt_sim.scene.load import load_scene
 from simt_sim.simt.footprint import decide
-from simt_sim.simt.gpus import GpuConfig, get_gpu
+from simt_sim.simt.gpus import GpuConfig, costed_ir, get_gpu
 from simt_sim.simt.occupancy import resident_warps
 from simt_sim.simt.result import TRAVERSAL_BLOCKS
 from simt_sim.simt.scheme import PATH, TRACE, SchemeInfo
@@ -49,8 +48,8 @@ class StudyPlan:
     schemes : tuple of SchemeInfo
         In the spec's order.
     irs : dict
-        ``(kernel, arch)`` -> KernelIR, for every kernel of every scheme on every GPU's
-        ``ir_arch``.
+        ``(kernel, gpu id)`` -> the KernelIR that GPU is costed with
+        (:func:`~simt_sim.simt.gpus.costed_ir`), for every kernel of every scheme.
     memory : dict
         GPU id -> (whether the memory model runs, the sentence saying why).
     """
@@ -94,7 +93,7 @@ class StudyPlan:
         connect) count, and the fewest of theirs: a smaller set touches fewer lines at
         once, which keeps the bandwidth bound on the high side."""
         return min(
-            resident_warps(gpu, self.irs[(k, gpu.ir_arch)], scheme.launch)
+            resident_warps(gpu, self.irs[(k, gpu.id)], scheme.launch)
             for k, blocks in scheme.kernels.items()
             if set(blocks) & set(TRAVERSAL_BLOCKS)
         )
@@ -107,8 +106,8 @@ class StudyPlan:
         return tuple(sorted({self.resident_warps(s, gpu) for s in chosen}))
 
     def irs_for(self, scheme: SchemeInfo, gpu: GpuConfig) -> dict[str, KernelIR]:
-        """The KernelIR of each of ``scheme``'s kernels on ``gpu``'s architecture."""
-        return {k: self.irs[(k, gpu.ir_arch)] for k in scheme.kernels}
+        """The KernelIR ``gpu`` is costed with for each of ``scheme``'s kernels."""
+        return {k: self.irs[(k, gpu.id)] for k in scheme.kernels}
 
     def workload(self, ray_type: str) -> Workload:
         """The scene, BVH and ray stream of trace ray type ``ray_type`` (made on first use)."""
@@ -133,12 +132,7 @@ def plan_study(spec: StudySpec) -> StudyPlan:
             f"{listed}: run them in separate tables"
         )
     chosen = tuple(schemes.get_scheme(s).for_layout(spec.bvh) for s in spec.schemes)
-    irs = {
-        (k, g.ir_arch): kernels_ir.load(k, g.ir_arch, spec.tests)
-        for g in gpus
-        for s in chosen
-        for k in s.kernels
-    }
+    irs = {(k, g.id): costed_ir(k, g, spec.tests) for g in gpus for s in chosen for k in s.kernels}
     scene = load_scene(spec.scene, up=spec.up, camera_file=spec.camera_file)
     progress.checkpoint()  # Ctrl-C during the load stops before the BVH build
     cameras = parse_cameras(spec.cameras, scene)

@@ -254,7 +254,7 @@ def path_rows(plan: StudyPlan, bar: tqdm) -> tuple[list[SimResult], list[dict]]:
     for g in plan.gpus:
         for s in plan.trace_schemes:
             checkpoint()
-            ir = plan.irs[(s.kernel, g.ir_arch)]
+            ir = plan.irs[(s.kernel, g.id)]
             replayed[(s.name, g.id)] = merge(
                 [simulate_launch(plan.bvh, r, q, s, ir, g, scene=name) for r, q in queues]
             )

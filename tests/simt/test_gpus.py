@@ -11,8 +11,9 @@ from test_cli import SMALL, assert_clean_error, run_cli
 
 import kernels_ir
 from kernels_ir.kepler import KEPT_LISTINGS
+from kernels_ir.kernel_ir import BALLOT_FREE_TWINS
 from simt_sim.errors import SimtSimError
-from simt_sim.simt.gpus import executed_on, get_gpu, load_gpus, runs_in_rounds
+from simt_sim.simt.gpus import costed_ir, executed_on, get_gpu, load_gpus, runs_in_rounds
 
 IDS = ("gtx285", "gtx480", "gtx680", "titan", "rtx2080ti", "a100", "rtx4090", "h100", "h200")
 
@@ -176,6 +177,39 @@ def test_independent_thread_scheduling_from_volta_on(gpu_id: str, its: bool) -> 
     gpu = get_gpu(gpu_id)
     assert gpu.independent_thread_scheduling is its
     assert gpu.figures()["independent_thread_scheduling"] is its
+
+
+@pytest.mark.parametrize(
+    ("gpu_id", "ballot"),
+    [("gtx285", False), ("gtx480", True), ("gtx680", True), ("h100", True)],
+)
+def test_a_gpu_without_a_warp_ballot_is_costed_with_the_ballot_free_twin(
+    gpu_id: str, ballot: bool
+) -> None:
+    """GT200 (sm_13) votes with ``__any`` only, so its packet kernel sums the order vote in
+    shared memory (``packet_shared_vote.cu``); Fermi on has ``__ballot``. Kernels without
+    a twin are the same IR either way."""
+    gpu = get_gpu(gpu_id)
+    assert gpu.warp_ballot is ballot and gpu.figures()["warp_ballot"] is ballot
+    for tests in kernels_ir.TESTS:
+        packet = costed_ir("packet", gpu, tests)
+        assert packet.kernel == ("packet" if ballot else "packet_shared_vote")
+        assert packet.arch == gpu.ir_arch and packet.tests == tests
+        assert costed_ir("while_while", gpu, tests) == kernels_ir.load(
+            "while_while", gpu.ir_arch, tests
+        )
+    assert costed_ir("packet", gpu, arch="sm_35").arch == "sm_35"
+
+
+@pytest.mark.parametrize("arch", kernels_ir.ALL_ARCHS)
+def test_the_twin_sums_the_order_vote_in_shared_memory(arch: str) -> None:
+    """The twin's order vote (``trav_both``) has no vote instruction and at least a load
+    and a store per exchange of the five (32 lanes); the ballot's block has its vote."""
+    for tests in kernels_ir.TESTS:
+        ballot = kernels_ir.load("packet", arch, tests).blocks["trav_both"]
+        twin = kernels_ir.load(BALLOT_FREE_TWINS["packet"], arch, tests).blocks["trav_both"]
+        assert ballot["vote_atomic"] >= 1 and twin["vote_atomic"] == 0
+        assert twin["shared"] - ballot["shared"] >= 2 * 5
 
 
 def test_missing_user_file(tmp_path: Path) -> None:

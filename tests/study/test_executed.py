@@ -15,7 +15,7 @@ import kernels_ir
 from simt_sim.oracles.lockstep import execute
 from simt_sim.report.warpstats import warp_counts
 from simt_sim.schemes import SCHEMES, get_scheme
-from simt_sim.simt.gpus import get_gpu
+from simt_sim.simt.gpus import costed_ir, get_gpu
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import merge
 from simt_sim.simt.scheme import TRACE, SchemeInfo
@@ -38,6 +38,24 @@ def study():
     return plan, {(r.scheme, r.ray_type): r for r in results}
 
 
+def test_the_gtx285_packet_row_is_costed_with_the_vote_gt200_can_run(study) -> None:
+    """GT200 has no warp ballot: the study costs its packet kernel with the ballot-free
+    twin, says so on the card, and the twin's order vote makes the row slower than the
+    same executed counts costed with the ballot that GPU lacks."""
+    plan, results = study
+    gpu = plan.gpus[0]
+    assert gpu.id == "gtx285" and not gpu.warp_ballot
+    assert plan.irs[("packet", gpu.id)].kernel == "packet_shared_vote"
+    assert plan.irs[("while_while", gpu.id)].kernel == "while_while"
+    got = results[("packet", "primary")]
+    assert got.model_card["ir_kernel"] == "packet_shared_vote"
+    assert "no warp ballot" in got.model_card["ir_kernel_note"]
+    assert "ir_kernel_note" not in results[("while_while", "primary")].model_card
+    ballot = got.recost(kernels_ir.load("packet", gpu.ir_arch, SPEC.tests))
+    assert ballot.mrays_upper > got.mrays_upper
+    assert "ir_kernel_note" not in ballot.model_card
+
+
 def test_only_packet_is_executed_and_an_executed_scheme_needs_a_kernel_body() -> None:
     assert [n for n, s in SCHEMES.items() if s.executed] == ["packet"]
     with pytest.raises(ValueError, match="lockstep body"):
@@ -49,7 +67,7 @@ def test_the_packet_row_is_the_kernel_run_launch_by_launch(study, ray_type: str)
     plan, results = study
     gpu = plan.gpus[0]
     packet = get_scheme("packet")
-    ir = plan.irs[("packet", gpu.ir_arch)]
+    ir = plan.irs[("packet", gpu.id)]
     stream = plan.workload(ray_type).stream
     assert stream.n_batches(SPEC.launch_size) > 1  # the launches merge
     runs = [execute(plan.tree, b, packet, ir, gpu).result for b in stream.batches(SPEC.launch_size)]
@@ -78,7 +96,7 @@ def test_per_warp_counts_of_packet_add_up_to_the_row() -> None:
     plan = plan_study(SPEC)
     gpu = plan.gpus[0]
     packet = get_scheme("packet")
-    ir = plan.irs[("packet", gpu.ir_arch)]
+    ir = plan.irs[("packet", gpu.id)]
     rays = plan.workload("ao").rays
     trace = record_all(plan.tree, rays)
     run = execute(plan.tree, rays, packet, ir, gpu).result
@@ -104,7 +122,7 @@ def test_a_sampled_study_executes_the_sampled_warps() -> None:
     recorded = record_batch(plan, "ao", rays, 0)
     out = replay_batch(plan, recorded)
     gpu = plan.gpus[0]
-    ir = plan.irs[("packet", gpu.ir_arch)]
+    ir = plan.irs[("packet", gpu.id)]
     b = recorded.bounds
     for j, r in enumerate(out.results[("packet", gpu.id)]):
         piece = recorded.traced.slice(b[j], b[j + 1])
@@ -125,7 +143,7 @@ def test_a_path_study_executes_packet_queue_by_queue() -> None:
         plan.scene, plan.bvh, cameras=list(plan.cameras), width=32, height=24,
         max_bounces=SPEC.max_bounces, seed=SPEC.seed,
     )  # fmt: skip
-    ir = kernels_ir.load("packet", gpu.ir_arch)
+    ir = costed_ir("packet", gpu)
     runs = [execute(plan.bvh, r, get_scheme("packet"), ir, gpu).result for r in pt.queue_rays()]
     assert len(runs) == len(pt.queues()) > 1
     (row,) = [r for r in results if r.scheme == "packet"]

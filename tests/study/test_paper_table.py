@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 
 import kernels_ir
+from kernels_ir.kernel_ir import BALLOT_FREE_TWINS
 from simt_sim.simt.gpus import executed_on
 from simt_sim.study.protocol import PAPER_TESTS
 from simt_sim.study.run import run_study
@@ -180,3 +181,22 @@ def test_tests_sensitivity_costs_the_same_replays_with_each_set(
     }
     assert tri[PAPER_TESTS] < tri[kernels_ir.DEFAULT_TESTS]
     assert f"is {tri[PAPER_TESTS]} instructions" in text
+
+
+def test_the_ballot_column_recosts_packet_with_the_vote_the_gtx285_lacks(
+    published_results, paper
+) -> None:
+    """The GTX 285 rows cost packet with its ballot-free twin; costed with the ballot
+    instead, packet runs faster against while-while (the twin's vote is dearer), and the
+    prose quotes both votes' costs and those errors."""
+    table = _errors(published_results, paper).loc["packet / while_while"]
+    ballot = paper_table.ballot_sensitivity(published_results, paper)
+    assert (ballot > table).all()
+    gpu = published_results[("packet", "primary")].gpu
+    text = paper_table._ballot_text(gpu, "sm_75", PAPER_TESTS, ballot)
+    twin, with_ballot = (
+        executed_on(kernels_ir.load(k, "sm_75", PAPER_TESTS), gpu).cost("trav_both")
+        for k in (BALLOT_FREE_TWINS["packet"], "packet")
+    )
+    assert f"adds {twin} instructions" in text and f"the ballot adds {with_ballot}" in text
+    assert f"diffuse {ballot['diffuse']:+.1%}" in text
