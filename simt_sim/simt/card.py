@@ -60,12 +60,20 @@ def model_card(
 
 
 def twin_note(irs: Sequence[KernelIR], gpu: GpuConfig) -> dict[str, str]:
-    """``ir_kernel_note`` where ``irs`` hold a ballot-free twin (a GPU without a warp
-    ballot is costed with it), else nothing."""
+    """``ir_kernel_note`` where the IRs are not the code ``gpu`` is costed with as to the
+    warp ballot: a ballot-free twin (``BALLOT_FREE_TWINS``), which a GPU without a ballot
+    is costed with, or on such a GPU a kernel that ballots; else nothing."""
     twins = [ir.kernel for ir in irs if ir.kernel in BALLOT_FREE_TWINS.values()]
-    if not twins:
+    ballots = [ir.kernel for ir in irs if ir.kernel in BALLOT_FREE_TWINS]
+    if twins and not gpu.warp_ballot:
+        note = (
+            f"costed with {_joined(twins)}, the kernel's vote summed in shared memory: "
+            f"{gpu.id} has no warp ballot"
+        )
+    elif twins:
+        note = f"costed with {_joined(twins)}, a ballot-free twin, though {gpu.id} has a ballot"
+    elif ballots and not gpu.warp_ballot:
+        note = f"costed with {_joined(ballots)}'s ballot, which {gpu.id} does not have"
+    else:
         return {}
-    return {
-        "ir_kernel_note": f"costed with {_joined(twins)}, the kernel's vote summed in shared "
-        f"memory: {gpu.id} has no warp ballot"
-    }
+    return {"ir_kernel_note": note}

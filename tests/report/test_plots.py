@@ -23,7 +23,7 @@ from simt_sim.errors import SimtSimError
 from simt_sim.report.plots import to_image
 from simt_sim.report.warpstats import timeline_schemes, warp_counts, warp_schemes, warp_timeline
 from simt_sim.schemes import get_scheme
-from simt_sim.simt.gpus import get_gpu
+from simt_sim.simt.gpus import costed_ir, get_gpu
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.synth import trace_from_lists
 from simt_sim.study.workload import make_workload
@@ -139,7 +139,7 @@ def test_warp_counts_add_up_to_the_replay(primary, scheme: str, gpu_id: str) -> 
     H200 issues them by groups and runs the speculative traversal loop in rounds."""
     _, trace = primary
     gpu = get_gpu(gpu_id)
-    ir = kernels_ir.load(scheme, gpu.ir_arch)
+    ir = costed_ir(scheme, gpu)
     wc = warp_counts(trace, get_scheme(scheme), ir, gpu)
     r = simulate_traces([trace], get_scheme(scheme), ir, gpu)
     assert wc.warp_instructions.shape == (trace.n_rays // 32,)

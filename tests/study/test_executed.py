@@ -12,12 +12,14 @@ import numpy as np
 import pytest
 
 import kernels_ir
+from simt_sim.errors import SimtSimError
 from simt_sim.oracles.lockstep import execute
 from simt_sim.report.warpstats import warp_counts
 from simt_sim.schemes import SCHEMES, get_scheme
+from simt_sim.simt.card import twin_note
 from simt_sim.simt.gpus import costed_ir, get_gpu
 from simt_sim.simt.replay import simulate_traces
-from simt_sim.simt.result import merge
+from simt_sim.simt.result import check_ir, merge
 from simt_sim.simt.scheme import TRACE, SchemeInfo
 from simt_sim.study.plan import plan_study
 from simt_sim.study.run import run_plan
@@ -53,7 +55,14 @@ def test_the_gtx285_packet_row_is_costed_with_the_vote_gt200_can_run(study) -> N
     assert "ir_kernel_note" not in results[("while_while", "primary")].model_card
     ballot = got.recost(kernels_ir.load("packet", gpu.ir_arch, SPEC.tests))
     assert ballot.mrays_upper > got.mrays_upper
-    assert "ir_kernel_note" not in ballot.model_card
+    assert "does not have" in ballot.model_card["ir_kernel_note"]
+    # the twin on a GPU that has a ballot says so too
+    h100 = get_gpu("h100")
+    twin = kernels_ir.load("packet_shared_vote", h100.ir_arch, SPEC.tests)
+    assert "though h100 has a ballot" in twin_note([twin], h100)["ir_kernel_note"]
+    assert twin_note([costed_ir("packet", h100, SPEC.tests)], h100) == {}
+    with pytest.raises(SimtSimError, match="scheme runs 'while_while'"):
+        check_ir(twin, "while_while", ())
 
 
 def test_only_packet_is_executed_and_an_executed_scheme_needs_a_kernel_body() -> None:
