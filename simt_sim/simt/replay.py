@@ -150,7 +150,9 @@ def simulate_traces(
     scheme : SchemeInfo
         A trace scheme (``simt_sim.schemes.get_scheme(name)``).
     ir : KernelIR
-        Instruction costs of the scheme's kernel (``ir.kernel`` must be it).
+        Instruction costs of the scheme's kernel (``ir.kernel`` must be it or its
+        ballot-free twin: :func:`~simt_sim.simt.gpus.costed_ir` gives the one ``gpu``
+        is costed with).
     gpu : GpuConfig
         Warp size, resident warps and the figures of the upper bound.
     scene : str
