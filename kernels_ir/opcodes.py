@@ -325,13 +325,16 @@ def lop3(a: np.ndarray, b: np.ndarray, c: np.ndarray, lut: int) -> np.ndarray:
 
 
 def address(s: LaneState, op: Operand, wide: bool) -> np.ndarray:
-    """Byte address of a memory operand per lane (``wide``: a 64-bit register pair)."""
+    """Byte address of a memory operand per lane (``wide``: a 64-bit register pair; a
+    base with ``.X4`` is an index scaled by 4)."""
     base = op.base
     assert base is not None
     if base.kind == "r":
         lo = read_bits(s, base).astype(np.uint64)
         hi = s.r[base.n + 1].astype(np.uint64) if wide and base.n != RZ else np.uint64(0)
         a = lo | (hi << np.uint64(32))
+        if scale := re.search(r"\.X(\d+)", base.text):  # a scaled index: [R3.X4+0x100]
+            a = a * np.uint64(int(scale.group(1)))
     else:  # a uniform register pair
         a = np.full(LANES, int(s.ur[base.n]) | int(s.ur[base.n + 1]) << 32, np.uint64)
     off = op.offset
@@ -526,6 +529,16 @@ def _lop3(s, opc, o, m):
     write(s, o[0], v, m)
 
 
+def _plop3(s, opc, o, m):
+    """``PLOP3.LUT Pd, Pq, Pa, Pb, Pc, lut, lut2``: Pd the function ``lut`` of the three
+    predicates (as :func:`lop3`, bit ``4a+2b+c``). The second result, from ``lut2``, is
+    refused unless it goes to ``PT`` (no compiled kernel writes one)."""
+    if o[1].n != PT:
+        raise KernelIRError(f"{opc} with a second destination {o[1].text} is not modelled")
+    a, b, c = (read_pred(s, x).astype(np.uint32) for x in o[2:5])
+    write(s, o[0], (lop3(a, b, c, o[5].value) & 1) != 0, m)
+
+
 def _mov(s, opc, o, m):
     write(s, o[0], read_bits(s, o[1]), m)
 
@@ -692,9 +705,9 @@ def _shfl(s, opc, o, m):
 SEMANTICS: dict[str, Semantics] = {
     "FADD": _fadd, "FMUL": _fmul, "FFMA": _ffma, "FMNMX": _fmnmx, "FSEL": _fsel,
     "FSETP": _fsetp, "MUFU": _mufu, "ISETP": _isetp, "IADD3": _iadd3, "IMAD": _imad,
-    "LEA": _lea, "SHF": _shf, "LOP3": _lop3, "MOV": _mov, "SEL": _sel, "PRMT": _prmt,
-    "POPC": _popc, "FLO": _flo, "BREV": _brev, "S2R": _s2r, "CS2R": _cs2r, "ULDC": _uldc,
-    "I2F": _i2f,
+    "LEA": _lea, "SHF": _shf, "LOP3": _lop3, "PLOP3": _plop3, "MOV": _mov, "SEL": _sel,
+    "PRMT": _prmt, "POPC": _popc, "FLO": _flo, "BREV": _brev, "S2R": _s2r, "CS2R": _cs2r,
+    "ULDC": _uldc, "I2F": _i2f,
     "LDG": _loader("global"), "STG": _storer("global"), "LDL": _loader("local"),
     "STL": _storer("local"), "LDS": _loader("shared"), "STS": _storer("shared"),
     "ATOMG": _atomg, "VOTE": _vote, "VOTEU": _vote, "SHFL": _shfl,

@@ -20,11 +20,11 @@ import numpy as np
 import pandas as pd
 
 from kernels_ir import kepler
-from kernels_ir.blocks import UNATTRIBUTED
+from kernels_ir.blocks import UNATTRIBUTED, convergence_spins
 from kernels_ir.build import CUDA_DIR, KEPLER_ARCH, compile_listing, place_kernel
 from kernels_ir.emulate import WALKED_ARCHS, Program, run_kernel
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kernel_ir import BLOCKS, RECONVERGE, WARP_SIZE
+from kernels_ir.kernel_ir import BLOCKS, RECONVERGE, SPIN_BLOCKS, WARP_SIZE
 from kernels_ir.sass import SassInstruction, base_opcode, region_end
 from simt_sim import schemes
 from simt_sim.bvh.layout import BVH
@@ -55,6 +55,13 @@ FALLBACK = "fallback"
 DIVERGED = "trav_diverged"
 FULL_WARP = "full_warp"
 """Row of a full-warp-only path (:func:`kernels_ir.blocks.full_warp_only`; uncharged)."""
+SPIN = "convergence_spin"
+"""Row of the compiler's convergence spins (:func:`kernels_ir.blocks.convergence_spins`)
+when Volta-style code is walked for a GPU without independent thread scheduling (the GTX
+285, costed with sm_75 code)."""
+NOT_RUN_WITHOUT_ITS = (SPIN, DIVERGED, FALLBACK)
+"""Rows such a GPU does not run (``simt_sim.simt.gpus.executed_on``: no spins, and a vote
+of one instruction for any warp): shown, but left out of both totals."""
 
 
 @dataclass(frozen=True)
@@ -77,14 +84,17 @@ class DynCount:
     exact: int | None = None
     """The lockstep executor's warp instructions on the same warps (its kernel control
     flow, no op stream); ``None`` for a scheme without a lockstep body."""
+    left_out: tuple[str, ...] = ()
+    """Rows of ``table`` the GPU does not run (:data:`NOT_RUN_WITHOUT_ITS`), outside both
+    totals."""
 
     @property
     def walk(self) -> int:
-        return int(self.table["walk"].sum())
+        return int(self.table["walk"].drop(list(self.left_out), errors="ignore").sum())
 
     @property
     def replay(self) -> int:
-        return int(self.table["replay"].sum())
+        return int(self.table["replay"].drop(list(self.left_out), errors="ignore").sum())
 
     @property
     def difference(self) -> float:
@@ -101,8 +111,15 @@ class DynCount:
             f"{self.kernel} on {self.scene} {self.ray_type}, {self.warps} warps "
             f"({self.rays} rays), {self.arch} / {self.gpu}: SASS walk {self.walk} warp "
             f"instructions, replay {self.replay}, difference {100 * self.difference:+.2f}%"
-            f"{exact} (hits agree on {100 * self.hits_agree:.2f}% of rays)"
+            f"{exact} (hits agree on {100 * self.hits_agree:.2f}% of rays){self._left_out()}"
         )
+
+    def _left_out(self) -> str:
+        rows = [r for r in self.left_out if r in self.table.index]
+        if not rows:
+            return ""
+        walked = int(self.table.loc[rows, "walk"].sum())
+        return f"; left out of both, as {self.gpu} runs none: {', '.join(rows)} ({walked} walked)"
 
 
 def walked_schemes() -> dict[str, SchemeInfo]:
@@ -156,19 +173,25 @@ def walk_blocks(
     issued: np.ndarray,
     instructions: list[SassInstruction],
     cuda_dir: Path = CUDA_DIR,
+    *,
+    spins_apart: bool = False,
 ) -> pd.Series:
     """Issued warp instructions per IR block (a divergent-warp fallback of the traversal
     step is ``trav_diverged``, as the IR build names it; any other is :data:`FALLBACK`; a
     full-warp-only path is :data:`FULL_WARP`; a barrier's issues beyond its region's
-    first, :func:`barrier_excess`, are ``reconverge``)."""
+    first, :func:`barrier_excess`, are ``reconverge``; with ``spins_apart`` the
+    convergence spins, in a spin block or not, are :data:`SPIN`)."""
     placement = place_kernel(kernel, instructions, cuda_dir)
     apart = barrier_excess(instructions, issued)
+    spins = convergence_spins(instructions) if spins_apart else set()
     out: dict[str, int] = {}
     for i, times in enumerate(issued):
         if not times:
             continue
         block = placement.block[i]
-        if i in placement.fallback:
+        if spins_apart and (i in spins or block in SPIN_BLOCKS):
+            block = SPIN
+        elif i in placement.fallback:
             block = DIVERGED if block == "trav_step" else FALLBACK
         elif i in placement.full_warp:
             block = FULL_WARP
@@ -297,7 +320,10 @@ def compare_counts(
     code of ``arch`` (default: the GPU's IR architecture). Turing-to-Ada code is walked
     for a GPU with independent thread scheduling (its divergent-warp fallbacks are
     charged only there); Kepler's sm_35 code, compiled with CUDA 11.8 in ``cuda11``, for
-    one without (``KEPLER_GPU``).
+    one without (``KEPLER_GPU``). A GPU without it that is costed with Volta-style code
+    (the GTX 285: sm_75, and packet's ballot-free twin) has that code walked with its
+    lanes in lockstep (``merge``), and the rows it does not run
+    (:data:`NOT_RUN_WITHOUT_ITS`) are shown but left out of both totals.
 
     Persistent kernels run as one resident warp that fetches the rays from the pool in
     order, and the replay is given one resident warp to match. ``merge``: the walk's
@@ -322,11 +348,16 @@ def compare_counts(
             f"--gpu (rtx2080ti, a100, rtx4090; {KEPLER_GPU} with --arch {KEPLER_ARCH})"
         )
     kepler_code = not barrier_code(arch)
-    if gpu.independent_thread_scheduling == kepler_code:
+    if kepler_code and gpu.independent_thread_scheduling:
         raise SimtSimError(
-            f"{arch} code runs on a GPU {'without' if kepler_code else 'with'} independent "
-            f"thread scheduling, and {gpu_id} has {'it' if kepler_code else 'none'}: pick "
-            f"another --gpu ({KEPLER_GPU if kepler_code else DEFAULT_GPU})"
+            f"{arch} code runs on a GPU without independent thread scheduling, and {gpu_id} "
+            f"has it: pick another --gpu ({KEPLER_GPU})"
+        )
+    lockstep_its_code = not kepler_code and not gpu.independent_thread_scheduling
+    if lockstep_its_code and not merge:
+        raise SimtSimError(
+            f"{gpu_id} has no independent thread scheduling: its lanes never issue apart, "
+            f"so drop --split (or pick --gpu {DEFAULT_GPU})"
         )
     ir = costed_ir(scheme.kernel, gpu, arch=arch)  # a GPU without a ballot: the twin's
     kernel = ir.kernel
@@ -347,16 +378,16 @@ def compare_counts(
         exact = run_exact.result.warp_instructions
         if merge:
             exact -= run_exact.result.block_instructions[RECONVERGE]
-    walk = walk_blocks(kernel, run.issued, run.instructions)
+    walk = walk_blocks(kernel, run.issued, run.instructions, spins_apart=lockstep_its_code)
     replay = pd.Series(result.block_instructions, dtype=np.int64)
     if merge:  # lanes rejoin at once: each barrier is issued once per region
         replay = replay.drop(RECONVERGE)
     table = pd.DataFrame({"walk": walk, "replay": replay}).fillna(0).astype(np.int64)
     table = table[(table != 0).any(axis=1)]
-    order = [b for b in (*BLOCKS, FALLBACK, FULL_WARP, UNATTRIBUTED) if b in table.index]
+    order = [b for b in (*BLOCKS, FALLBACK, FULL_WARP, SPIN, UNATTRIBUTED) if b in table.index]
     table = table.loc[order + [b for b in table.index if b not in order]]
     table["replay - walk"] = table["replay"] - table["walk"]
     return DynCount(
         scheme.name, kernel, scene, rays.ray_type, arch, gpu_id, run.warps, len(rays.tmin),
-        table, agree, exact,
+        table, agree, exact, NOT_RUN_WITHOUT_ITS if lockstep_its_code else (),
     )  # fmt: skip

@@ -236,3 +236,31 @@ def test_i2f_u8_converts_the_selected_byte() -> None:
     assert (s.r[6].view(np.float32) == 199.0).all()
     with pytest.raises(KernelIRError, match="not modelled"):
         _exec(s, "I2F.S16 R7, R2")
+
+
+@given(st.booleans(), st.booleans(), st.booleans(), st.integers(0, 255))
+def test_plop3_is_the_truth_table_of_three_predicates(a: bool, b: bool, c: bool, lut: int) -> None:
+    """sm_75's ``PLOP3.LUT Pd, PT, Pa, Pb, Pc, lut, 0x0`` (the ballot-free packet twin
+    joins its two ``__any`` votes with it): bit ``4a+2b+c`` of ``lut``."""
+    s = LaneState(bytes(512), GlobalMemory(), 16)
+    s.p[1][:], s.p[2][:], s.p[3][:] = a, b, c
+    s.p[0][:] = True
+    lanes = np.arange(LANES) < 16  # the lanes not executing keep P0
+    _exec(s, f"PLOP3.LUT P0, PT, P1, P2, P3, {lut:#x}, 0x0", lanes)
+    assert (s.p[0][:16] == bool(lut >> (4 * a + 2 * b + c) & 1)).all() and s.p[0][16:].all()
+    _exec(s, f"PLOP3.LUT P4, PT, !P1, PT, PT, {lut:#x}, 0x0")  # an inverted source
+    assert (s.p[4] == bool(lut >> (4 * (not a) + 3) & 1)).all()
+
+
+def test_plop3_refuses_a_second_destination_and_shared_indices_scale() -> None:
+    s = LaneState(bytes(512), GlobalMemory(), 16)
+    with pytest.raises(KernelIRError, match="second destination"):
+        _exec(s, "PLOP3.LUT P0, P1, P2, P3, PT, 0x80, 0x8")
+    # the twin's vote sum: [R29.X4+0x100] is the word R29 past the stack's 64 words
+    s.r[29][:] = np.arange(LANES)
+    s.r[12][:] = np.arange(LANES) * 10
+    _exec(s, "STS [R29.X4+0x100], R12")
+    np.testing.assert_array_equal(s.shared[64 : 64 + LANES], np.arange(LANES) * 10)
+    s.r[28][:] = np.arange(LANES) ^ 16
+    _exec(s, "LDS.U R13, [R28.X4+0x100]")
+    np.testing.assert_array_equal(s.r[13], (np.arange(LANES) ^ 16) * 10)

@@ -19,8 +19,9 @@ from simt_sim import schemes
 from simt_sim.bvh.layouts import make_tree
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.lockstep import execute
-from simt_sim.simt.gpus import get_gpu
+from simt_sim.simt.gpus import costed_ir, get_gpu
 from simt_sim.study.dyncount import (
+    SPIN,
     compare_counts,
     dyncount,
     pick_warps,
@@ -221,9 +222,13 @@ def test_command_prints_both_counts_and_refuses_bad_input(capsys) -> None:
     err = capsys.readouterr().err
     assert err.startswith("error: the walk runs no kernel") and "\n" == err[-1]
     assert "bvh4_while_while" in err  # the list names the kernels it runs
-    for gpu in ("h100", "gtx285"):  # sm_90 code; no independent thread scheduling
-        assert main(["dyncount", "--kernel", "while_while", "--gpu", gpu]) == 2
-        assert "pick another --gpu" in capsys.readouterr().err
+    assert main(["dyncount", "--kernel", "while_while", "--gpu", "h100"]) == 2  # sm_90 code
+    assert "pick another --gpu" in capsys.readouterr().err
+    # the GTX 285's lanes never issue apart; Kepler's code needs a GPU without ITS
+    for argv in (["--gpu", "gtx285", "--split"], ["--arch", "sm_35"]):
+        assert main(["dyncount", "--kernel", "while_while", "--warps", "1", *argv]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and err.count("\n") == 1 and "--" in err
 
 
 def test_walk_meets_the_exact_packet_kernel_where_the_replay_cannot() -> None:
@@ -247,3 +252,28 @@ def test_walk_meets_the_exact_packet_kernel_where_the_replay_cannot() -> None:
     assert 0 <= skipped < d.warps * load("packet", "sm_75").cost("loop_control")
     assert d.table.loc["leaf_entry", "replay"] < exact["leaf_entry"]
     assert d.table.loc["tri_u", "replay"] < exact["tri_u"]
+
+
+def test_the_gtx285s_ballot_free_packet_walks_as_its_executor_counts() -> None:
+    """The GTX 285 is costed with packet's ballot-free twin, sm_75 code, under rules
+    without independent thread scheduling: walked with its lanes in lockstep, its
+    convergence spins (which that GPU runs without, ``executed_on``) in a row of their own
+    outside both totals, it must issue what the lockstep executor charges, block for block
+    (the no-hit and one-hit outcomes share their code, so only their sum is compared)."""
+    wl = make_workload("room", "ao", cameras="0", resolution=(64, 48), spp=4)
+    rays = wl.rays.take(pick_warps(len(wl.rays.tmin), 4))
+    gpu = get_gpu("gtx285")
+    d = compare_counts("packet", "room", wl.bvh, rays, gpu_id="gtx285")
+    assert d.kernel == "packet_shared_vote" and d.arch == "sm_75" and d.hits_agree == 1.0
+    ir = costed_ir("packet", gpu)
+    exact = execute(wl.bvh, rays, schemes.get_scheme("packet"), ir, gpu).result
+    walk = d.table["walk"]
+    for block in ("ray_setup", "loop_control", "trav_step", "trav_both", "leaf_entry",
+                  "tri_test", "tri_u", "tri_v", "finish"):  # fmt: skip
+        assert walk[block] == exact.block_instructions[block], block
+    outcome = exact.block_instructions["trav_none"] + exact.block_instructions["trav_one"]
+    assert walk.get("trav_none", 0) + walk.get("trav_one", 0) == outcome
+    assert walk[SPIN] > 0 and SPIN in d.left_out
+    assert d.walk == walk.sum() - walk[SPIN]
+    assert abs(d.exact / d.walk - 1) < 0.001  # the prologue's 8 instructions
+    assert "left out of both" in d.summary()
