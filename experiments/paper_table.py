@@ -644,12 +644,12 @@ def _ballot_text(gpu: GpuConfig, arch: str, tests: str, ballot: pd.Series) -> st
     return (
         f"`{gpu.id}` has no warp ballot (GT200 votes with `__any` and `__all`; "
         "`__ballot` and `__popc` came with Fermi), so the table costs its packet kernel "
-        f"with `{BALLOT_FREE_TWINS['packet']}.cu`, ours with the order vote summed in "
-        "shared memory in five exchanges, as Aila & Laine's released packet kernel sums "
+        f"with `{BALLOT_FREE_TWINS['packet']}`, our packet.cu with the order vote summed "
+        "in shared memory in five exchanges, as Aila & Laine's released packet kernel sums "
         f"its own: a step that visits both children adds {both} instructions "
-        f"(`trav_both`) where the ballot adds {with_ballot} (its Kepler code walked: "
-        'docs/kernels_ir.md, "Packet\'s ballot-free twin"). Costed with the ballot that '
-        f"GPU lacks, the errors would be {errors}."
+        f"(`trav_both`) where the ballot adds {with_ballot} (its code walked: "
+        'docs/kernels_ir.md, "The GTX 285\'s own code, walked"). Costed with the ballot '
+        f"that GPU lacks, the errors would be {errors}."
     )
 
 

@@ -44,8 +44,14 @@ PACKAGE_DIR = Path(__file__).resolve().parent
 CUDA_DIR = PACKAGE_DIR / "cuda"
 IR_DIR = PACKAGE_DIR / "ir"
 HEADER = "common.cuh"
-#: every kernel: one ``.cu`` file each beside the shared header
-KERNELS = tuple(sorted(p.stem for p in CUDA_DIR.glob("*.cu")))
+#: kernels with a ``.cu`` file of their own beside the shared header (what a GPU launches)
+SOURCE_KERNELS = tuple(sorted(p.stem for p in CUDA_DIR.glob("*.cu")))
+#: kernels built from another kernel's ``.cu`` with a define (as :data:`TEST_DEFINES`
+#: builds the two sets of tests): packet's ballot-free twin is packet.cu as a GPU without
+#: a warp ballot runs it (``kernel_ir.BALLOT_FREE_TWINS``), costed, never launched
+VARIANTS = {"packet_shared_vote": ("packet", ("-DSIMT_SHARED_VOTE",))}
+#: every kernel the IR is built for
+KERNELS = tuple(sorted((*SOURCE_KERNELS, *VARIANTS)))
 #: targets compiled; sm_75..sm_90 are required, sm_100/sm_120 are the Blackwell parts the
 #: pinned CUDA 13 compiler offers (CUDA 13 dropped everything below sm_75)
 ARCHS = ("sm_75", "sm_80", "sm_86", "sm_89", "sm_90", "sm_100", "sm_120")
@@ -127,20 +133,30 @@ def run_tool(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
 _INCLUDE = re.compile(r'^\s*#include\s+"([^"]+)"', re.MULTILINE)
 
 
+def source_file(kernel: str) -> str:
+    """The ``.cu`` file ``kernel`` is compiled from (a variant's: its base kernel's)."""
+    return f"{VARIANTS[kernel][0] if kernel in VARIANTS else kernel}.cu"
+
+
+def kernel_defines(kernel: str) -> tuple[str, ...]:
+    """The preprocessor flags that make ``kernel`` of its ``.cu`` (a variant's define)."""
+    return VARIANTS[kernel][1] if kernel in VARIANTS else ()
+
+
 def kernel_headers(kernel: str, cuda_dir: Path = CUDA_DIR) -> tuple[str, ...]:
     """The headers of ``kernels_ir/cuda`` (or ``cuda_dir``) a kernel reads: the shared
     header, then any other one its ``.cu`` includes, in include order (``bvh4.cuh`` for the
     bvh4 kernels)."""
-    text = (cuda_dir / f"{kernel}.cu").read_text()
+    text = (cuda_dir / source_file(kernel)).read_text()
     return (HEADER, *dict.fromkeys(h for h in _INCLUDE.findall(text) if h != HEADER))
 
 
 def source_sha256(kernel: str, cuda_dir: Path = CUDA_DIR) -> str:
     """sha256 over the kernel's ``.cu`` file followed by the headers it reads
     (:func:`kernel_headers`; for a kernel including only the shared header, the ``.cu``
-    and that header)."""
+    and that header; a variant's is its base kernel's)."""
     h = hashlib.sha256()
-    for name in (f"{kernel}.cu", *kernel_headers(kernel, cuda_dir)):
+    for name in (source_file(kernel), *kernel_headers(kernel, cuda_dir)):
         h.update((cuda_dir / name).read_bytes())
     return h.hexdigest()
 
@@ -166,9 +182,9 @@ def ir_filename(kernel: str, arch: str, tests: str = DEFAULT_TESTS) -> str:
     return f"{kernel}.{arch}.json" if tests == DEFAULT_TESTS else f"{kernel}.{arch}.{tests}.json"
 
 
-def nvcc_flags(arch: str, tests: str) -> list[str]:
+def nvcc_flags(arch: str, tests: str, kernel: str) -> list[str]:
     """Every flag one kernel is compiled with, but its output and source."""
-    return [f"-arch={arch}", *FLAGS, *TEST_DEFINES[tests]]
+    return [f"-arch={arch}", *FLAGS, *TEST_DEFINES[tests], *kernel_defines(kernel)]
 
 
 def _compile(
@@ -178,8 +194,8 @@ def _compile(
     instructions of the kernel and of the compiler subroutines (``$__internal_*``) it
     calls, in listing order."""
     cubin = workdir / cubin_filename(kernel, arch, tests)
-    flags = nvcc_flags(arch, tests)
-    cmd = [str(tools.nvcc), *flags, "-o", str(cubin), f"{kernel}.cu"]
+    flags = nvcc_flags(arch, tests, kernel)
+    cmd = [str(tools.nvcc), *flags, "-o", str(cubin), source_file(kernel)]
     proc = run_tool(cmd, cuda_dir)
     log = proc.stdout + proc.stderr
     warnings = [ln for ln in log.splitlines() if "warning" in ln.lower()]
@@ -201,9 +217,10 @@ def place_kernel(
     """Where the IR charges each of ``kernel``'s ``instructions``
     (:func:`kernels_ir.blocks.place_instructions` with its source's markers and loops;
     its ``.cu`` in ``cuda_dir``)."""
-    source = (cuda_dir / f"{kernel}.cu").read_text()
-    owner, loops = parse_markers(source, f"{kernel}.cu"), parse_loops(source)
-    return place_instructions(instructions, owner, f"{kernel}.cu", loops)
+    name = source_file(kernel)
+    source = (cuda_dir / name).read_text()
+    owner, loops = parse_markers(source, name), parse_loops(source)
+    return place_instructions(instructions, owner, name, loops)
 
 
 def compile_listing(
@@ -244,9 +261,8 @@ def write_cubins(
         if kernel not in KERNELS:
             raise KernelIRError(f"unknown kernel {kernel!r}; kernels: {', '.join(KERNELS)}")
         path = (out_dir / cubin_filename(kernel, arch, tests)).resolve()
-        run_tool(
-            [str(tools.nvcc), *nvcc_flags(arch, tests), "-o", str(path), f"{kernel}.cu"], CUDA_DIR
-        )
+        flags = nvcc_flags(arch, tests, kernel)
+        run_tool([str(tools.nvcc), *flags, "-o", str(path), source_file(kernel)], CUDA_DIR)
         paths.append(path)
     return paths
 
@@ -293,11 +309,12 @@ def ir_document(
         When a marked block gets no instruction.
     """
     registers, notes = _ptxas_info(log, kernel)
-    source = (cuda_dir / f"{kernel}.cu").read_text()
-    owner = parse_markers(source, f"{kernel}.cu")
+    name = source_file(kernel)
+    source = (cuda_dir / name).read_text()
+    owner = parse_markers(source, name)
     loops = parse_loops(source)
-    counts, fallback, moved, full_warp = map_blocks(instructions, owner, f"{kernel}.cu", loops)
-    spins = spins_in_blocks(instructions, owner, f"{kernel}.cu", loops)
+    counts, fallback, moved, full_warp = map_blocks(instructions, owner, name, loops)
+    spins = spins_in_blocks(instructions, owner, name, loops)
     unattributed = counts.pop(UNATTRIBUTED, {})
     moved.pop(UNATTRIBUTED, None)
     # a diverged warp's traversal step runs its vote's fallback (charged as trav_diverged
@@ -311,7 +328,7 @@ def ir_document(
     # every marked block must own code: a marker the compiler left empty would cost
     # nothing. A block whose code all runs in another block's basic block (an if-converted
     # ``if``, blocks.by_basic_block) costs nothing itself, and the notes say so.
-    placement = place_instructions(instructions, owner, f"{kernel}.cu", loops)
+    placement = place_instructions(instructions, owner, name, loops)
     elsewhere = placement.run_elsewhere - set(SPIN_BLOCKS)
     for block in elsewhere:
         counts.setdefault(block, dict.fromkeys(CLASSES, 0))

@@ -42,9 +42,11 @@ from kernels_ir.build import (
     find_toolchain,
     ir_document,
     ir_filename,
+    kernel_defines,
     kernel_instructions,
     place_kernel,
     run_tool,
+    source_file,
     source_sha256,
 )
 from kernels_ir.errors import KernelIRError
@@ -110,8 +112,8 @@ def _compile(
     with ``tools`` nvcc 13, then CUDA 11.8's ptxas and nvdisasm."""
     nvcc, ptxas, nvdisasm = tools
     ptx, cubin = work / f"{kernel}.{tests}.ptx", work / f"{kernel}.{tests}.cubin"
-    run_tool([str(nvcc), *PTX_FLAGS, *TEST_DEFINES[tests], "-o", str(ptx), f"{kernel}.cu"],
-             cuda_dir)  # fmt: skip
+    defines = (*TEST_DEFINES[tests], *kernel_defines(kernel))
+    run_tool([str(nvcc), *PTX_FLAGS, *defines, "-o", str(ptx), source_file(kernel)], cuda_dir)
     ptx.write_text(retarget(ptx.read_text()))
     proc = run_tool([str(ptxas), *PTXAS_FLAGS, "-o", str(cubin), str(ptx)], cuda_dir)
     listing = run_tool([str(nvdisasm), "-c", "-hex", "-g", "-gi", str(cubin)], cuda_dir).stdout
@@ -216,9 +218,10 @@ def build(cuda11_bin: Path) -> tuple[dict, dict[str, dict]]:
                     )
                 instructions = kernel_instructions(listing, kernel)
                 placed = place_kernel(kernel, instructions)
-                marks = pair_marks(listing, f"{kernel}.cu")
+                marks = pair_marks(listing, source_file(kernel))
                 entry[tests] = block_pairs(instructions, placed, marks)
-                flags = [*PTX_FLAGS, *TEST_DEFINES[tests], "ptxas", *PTXAS_FLAGS]
+                defines = (*TEST_DEFINES[tests], *kernel_defines(kernel))
+                flags = [*PTX_FLAGS, *defines, "ptxas", *PTXAS_FLAGS]
                 docs[IR_DIR / ir_filename(kernel, KEPLER_ARCH, tests)] = ir_document(
                     kernel, KEPLER_ARCH, tests, instructions, report, flags, compiler,
                 )  # fmt: skip

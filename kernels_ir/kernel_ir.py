@@ -144,9 +144,10 @@ def kernel_layout(kernel: str) -> str:
 
 #: kernels that vote with ``__ballot`` and the twin of each that a GPU without a warp
 #: ballot (GT200, before Fermi's compute capability 2.0) runs in their place: the twin
-#: (``kernels_ir/cuda/<twin>.cu``) sums the vote in shared memory and has the kernel's
-#: blocks. The dynamic-fetch kernels and the wavefront's ``shade`` ballot too; their
-#: classes came with Fermi and Kepler and have no twin
+#: (the kernel's ``.cu`` built with a define, ``kernels_ir.build.VARIANTS``) sums the
+#: vote in shared memory and has the kernel's blocks. The dynamic-fetch kernels and the
+#: wavefront's ``shade`` ballot too; their classes came with Fermi and Kepler and have no
+#: twin
 BALLOT_FREE_TWINS = {"packet": "packet_shared_vote"}
 
 

@@ -21,7 +21,7 @@ import pandas as pd
 
 from kernels_ir import kepler
 from kernels_ir.blocks import UNATTRIBUTED, convergence_spins
-from kernels_ir.build import CUDA_DIR, KEPLER_ARCH, compile_listing, place_kernel
+from kernels_ir.build import CUDA_DIR, KEPLER_ARCH, compile_listing, place_kernel, source_file
 from kernels_ir.emulate import WALKED_ARCHS, Program, run_kernel
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import BLOCKS, RECONVERGE, SPIN_BLOCKS, WARP_SIZE
@@ -270,7 +270,7 @@ def walk_kernel(
     warps = n // WARP_SIZE
     try:
         run = run_kernel(
-            program, arch, (cuda_dir / f"{kernel}.cu").read_text(), params,
+            program, arch, (cuda_dir / source_file(kernel)).read_text(), params,
             ctaids=[0] if persistent else range(warps), grid_dim=1 if persistent else warps,
             merge=merge,
         )  # fmt: skip

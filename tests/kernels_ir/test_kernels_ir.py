@@ -33,6 +33,7 @@ from kernels_ir.blocks import (
 from kernels_ir.build import (
     CUDA_DIR,
     IR_DIR,
+    VARIANTS,
     build_one,
     check,
     compile_listing,
@@ -40,13 +41,22 @@ from kernels_ir.build import (
     dumps,
     find_toolchain,
     ir_filename,
+    kernel_defines,
     place_kernel,
+    source_file,
     source_sha256,
     toolchain_available,
     write_cubins,
 )
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kernel_ir import BLOCKS, CLASSES, FOLDABLE_BLOCKS, SPIN_BLOCKS, TESTS
+from kernels_ir.kernel_ir import (
+    BALLOT_FREE_TWINS,
+    BLOCKS,
+    CLASSES,
+    FOLDABLE_BLOCKS,
+    SPIN_BLOCKS,
+    TESTS,
+)
 from kernels_ir.sass import classify, parse_listing
 
 DATA = Path(__file__).parents[1] / "data" / "sass"
@@ -351,9 +361,24 @@ def test_a_subroutine_calling_another_is_refused() -> None:
 
 
 def test_every_kernel_and_arch_is_committed() -> None:
-    assert KERNELS == tuple(sorted(p.stem for p in CUDA_DIR.glob("*.cu")))
+    assert KERNELS == tuple(sorted([*(p.stem for p in CUDA_DIR.glob("*.cu")), *VARIANTS]))
     for tests in TESTS:
         assert available(tests) == [(k, a) for k in KERNELS for a in ALL_ARCHS]
+
+
+def test_a_variant_is_its_base_kernels_source_built_with_its_define() -> None:
+    """packet's ballot-free twin has no file of its own (the traversal is written once):
+    its IR is packet.cu's, source hash and all, compiled with the twin's define."""
+    assert set(VARIANTS) == set(BALLOT_FREE_TWINS.values())
+    for variant, (base, defines) in VARIANTS.items():
+        assert source_file(variant) == source_file(base) == f"{base}.cu"
+        assert not (CUDA_DIR / f"{variant}.cu").exists() and kernel_defines(variant) == defines
+        assert kernel_defines(base) == ()
+        for tests, arch in itertools.product(TESTS, ALL_ARCHS):
+            ir, base_ir = load(variant, arch, tests), load(base, arch, tests)
+            assert ir.kernel == variant and base_ir.kernel == base
+            assert ir.source_sha256 == base_ir.source_sha256 == source_sha256(base)
+            assert set(defines) <= set(ir.flags) and not set(defines) & set(base_ir.flags)
 
 
 @pytest.mark.parametrize("arch", ARCHS)
@@ -383,7 +408,7 @@ def test_published_tests_cost_less_in_the_tests_only(arch: str) -> None:
 @pytest.mark.parametrize("kernel", KERNELS)
 def test_committed_ir_has_required_blocks_and_is_current(kernel: str) -> None:
     sha = source_sha256(kernel)
-    marked = parse_markers((CUDA_DIR / f"{kernel}.cu").read_text(), f"{kernel}.cu")
+    marked = parse_markers((CUDA_DIR / source_file(kernel)).read_text(), source_file(kernel))
     for arch, tests in itertools.product(ARCHS, TESTS):
         text = (IR_DIR / ir_filename(kernel, arch, tests)).read_text()
         assert dumps(json.loads(text)) == text, "not in canonical form"

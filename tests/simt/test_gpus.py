@@ -187,8 +187,8 @@ def test_a_gpu_without_a_warp_ballot_is_costed_with_the_ballot_free_twin(
     gpu_id: str, ballot: bool
 ) -> None:
     """GT200 (sm_13) votes with ``__any`` only, so its packet kernel sums the order vote in
-    shared memory (``packet_shared_vote.cu``); Fermi on has ``__ballot``. Kernels without
-    a twin are the same IR either way."""
+    shared memory (packet.cu built with ``SIMT_SHARED_VOTE``); Fermi on has ``__ballot``.
+    Kernels without a twin are the same IR either way."""
     gpu = get_gpu(gpu_id)
     assert gpu.warp_ballot is ballot and gpu.figures()["warp_ballot"] is ballot
     for tests in kernels_ir.TESTS:

@@ -145,8 +145,9 @@ def test_kernel_source_inlines_the_header(kernel):
     assert src.index("simt_store_hit(") < src.index(f'extern "C" __global__ void {kernel}(')
 
 
-@pytest.mark.parametrize("bad", ["while-while", "", "wavefront"])
+@pytest.mark.parametrize("bad", ["while-while", "", "wavefront", "packet_shared_vote"])
 def test_unknown_kernel_lists_the_kernels(bad):
+    """packet's ballot-free twin is a build of packet.cu that is costed, never launched."""
     launch = KernelLaunch(bad)
     for call in (lambda: kernel_params(launch), lambda: launch_config(launch, 32, get_gpu("h100"))):
         with pytest.raises(SimtSimError) as err:
