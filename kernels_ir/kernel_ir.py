@@ -218,6 +218,9 @@ class KernelIR:
 #: launches by them and the SIMT model counts by them
 WARP_SIZE = 32  # SIMT_WARP_SIZE of common.cuh
 STACK_SIZE = 64  # SIMT_STACK_SIZE of common.cuh: a ray's stack holds the sentinel + depth
+#: shared-memory words per warp a kernel with a shared stack holds beside it: the twin's
+#: order-vote sum, one word per lane
+SHARED_WORDS_BESIDE_STACK = {"packet_shared_vote": WARP_SIZE}
 STACK_ENTRY_BYTES = 4  # a stack entry is an int node index
 BLOCK_THREADS = 128
 """Default threads per block: 4 warps, a multiple of 32 as the persistent and packet

@@ -51,12 +51,19 @@ def model_card(
         "ir_blocks": list(blocks),
         "bounds_in_force": ["issue", *(["dual_issue"] if gpu.pairing_arch else []), "pipe"],
     }
-    foreign = _joined([ir.arch for ir in irs if ir.arch != gpu.ir_arch])
-    if foreign:
-        card["ir_arch_note"] = f"costed with {foreign}; the GPU's table entry names {gpu.ir_arch}"
+    card.update(arch_note(irs, gpu))
     card.update(twin_note(irs, gpu))
     card.update(extra)
     return card
+
+
+def arch_note(irs: Sequence[KernelIR], gpu: GpuConfig) -> dict[str, str]:
+    """``ir_arch_note`` where the IRs are not the code of the architecture ``gpu``'s table
+    entry names (``ir_arch``); else nothing."""
+    foreign = _joined([ir.arch for ir in irs if ir.arch != gpu.ir_arch])
+    if not foreign:
+        return {}
+    return {"ir_arch_note": f"costed with {foreign}; the GPU's table entry names {gpu.ir_arch}"}
 
 
 def twin_note(irs: Sequence[KernelIR], gpu: GpuConfig) -> dict[str, str]:

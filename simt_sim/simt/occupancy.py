@@ -2,14 +2,15 @@
 
 A persistent or dynamic-fetch launch runs exactly the warps the GPU holds at once, so the
 replay needs that number. It follows from the kernel's registers, its shared memory (the
-packet kernel's per-warp stack) and the block size of the launch, against the SM's limits
-(``GpuConfig``: blocks, warps, registers and their allocation unit, shared memory), as the
-CUDA occupancy calculator computes it. The registers are those of the kernel's code for
-the GPU's own architecture (``GpuConfig.code_arch``): the IR it is costed with where that
-is its own, else the committed KernelIR of that architecture (GK104, whose sm_30 no kept
-compiler emits, holds the warps its sm_35 code's registers allow). Where no such code is
-committed (GT200, Fermi), the GPU's documented launch figure (``resident_warps_per_sm``)
-is used, and the card says so.
+packet kernel's per-warp stack, and its ballot-free twin's vote sum beside it) and the
+block size of the launch, against the SM's limits (``GpuConfig``: blocks, warps,
+registers and their allocation unit, shared memory), as the CUDA occupancy calculator
+computes it. The registers are those of the kernel's code for the GPU's own architecture
+(``GpuConfig.code_arch``): the IR it is costed with where that is its own, else the
+committed KernelIR of that architecture (GK104, whose sm_30 no kept compiler emits, holds
+the warps its sm_35 code's registers allow). Where no such code is committed (GT200,
+Fermi), the GPU's documented launch figure (``resident_warps_per_sm``) is used, and the
+card says so.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import kernels_ir
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import (
     BLOCK_THREADS,
+    SHARED_WORDS_BESIDE_STACK,
     STACK_ENTRY_BYTES,
     STACK_SIZE,
     KernelIR,
@@ -69,9 +71,8 @@ def kernel_occupancy(
     warps_per_block = block_threads // gpu.warp_size
     unit = gpu.register_unit
     regs_per_warp = -(-registers * gpu.warp_size // unit) * unit
-    shared = (
-        warps_per_block * STACK_SIZE * STACK_ENTRY_BYTES if launch and launch.shared_stack else 0
-    )
+    words = STACK_SIZE + SHARED_WORDS_BESIDE_STACK.get(ir.kernel, 0)
+    shared = warps_per_block * words * STACK_ENTRY_BYTES if launch and launch.shared_stack else 0
     blocks = {
         "blocks": gpu.max_blocks_per_sm,
         "warps": gpu.max_warps_per_sm // warps_per_block,

@@ -114,6 +114,19 @@ def test_occupancy_from_registers_on_the_gpus_own_code() -> None:
     assert kernel_occupancy(g, ir41, launch).warps_per_sm == 40
 
 
+def test_shared_memory_counts_the_twins_vote_sum_beside_the_stack() -> None:
+    """Packet holds a 64-word stack per warp in shared memory, its ballot-free twin 32
+    words more: with 32 KiB per SM, blocks of 4 warps take 1 KiB and 1.5 KiB, so 32 and
+    21 blocks fit (128 and 84 warps, both above every other limit here)."""
+    g = dataclasses.replace(get_gpu("rtx2080ti"), shared_kib_per_sm=32, max_blocks_per_sm=99,
+                max_warps_per_sm=999, registers_per_sm=10**9)  # fmt: skip
+    launch = get_scheme("packet").launch
+    ball = kernel_occupancy(g, KernelIR("packet", "sm_75", {}, registers=32), launch)
+    twin = kernel_occupancy(g, KernelIR("packet_shared_vote", "sm_75", {}, registers=32), launch)
+    assert (ball.limit, ball.warps_per_sm) == ("shared", 128)
+    assert (twin.limit, twin.warps_per_sm) == ("shared", 84)
+
+
 def test_occupancy_of_foreign_code_is_the_documented_launch() -> None:
     """sm_75 registers say nothing about GT200 code: the paper's 24 warps per SM; nor
     about Fermi's, whose 8 blocks of 128 threads hold 32 warps (not its 48-warp limit)."""

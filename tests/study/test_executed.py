@@ -65,6 +65,22 @@ def test_the_gtx285_packet_row_is_costed_with_the_vote_gt200_can_run(study) -> N
         check_ir(twin, "while_while", ())
 
 
+def test_a_recosted_card_names_the_code_it_was_recosted_with(study) -> None:
+    """Re-costing with another target's code says so (``ir_arch_note``), and re-costing
+    back with the GPU's own drops the note, as the twin's note follows the kernel."""
+    plan, results = study
+    gpu = plan.gpus[0]
+    got = results[("packet", "primary")]
+    assert got.model_card["ir_arch"] == gpu.ir_arch and "ir_arch_note" not in got.model_card
+    kepler = got.recost(costed_ir("packet", gpu, SPEC.tests, arch="sm_35"))
+    assert kepler.model_card["ir_arch"] == "sm_35"
+    assert kepler.model_card["ir_arch_note"].startswith("costed with sm_35")
+    assert "no warp ballot" in kepler.model_card["ir_kernel_note"]
+    back = kepler.recost(costed_ir("packet", gpu, SPEC.tests))
+    assert "ir_arch_note" not in back.model_card
+    assert back.mrays_upper == got.mrays_upper
+
+
 def test_only_packet_is_executed_and_an_executed_scheme_needs_a_kernel_body() -> None:
     assert [n for n, s in SCHEMES.items() if s.executed] == ["packet"]
     with pytest.raises(ValueError, match="lockstep body"):
