@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         "on a GPU with independent thread scheduling (default: lanes at one address issue "
         "together, each barrier once per region, and the replay's per-group barrier "
         "issues, reconverge, are left out; sm_35 code always runs as its reconvergence "
-        "stack runs it)",
+        "stack runs it; refused for a GPU without independent thread scheduling)",
     )
     args = parser.parse_args(argv)
     if args.cmd == "dyncount":

@@ -325,26 +325,33 @@ def lop3(a: np.ndarray, b: np.ndarray, c: np.ndarray, lut: int) -> np.ndarray:
 
 
 def address(s: LaneState, op: Operand, wide: bool) -> np.ndarray:
-    """Byte address of a memory operand per lane (``wide``: a 64-bit register pair; a
-    base with ``.X4`` is an index scaled by 4)."""
+    """Byte address of a memory operand per lane (``wide``: global memory, whose base and
+    uniform offset are 64-bit register pairs; shared and local addresses are 32-bit words).
+    A base with ``.X4`` is a 32-bit index scaled by 4 (``[R3.X4+0x100]``)."""
     base = op.base
     assert base is not None
+    scale = re.search(r"\.X(\d+)", base.text)
     if base.kind == "r":
         lo = read_bits(s, base).astype(np.uint64)
-        hi = s.r[base.n + 1].astype(np.uint64) if wide and base.n != RZ else np.uint64(0)
+        wide_base = wide and base.n != RZ and scale is None
+        hi = s.r[base.n + 1].astype(np.uint64) if wide_base else np.uint64(0)
         a = lo | (hi << np.uint64(32))
-        if scale := re.search(r"\.X(\d+)", base.text):  # a scaled index: [R3.X4+0x100]
+        if scale:
             a = a * np.uint64(int(scale.group(1)))
-    else:  # a uniform register pair
-        a = np.full(LANES, int(s.ur[base.n]) | int(s.ur[base.n + 1]) << 32, np.uint64)
+    else:  # a uniform register (a pair for global memory)
+        a = np.full(LANES, _uniform(s, base.n, wide), np.uint64)
     off = op.offset
     if off is None:
         return a.astype(np.int64)
     if off.kind == "ur":
-        pair = int(s.ur[off.n]) | int(s.ur[off.n + 1]) << 32
-        return (a + np.uint64(pair)).astype(np.int64)
+        return (a + np.uint64(_uniform(s, off.n, wide))).astype(np.int64)
     delta = off.value if not off.text.startswith("-") else off.value - (1 << 32)
     return a.astype(np.int64) + delta
+
+
+def _uniform(s: LaneState, n: int, wide: bool) -> int:
+    """Uniform register ``URn``, or the pair ``URn+1:URn`` where ``wide``."""
+    return int(s.ur[n]) | (int(s.ur[n + 1]) << 32 if wide else 0)
 
 
 def _words(opcode: str) -> int:

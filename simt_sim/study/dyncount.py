@@ -25,7 +25,7 @@ from kernels_ir.build import CUDA_DIR, KEPLER_ARCH, compile_listing, place_kerne
 from kernels_ir.emulate import WALKED_ARCHS, Program, run_kernel
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import BLOCKS, RECONVERGE, SPIN_BLOCKS, WARP_SIZE
-from kernels_ir.sass import SassInstruction, base_opcode, region_end
+from kernels_ir.sass import SassInstruction, base_opcode, branch_target, region_end
 from simt_sim import schemes
 from simt_sim.bvh.layout import BVH
 from simt_sim.bvh.layouts import Tree, make_tree
@@ -168,6 +168,27 @@ def barrier_excess(instructions: list[SassInstruction], issued: np.ndarray) -> d
     return {i: n for i, n in excess.items() if n > 0}
 
 
+def votes_in_lockstep(instructions: list[SassInstruction], issued: np.ndarray) -> np.ndarray:
+    """``issued`` as a GPU without independent thread scheduling would issue it: where a
+    diverged warp took a vote's divergent-warp fallback (entered by a ``BRA.DIV``, closed
+    by a branch back to the join after the vote), it would have run the vote itself, so
+    each entry into a fallback adds one issue to every instruction of the path it
+    replaced (the fallback's own issues stay, in the rows such a GPU does not run)."""
+    where = {label: i for i, ins in enumerate(instructions) for label in ins.labels}
+    out = issued.copy()
+    for i, ins in enumerate(instructions):
+        if not ins.opcode.startswith("BRA.DIV"):
+            continue
+        entry = where[branch_target(ins)]
+        back = next(
+            j
+            for j in range(entry, len(instructions))
+            if base_opcode(instructions[j].opcode) == "BRA" and not instructions[j].guarded
+        )
+        out[i + 1 : where[branch_target(instructions[back])]] += issued[entry]
+    return out
+
+
 def walk_blocks(
     kernel: str,
     issued: np.ndarray,
@@ -179,11 +200,15 @@ def walk_blocks(
     """Issued warp instructions per IR block (a divergent-warp fallback of the traversal
     step is ``trav_diverged``, as the IR build names it; any other is :data:`FALLBACK`; a
     full-warp-only path is :data:`FULL_WARP`; a barrier's issues beyond its region's
-    first, :func:`barrier_excess`, are ``reconverge``; with ``spins_apart`` the
-    convergence spins, in a spin block or not, are :data:`SPIN`)."""
+    first, :func:`barrier_excess`, are ``reconverge``; with ``spins_apart``, for a GPU
+    without independent thread scheduling, the convergence spins, in a spin block or not,
+    are :data:`SPIN`, and a diverged vote also issues its normal path,
+    :func:`votes_in_lockstep`)."""
     placement = place_kernel(kernel, instructions, cuda_dir)
     apart = barrier_excess(instructions, issued)
     spins = convergence_spins(instructions) if spins_apart else set()
+    if spins_apart:
+        issued = votes_in_lockstep(instructions, issued)
     out: dict[str, int] = {}
     for i, times in enumerate(issued):
         if not times:
@@ -345,7 +370,7 @@ def compare_counts(
     if arch not in WALKED_ARCHS:
         raise SimtSimError(
             f"the SASS walker runs {', '.join(WALKED_ARCHS)} code, not {arch}: pick another "
-            f"--gpu (rtx2080ti, a100, rtx4090; {KEPLER_GPU} with --arch {KEPLER_ARCH})"
+            f"--gpu (rtx2080ti, a100, rtx4090, gtx285; {KEPLER_GPU} with --arch {KEPLER_ARCH})"
         )
     kepler_code = not barrier_code(arch)
     if kepler_code and gpu.independent_thread_scheduling:

@@ -264,3 +264,7 @@ def test_plop3_refuses_a_second_destination_and_shared_indices_scale() -> None:
     s.r[28][:] = np.arange(LANES) ^ 16
     _exec(s, "LDS.U R13, [R28.X4+0x100]")
     np.testing.assert_array_equal(s.r[13], (np.arange(LANES) ^ 16) * 10)
+    # a shared address is one 32-bit word: a uniform offset's next register is not read
+    s.ur[4], s.ur[5], s.r[30][:] = 0x100, 7, 7  # R30's pair R31 likewise
+    _exec(s, "LDS R14, [R29.X4+UR4]")
+    np.testing.assert_array_equal(s.r[14], np.arange(LANES) * 10)

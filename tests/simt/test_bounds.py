@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from kernels_ir import load as load_ir
-from kernels_ir.kernel_ir import BLOCKS, CLASSES, KernelIR
+from kernels_ir.build import CUDA_DIR
+from kernels_ir.kernel_ir import BLOCKS, CLASSES, SHARED_WORDS_BESIDE_STACK, WARP_SIZE, KernelIR
 from kernels_ir.pairing import block_pair_counts
 from simt_sim.schemes import get_scheme
 from simt_sim.simt.bounds import issue_bound, pipe_bound, pipe_instructions, roofline
@@ -125,6 +126,10 @@ def test_shared_memory_counts_the_twins_vote_sum_beside_the_stack() -> None:
     twin = kernel_occupancy(g, KernelIR("packet_shared_vote", "sm_75", {}, registers=32), launch)
     assert (ball.limit, ball.warps_per_sm) == ("shared", 128)
     assert (twin.limit, twin.warps_per_sm) == ("shared", 84)
+    # the words the source gives each warp (packet.cu's kWarpInts)
+    source = (CUDA_DIR / "packet.cu").read_text()
+    assert "kWarpInts = SIMT_STACK_SIZE + (kSharedVote ? SIMT_WARP_SIZE : 0);" in source
+    assert SHARED_WORDS_BESIDE_STACK == {"packet_shared_vote": WARP_SIZE}
 
 
 def test_occupancy_of_foreign_code_is_the_documented_launch() -> None:

@@ -14,7 +14,7 @@ from kernels_ir.__main__ import main
 from kernels_ir.blocks import UNATTRIBUTED
 from kernels_ir.build import place_kernel, toolchain_available
 from kernels_ir.kernel_ir import SPIN_BLOCKS
-from kernels_ir.sass import base_opcode
+from kernels_ir.sass import base_opcode, parse_listing
 from simt_sim import schemes
 from simt_sim.bvh.layouts import make_tree
 from simt_sim.errors import SimtSimError
@@ -26,6 +26,7 @@ from simt_sim.study.dyncount import (
     dyncount,
     pick_warps,
     scheme_of_kernel,
+    votes_in_lockstep,
     walk_kernel,
     walked_schemes,
 )
@@ -225,10 +226,13 @@ def test_command_prints_both_counts_and_refuses_bad_input(capsys) -> None:
     assert main(["dyncount", "--kernel", "while_while", "--gpu", "h100"]) == 2  # sm_90 code
     assert "pick another --gpu" in capsys.readouterr().err
     # the GTX 285's lanes never issue apart; Kepler's code needs a GPU without ITS
-    for argv in (["--gpu", "gtx285", "--split"], ["--arch", "sm_35"]):
+    for argv, fix in (
+        (["--gpu", "gtx285", "--split"], "drop --split"),
+        (["--arch", "sm_35"], "pick another --gpu (gtx680)"),
+    ):
         assert main(["dyncount", "--kernel", "while_while", "--warps", "1", *argv]) == 2
         err = capsys.readouterr().err
-        assert err.startswith("error: ") and err.count("\n") == 1 and "--" in err
+        assert err.startswith("error: ") and err.count("\n") == 1 and fix in err
 
 
 def test_walk_meets_the_exact_packet_kernel_where_the_replay_cannot() -> None:
@@ -277,3 +281,21 @@ def test_the_gtx285s_ballot_free_packet_walks_as_its_executor_counts() -> None:
     assert d.walk == walk.sum() - walk[SPIN]
     assert abs(d.exact / d.walk - 1) < 0.001  # the prologue's 8 instructions
     assert "left out of both" in d.summary()
+
+
+def test_a_diverged_vote_issues_its_own_path_in_lockstep() -> None:
+    """Without independent thread scheduling a vote is one instruction for any warp: a
+    walk's entries into the vote's divergent-warp fallback (here 2 of 5 passes) add their
+    count to the path the fallback replaced, and nothing else moves."""
+    rows = ["BRA.DIV `(.L_x_9)", "VOTE.ANY R1, PT, P0", ".L_x_1:", "FADD R4, R4, 1", "EXIT",
+            ".L_x_9:", "MOV R8, 0x10", "BRA `(.L_x_1)"]  # fmt: skip
+    text, offset = [".text.k:"], 0
+    for row in rows:
+        if row.endswith(":"):
+            text.append(row)
+        else:
+            text.append(f"        /*{offset:04x}*/                   {row} ;")
+            offset += 0x10
+    instructions = parse_listing("\n".join(text) + "\n")
+    issued = np.array([5, 3, 5, 5, 2, 2])
+    np.testing.assert_array_equal(votes_in_lockstep(instructions, issued), [5, 5, 5, 5, 2, 2])
