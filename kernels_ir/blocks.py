@@ -502,20 +502,46 @@ def shared_outcomes(
     merged their paths into, and it runs on either: packet's pop after no child hit runs
     with its move to the one child hit on sm_75 to sm_90 (an H200 issues it on both), and
     sm_100 and sm_120 share code between the one-hit and both-hit paths. Each outcome
-    present is charged all of it, the step's own code in it too. ``spare[i]``: a
+    present is charged all of it, the step's own code in it too, but for an outcome with
+    basic blocks of its own from which the step never reaches this one (sm_35 gives a
+    line of packet's ballot-free twin's both-hit path to the pop that the other two
+    share): its line there is the compiler's, not its path. ``spare[i]``: a
     divergent-warp fallback, left alone.
     """
-    out: dict[int, tuple[str, ...]] = {}
+    charged: dict[int, list[int]] = {}
+    present: dict[int, tuple[str, ...]] = {}
     for b in cfg.reachable:
-        idx = [
+        charged[b] = [
             i
             for i in range(cfg.starts[b], cfg.last(b) + 1)
             if placed[i] is not None and not spare[i] and classify(instructions[i].opcode)
         ]
-        outcomes = tuple(o for o in STEP_OUTCOMES if any(placed[i] == o for i in idx))
-        if len(outcomes) >= 2:
-            out.update(dict.fromkeys(idx, outcomes))
+        present[b] = tuple(o for o in STEP_OUTCOMES if any(placed[i] == o for i in charged[b]))
+    own = {o: {b for b, outcomes in present.items() if outcomes == (o,)} for o in STEP_OUTCOMES}
+    out: dict[int, tuple[str, ...]] = {}
+    for b, outcomes in present.items():
+        if len(outcomes) < 2:
+            continue
+        runs = tuple(o for o in outcomes if not own[o] or _reaches(cfg, own[o], b)) or outcomes
+        out.update(dict.fromkeys(charged[b], runs))
     return out
+
+
+def _reaches(cfg: ControlFlow, sources: set[int], target: int) -> bool:
+    """Whether a path from a basic block of ``sources`` reaches ``target`` within one
+    iteration of ``target``'s innermost loop (never through its header)."""
+    loop = cfg.innermost[target]
+    header = None if loop is None else cfg.loops[loop].header
+    seen, todo = set(sources), list(sources)
+    while todo:
+        b = todo.pop()
+        if b == target:
+            return True
+        for s in cfg.successors[b]:
+            if s != header and s not in seen:
+                seen.add(s)
+                todo.append(s)
+    return False
 
 
 def _branch_block(

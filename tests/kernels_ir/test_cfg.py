@@ -514,3 +514,59 @@ def test_a_join_that_closes_a_conditional_if_chain_runs_with_its_bssy() -> None:
     assert [ins[i].opcode for i in (5, 10)] == ["BSSY", "BSYNC"]
     assert placed.block[5] == placed.block[10] == placed.block[11] == "tri_test"
     assert placed.block[9] == "tri_hit"
+
+
+#: a node step whose no-hit and one-hit paths share a basic block (packet's pop and move)
+OUTCOMES = """// k.cu
+// @block ray_setup
+a;
+// @block loop_control
+while (x) {
+    // @block trav_step
+    if (both) {
+        // @block trav_both
+        push;
+        // @block trav_step
+    } else {
+        // @block trav_one
+        one;
+        // @block trav_none
+        pop;
+        // @block trav_step
+    }
+    // @block loop_control
+}
+// @block finish
+b;
+"""
+
+
+def test_a_shared_outcome_block_is_charged_to_the_outcomes_whose_paths_run_it() -> None:
+    """The one-hit and no-hit paths share a basic block, which also holds a line of the
+    both-hit path (sm_35 does this to packet's ballot-free twin). The both-hit path's own
+    block branches past it, so that line is the compiler's: the shared block is charged
+    to the two outcomes that run it, not to trav_both (6 before; the Kepler walk ran it
+    on the two others only)."""
+    rows = [
+        (3, "MOV R1, c[0x0][0x160]"),
+        ".L_x_0",
+        (7, "ISETP.NE.AND P0, PT, R2, RZ, PT"),
+        (7, "@!P0 BRA `(.L_x_1)"),
+        (9, "FADD R4, R4, 1"),
+        (9, "FADD R5, R5, 1"),
+        (9, "BRA `(.L_x_2)"),
+        ".L_x_1",
+        (13, "FADD R6, R6, 1"),
+        (15, "FADD R7, R7, 1"),
+        (9, "FADD R8, R8, 1"),
+        ".L_x_2",
+        (5, "ISETP.NE.AND P1, PT, R3, RZ, PT"),
+        (5, "@P1 BRA `(.L_x_0)"),
+        (21, "EXIT"),
+    ]
+    ins = parse_listing(_listing(rows))
+    owner, loops = parse_markers(OUTCOMES, "k.cu"), parse_loops(OUTCOMES)
+    counts, _, _, _ = map_blocks(ins, owner, "k.cu", loops)
+    total = {b: sum(row.values()) for b, row in counts.items()}
+    assert total["trav_none"] == total["trav_one"] == 3
+    assert total["trav_both"] == 3  # its own block's
