@@ -143,6 +143,12 @@ def kernel_defines(kernel: str) -> tuple[str, ...]:
     return VARIANTS[kernel][1] if kernel in VARIANTS else ()
 
 
+def preprocessor_flags(kernel: str, tests: str) -> tuple[str, ...]:
+    """The defines ``kernel`` is compiled with for ``tests``: the tests' (:data:`TEST_DEFINES`),
+    then its own (:func:`kernel_defines`)."""
+    return (*TEST_DEFINES[tests], *kernel_defines(kernel))
+
+
 def kernel_headers(kernel: str, cuda_dir: Path = CUDA_DIR) -> tuple[str, ...]:
     """The headers of ``kernels_ir/cuda`` (or ``cuda_dir``) a kernel reads: the shared
     header, then any other one its ``.cu`` includes, in include order (``bvh4.cuh`` for the
@@ -184,7 +190,7 @@ def ir_filename(kernel: str, arch: str, tests: str = DEFAULT_TESTS) -> str:
 
 def nvcc_flags(arch: str, tests: str, kernel: str) -> list[str]:
     """Every flag one kernel is compiled with, but its output and source."""
-    return [f"-arch={arch}", *FLAGS, *TEST_DEFINES[tests], *kernel_defines(kernel)]
+    return [f"-arch={arch}", *FLAGS, *preprocessor_flags(kernel, tests)]
 
 
 def _compile(

@@ -37,14 +37,13 @@ from kernels_ir.build import (
     KEPLER_ARCH,
     KERNELS,
     RELEASE,
-    TEST_DEFINES,
     dumps,
     find_toolchain,
     ir_document,
     ir_filename,
-    kernel_defines,
     kernel_instructions,
     place_kernel,
+    preprocessor_flags,
     run_tool,
     source_file,
     source_sha256,
@@ -112,7 +111,7 @@ def _compile(
     with ``tools`` nvcc 13, then CUDA 11.8's ptxas and nvdisasm."""
     nvcc, ptxas, nvdisasm = tools
     ptx, cubin = work / f"{kernel}.{tests}.ptx", work / f"{kernel}.{tests}.cubin"
-    defines = (*TEST_DEFINES[tests], *kernel_defines(kernel))
+    defines = preprocessor_flags(kernel, tests)
     run_tool([str(nvcc), *PTX_FLAGS, *defines, "-o", str(ptx), source_file(kernel)], cuda_dir)
     ptx.write_text(retarget(ptx.read_text()))
     proc = run_tool([str(ptxas), *PTXAS_FLAGS, "-o", str(cubin), str(ptx)], cuda_dir)
@@ -220,8 +219,7 @@ def build(cuda11_bin: Path) -> tuple[dict, dict[str, dict]]:
                 placed = place_kernel(kernel, instructions)
                 marks = pair_marks(listing, source_file(kernel))
                 entry[tests] = block_pairs(instructions, placed, marks)
-                defines = (*TEST_DEFINES[tests], *kernel_defines(kernel))
-                flags = [*PTX_FLAGS, *defines, "ptxas", *PTXAS_FLAGS]
+                flags = [*PTX_FLAGS, *preprocessor_flags(kernel, tests), "ptxas", *PTXAS_FLAGS]
                 docs[IR_DIR / ir_filename(kernel, KEPLER_ARCH, tests)] = ir_document(
                     kernel, KEPLER_ARCH, tests, instructions, report, flags, compiler,
                 )  # fmt: skip

@@ -51,10 +51,19 @@ def model_card(
         "ir_blocks": list(blocks),
         "bounds_in_force": ["issue", *(["dual_issue"] if gpu.pairing_arch else []), "pipe"],
     }
-    card.update(arch_note(irs, gpu))
-    card.update(twin_note(irs, gpu))
+    card.update(ir_notes(irs, gpu))
     card.update(extra)
     return card
+
+
+#: the card's notes on the IRs a result is costed with (:func:`ir_notes`)
+IR_NOTES = ("ir_arch_note", "ir_kernel_note")
+
+
+def ir_notes(irs: Sequence[KernelIR], gpu: GpuConfig) -> dict[str, str]:
+    """Of :data:`IR_NOTES`, those that hold for ``irs`` on ``gpu``: whose target they are
+    (:func:`arch_note`) and whether they ballot as ``gpu`` can (:func:`twin_note`)."""
+    return {**arch_note(irs, gpu), **twin_note(irs, gpu)}
 
 
 def arch_note(irs: Sequence[KernelIR], gpu: GpuConfig) -> dict[str, str]:

@@ -22,7 +22,7 @@ from kernels_ir.kernel_ir import BALLOT_FREE_TWINS, BLOCKS, CLASSES, DEFAULT_TES
 from kernels_ir.pairing import UNMAPPED_SHARE, block_pair_counts
 from simt_sim.errors import SimtSimError
 from simt_sim.simt.bounds import dual_issue_bound, issue_bound, pipe_bound, roofline
-from simt_sim.simt.card import arch_note, twin_note
+from simt_sim.simt.card import IR_NOTES, ir_notes
 from simt_sim.simt.engine import Counts, class_mix, cost_vector, lane_traffic
 from simt_sim.simt.gpus import GpuConfig, executed_on, runs_in_rounds
 
@@ -317,10 +317,9 @@ class SimResult:
             ir_tests=ir.tests,
             recosted=True,
         )
-        for note in ("ir_arch_note", "ir_kernel_note"):
+        for note in IR_NOTES:
             card.pop(note, None)
-        card.update(arch_note([ir], self.gpu))
-        card.update(twin_note([ir], self.gpu))
+        card.update(ir_notes([ir], self.gpu))
         if c.warp_totals is not None:
             card["schedule"] = "dropped on re-costing (warp loads follow the costs)"
         return replace(

@@ -206,8 +206,9 @@ def walk_blocks(
     :func:`votes_in_lockstep`)."""
     placement = place_kernel(kernel, instructions, cuda_dir)
     apart = barrier_excess(instructions, issued)
-    spins = convergence_spins(instructions) if spins_apart else set()
+    spins: set[int] = set()
     if spins_apart:
+        spins = convergence_spins(instructions)
         issued = votes_in_lockstep(instructions, issued)
     out: dict[str, int] = {}
     for i, times in enumerate(issued):
