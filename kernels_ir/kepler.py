@@ -17,9 +17,10 @@ per kernel and set of tests gives two documents:
 `python -m kernels_ir build` neither writes nor checks these files (CI has no CUDA 11.8);
 a test checks that each was built from today's source. :func:`compile_listing` gives the
 SASS walker the same code with the constants it reads (``python -m kernels_ir dyncount
---arch sm_35 --cuda11 DIR``). The build also keeps the listings of
-:data:`KEPT_LISTINGS` (``kernels_ir/listings``), so that the walk of Kepler code runs, and
-is tested, where no CUDA 11.8 is at hand (:func:`kept_listing`).
+--arch sm_35 --cuda11 DIR``). The build also keeps every listing (``kernels_ir/listings``,
+one per kernel and set of tests), so that where no CUDA 11.8 is at hand the walk of Kepler
+code still runs and a test still checks that each committed sm_35 IR is what today's
+block map makes of its code (:func:`kept_listing`).
 """
 
 from __future__ import annotations
@@ -60,10 +61,6 @@ PTX_FLAGS = ("-arch=compute_75", "--ptx", "-O3", "-lineinfo", "-std=c++17")
 PTXAS_FLAGS = (f"-arch={KEPLER_ARCH}", "-O3", "-v")
 PTX_ISA = "7.8"
 LISTING_DIR = Path(__file__).resolve().parent / "listings"
-KEPT_LISTINGS = ("while_while", "speculative_dynamic_fetch", "persistent_speculative_while_while")
-"""Kernels whose sm_35 listing (default tests) is kept: the simplest kernel, the Kepler
-class the GTX 680's and Titan's published rows are costed as, and the kernel whose
-traversal loop a Kepler GPU runs in rounds (``KernelIR.rounds``)."""
 _HEX = re.compile(r"\s*/\* 0x[0-9a-f]{16} \*/")
 _FILE = re.compile(r'(File ")[^"]*/([^"/]+")')
 
@@ -154,37 +151,34 @@ def compile_listing(
     return kernel_instructions(listing, kernel), constant_bank2(cubin, kernel)
 
 
-def listing_filename(kernel: str) -> str:
-    return f"{kernel}.{KEPLER_ARCH}.json"
-
-
-def listing_document(kernel: str, listing: str, cubin: bytes, compiler: str) -> dict:
+def listing_document(kernel: str, tests: str, listing: str, cubin: bytes, compiler: str) -> dict:
     """A kept listing: the kernel's instructions and line table without the encodings,
     source paths reduced to file names (the placement reads only those), one line per
     entry, and the constant bank 2 its code reads."""
     lines = [_FILE.sub(r"\1\2", _HEX.sub("", line)).rstrip() for line in listing.splitlines()]
     return {
-        "kernel": kernel, "arch": KEPLER_ARCH, "tests": DEFAULT_TESTS,
+        "kernel": kernel, "arch": KEPLER_ARCH, "tests": tests,
         "source_sha256": source_sha256(kernel), "compiler": compiler,
         "constant2": constant_bank2(cubin, kernel).hex(), "listing": lines,
     }  # fmt: skip
 
 
-def kept_listing(kernel: str) -> tuple[list[SassInstruction], bytes]:
-    """A kept kernel's sm_35 instructions and constant bank 2, as :func:`compile_listing`
-    gives them.
+def kept_listing(kernel: str, tests: str = DEFAULT_TESTS) -> tuple[list[SassInstruction], bytes]:
+    """A kernel's kept sm_35 instructions and constant bank 2 (with ``tests``), as
+    :func:`compile_listing` gives them.
 
     Raises
     ------
     KernelIRError
-        If the kernel's listing is not kept or was built from another source.
+        If no listing of the kernel is kept or it was built from another source.
     """
-    if kernel not in KEPT_LISTINGS:
+    path = LISTING_DIR / ir_filename(kernel, KEPLER_ARCH, tests)
+    if kernel not in KERNELS or not path.is_file():
         raise KernelIRError(
-            f"no kept sm_35 listing of {kernel} (kept: {', '.join(KEPT_LISTINGS)}); name "
-            "CUDA 11.8's bin directory (--cuda11 DIR) to compile it"
+            f"no kept sm_35 listing of {kernel} ({tests} tests); name CUDA 11.8's bin "
+            "directory (--cuda11 DIR) to compile it"
         )
-    doc = json.loads((LISTING_DIR / listing_filename(kernel)).read_text())
+    doc = json.loads(path.read_text())
     if doc["source_sha256"] != source_sha256(kernel):
         raise KernelIRError(
             f"the kept sm_35 listing of {kernel} is of an older source; rebuild it: "
@@ -211,10 +205,9 @@ def build(cuda11_bin: Path) -> tuple[dict, dict[str, dict]]:
             entry: dict = {"source_sha256": source_sha256(kernel)}
             for tests in TESTS:
                 listing, cubin, report = _compile(kernel, tests, tools, work)
-                if kernel in KEPT_LISTINGS and tests == DEFAULT_TESTS:
-                    docs[LISTING_DIR / listing_filename(kernel)] = listing_document(
-                        kernel, listing, cubin, compiler
-                    )
+                docs[LISTING_DIR / ir_filename(kernel, KEPLER_ARCH, tests)] = listing_document(
+                    kernel, tests, listing, cubin, compiler
+                )
                 instructions = kernel_instructions(listing, kernel)
                 placed = place_kernel(kernel, instructions)
                 marks = pair_marks(listing, source_file(kernel))

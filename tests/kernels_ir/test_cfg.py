@@ -9,8 +9,10 @@ import pytest
 
 from kernels_ir import load
 from kernels_ir.blocks import map_blocks, parse_loops, parse_markers, place_instructions
+from kernels_ir.build import ARCHS, CUDA_DIR, compile_listing, place_kernel, toolchain_available
 from kernels_ir.cfg import build_cfg
 from kernels_ir.errors import KernelIRError
+from kernels_ir.kepler import kept_listing
 from kernels_ir.sass import classify, parse_listing, stack_pop
 
 
@@ -264,6 +266,88 @@ def test_by_frequency_moves_a_guard_and_a_preheader_and_keeps_the_body() -> None
     assert total == {"ray_setup": 5, "loop_control": 5, "trav_step": 3, "finish": 2}
 
 
+#: while-while's intersection loops: a triangle loop in a leaf loop in the ray's loop
+NESTED_SOURCE = """// k.cu
+// @block ray_setup
+a;
+// @block loop_control
+while (node != 0) {
+    // @block leaf_entry
+    while (node < 0) {
+        tri = ~node; node = pop();
+        // @block tri_test
+        for (;; tri += 3) {
+            w = load(tri); if (end(w)) break;
+            t = test(w);
+        }
+        // @block leaf_entry
+    }
+    // @block loop_control
+}
+// @block finish
+b;
+"""
+
+#: nvcc's rotation of NESTED_SOURCE (as sm_75's while-while): the leaf loop's entry test
+#: in the ray's loop, the triangle loop's first load and end test (its preheader) in the
+#: leaf loop, the next triangle's load and end test at the triangle loop's latch
+NESTED = [
+    (3, "MOV R1, c[0x0][0x28]"),
+    (5, "ISETP.NE.AND P0, PT, R2, RZ, PT"),
+    (5, "@!P0 BRA `(.L_x_4)"),
+    ".L_x_0",
+    (7, "ISETP.GT.AND P2, PT, R2, -0x1, PT"),
+    (7, "@P2 BRA `(.L_x_3)"),
+    ".L_x_1",
+    (8, "LOP3.LUT R4, RZ, R2, RZ, 0x33, !PT"),
+    (8, "LDL R2, [R8]"),
+    (11, "LDG.E R5, [R4.64]"),
+    (11, "ISETP.NE.AND P1, PT, R5, RZ, PT"),
+    (11, "@!P1 BRA `(.L_x_2)"),
+    ".L_x_5",
+    (12, "FADD R6, R6, R5"),
+    (12, "FMUL R7, R6, R5"),
+    (11, "LDG.E R5, [R4.64+0x30]"),
+    (10, "IADD3 R4, R4, 0x30, RZ"),
+    (11, "ISETP.NE.AND P1, PT, R5, RZ, PT"),
+    (11, "@P1 BRA `(.L_x_5)"),
+    ".L_x_2",
+    (7, "ISETP.GT.AND P2, PT, R2, -0x1, PT"),
+    (7, "@!P2 BRA `(.L_x_1)"),
+    ".L_x_3",
+    (5, "ISETP.NE.AND P0, PT, R2, RZ, PT"),
+    (5, "@P0 BRA `(.L_x_0)"),
+    ".L_x_4",
+    (19, "STG.E [R8], R6"),
+    (19, "EXIT"),
+]
+
+
+def test_a_nested_loops_preheader_and_entry_test_run_once_per_entry() -> None:
+    """Three nested loops: the triangle loop's preheader (its first load and end test,
+    the triangle's source lines) runs once per leaf and is charged with the leaf loop's
+    block, leaf_entry; its body and latch per triangle (tri_test); the leaf loop's entry
+    test once per iteration of the ray's loop (loop_control), its latch once per leaf
+    (leaf_entry); the ray loop's entry test once per thread (ray_setup)."""
+    ins = parse_listing(_listing(NESTED))
+    loops = parse_loops(NESTED_SOURCE)
+    cfg = build_cfg(ins, [i.line for i in ins], loops)
+    assert len(cfg.loops) == 3
+    ray_loop, leaf_loop, tri_loop = (cfg.loop_of(i) for i in (18, 16, 10))
+    assert cfg.loops[tri_loop].parent == leaf_loop and cfg.loops[leaf_loop].parent == ray_loop
+    assert cfg.loop_of(7) == leaf_loop  # the preheader sits outside the triangle loop
+    placed = place_instructions(ins, parse_markers(NESTED_SOURCE, "k.cu"), "k.cu", loops)
+    assert placed.block == [
+        *["ray_setup"] * 3,     # the ray loop's entry test
+        *["loop_control"] * 2,  # the leaf loop's entry test
+        *["leaf_entry"] * 5,    # the leaf's set-up and the triangle loop's preheader
+        *["tri_test"] * 6,      # the triangle's test, the next triangle's load and test
+        *["leaf_entry"] * 2,    # the leaf loop's latch
+        *["loop_control"] * 2,  # the ray loop's latch
+        *["finish"] * 2,
+    ]  # fmt: skip
+
+
 #: the same loop where the loop statement's code lies mostly outside the loop (if-if on
 #: sm_75: a three-instruction entry test and the exit's BSYNC, a two-instruction latch)
 ENTRY_HEAVY = [
@@ -313,6 +397,36 @@ def test_if_if_guards_run_in_loop_control() -> None:
     for arch in ("sm_75", "sm_90"):
         ww, ii = load("while_while", arch), load("if_if", arch)
         assert ii.cost("loop_control") >= ww.cost("loop_control") + 5, arch
+
+
+def _if_if_guards_placed(instructions: list) -> dict[int, set[str]]:
+    """The blocks if-if's instructions on each of its three ``if`` lines (the loop body's
+    top-level tests: traverse, enter a leaf, test a triangle) are charged to."""
+    source = (CUDA_DIR / "if_if.cu").read_text().splitlines()
+    guards = [n for n, line in enumerate(source, 1) if line.startswith("        if (")]
+    assert len(guards) == 3
+    placed = place_kernel("if_if", instructions)
+    found: dict[int, set[str]] = {n: set() for n in guards}
+    for i, ins in enumerate(instructions):
+        if ins.line in found and classify(ins.opcode):
+            found[ins.line].add(placed.block[i])
+    return found
+
+
+def test_every_if_if_guard_is_charged_per_iteration_on_kepler() -> None:
+    """Each of the three guards, all of its code, is in ``loop_control`` (charged on every
+    iteration), not in the branch it guards: one guard moved into its branch would leave
+    ``loop_control``'s total above while-while's and pass the test above."""
+    found = _if_if_guards_placed(kept_listing("if_if")[0])
+    assert found == {n: {"loop_control"} for n in found}
+
+
+@pytest.mark.toolchain
+@pytest.mark.skipif(not toolchain_available(), reason="needs pip install -e '.[cuda-toolchain]'")
+@pytest.mark.parametrize("arch", ARCHS)
+def test_every_if_if_guard_is_charged_per_iteration(arch: str) -> None:
+    found = _if_if_guards_placed(compile_listing("if_if", arch))
+    assert found == {n: {"loop_control"} for n in found}
 
 
 def test_while_while_triangle_loop_charges_its_preheader_per_leaf() -> None:

@@ -25,7 +25,7 @@ from kernels_ir.build import (
     toolchain_available,
 )
 from kernels_ir.errors import KernelIRError
-from kernels_ir.kepler import KEPT_LISTINGS, LISTING_DIR, build, listing_filename, retarget
+from kernels_ir.kepler import LISTING_DIR, build, retarget
 from kernels_ir.kernel_ir import RECONVERGE
 from kernels_ir.pairing import PAIRING_DIR
 
@@ -75,7 +75,7 @@ def test_rebuilding_gives_the_committed_files() -> None:
     pairing, docs = build(Path(os.environ["SIMT_CUDA11_BIN"]))
     assert dumps(pairing) == (PAIRING_DIR / f"{KEPLER_ARCH}.json").read_text()
     irs = {IR_DIR / ir_filename(k, KEPLER_ARCH, t) for k in KERNELS for t in TESTS}
-    kept = {LISTING_DIR / listing_filename(k) for k in KEPT_LISTINGS}
+    kept = {LISTING_DIR / ir_filename(k, KEPLER_ARCH, t) for k in KERNELS for t in TESTS}
     assert set(docs) == irs | kept
     for path, doc in docs.items():
         assert json.loads(dumps(doc)) == json.loads(path.read_text()), path.name

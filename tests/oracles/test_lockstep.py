@@ -16,7 +16,7 @@ import pytest
 
 from kernels_ir.kernel_ir import BLOCKS, KernelIR
 from simt_sim.bvh.build import build_bvh
-from simt_sim.bvh.layout import BVH
+from simt_sim.bvh.layout import BVH, COL_CHILD0, COL_CHILD1
 from simt_sim.errors import SimtSimError
 from simt_sim.oracles.lockstep import approximation_error, execute
 from simt_sim.schemes import SCHEMES, get_scheme
@@ -34,6 +34,12 @@ LOCKSTEP_SCHEMES = tuple(
 EXACT_SCHEMES = ("while_while", "if_if", "persistent_while_while")
 SPECULATIVE_SCHEMES = ("persistent_speculative_while_while", "speculative_dynamic_fetch")
 GPU = replace(get_gpu("gtx285"), sms=2, resident_warps_per_sm=2)
+#: largest relative error of the replay's totals against the executor's on make_rays
+APPROXIMATION_BOUND = {
+    "persistent_speculative_while_while": 0.03,
+    "speculative_dynamic_fetch": 0.12,
+    "packet": 0.25,
+}
 
 
 def ir_for(scheme: str) -> KernelIR:
@@ -205,6 +211,37 @@ def test_finished_packet_lanes_keep_steering(bvh, query):
         assert idle_steps == 0
 
 
+def _swap_children(bvh: BVH, k: int) -> BVH:
+    """``bvh`` with node ``k``'s two children (their boxes and indices) exchanged."""
+    nodes = bvh.nodes.copy()
+    for a, b in ((0, 4), (1, 5), (2, 6), (3, 7), (8, 10), (9, 11), (COL_CHILD0, COL_CHILD1)):
+        nodes[k, [a, b]] = nodes[k, [b, a]]
+    return replace(bvh, nodes=nodes)
+
+
+def test_a_finished_any_hit_lane_alone_steers_the_packet():
+    """Three triangles across the x axis at x = 1, 1.5 and 3; the root's first child is the
+    far one's leaf, its second an interior node over the near two. A warp of two AO rays:
+    lane 0 along the axis, lane 1 missing everything. Lane 0 ends on the far triangle
+    first; its box tests (tmax 3) still hit both near leaves, and it alone votes for
+    them, so the packet steps the node and enters both leaves with no useful lane. Were
+    finished lanes left out of the votes, the packet would enter one leaf only."""
+    v = [(c, y, z) for c in (3.0, 1.0, 1.5) for y, z in ((-0.1, -0.1), (0.2, -0.1), (-0.1, 0.2))]
+    tree = build_bvh(np.array(v, np.float32), np.arange(9, dtype=np.int32).reshape(3, 3))
+    assert tree.children[tree.root, 1] < 0 < tree.children[tree.root, 0]  # [near two, far]
+    tree = _swap_children(tree, tree.root)  # the far leaf first, as a 2-lane vote keeps it
+    origin = np.array([[0, 0, 0], [0, 10, 0]], np.float32)
+    direction = np.array([[1, 1e-3, 2e-3]] * 2, np.float32)
+    rays = RayBatch(origin, direction, np.zeros(2, np.float32), np.full(2, 10, np.float32),
+                    "any", "ao", np.zeros(2, np.int32), np.arange(2, dtype=np.int32))  # fmt: skip
+    run = execute(tree, rays, get_scheme("packet"), ir_for("packet"), GPU)
+    np.testing.assert_allclose(run.hits.t, [3.0, np.inf], rtol=1e-6)
+    pk = run.result
+    assert pk.executions["trav_step"] == 2 and pk.executions["leaf_entry"] == 3
+    assert pk.counts.hist[BLOCKS.index("trav_step"), 0] == 1  # the near node, no useful lane
+    assert pk.counts.hist[BLOCKS.index("leaf_entry"), 0] == 2  # both near leaves
+
+
 def test_packet_order_vote_counts_the_whole_warp(bvh):
     """Child 1 goes first only with a majority of all 32 lanes: a warp holding one ray
     always takes child 0 first, so that ray steps more nodes than in its own front-to-back
@@ -224,12 +261,15 @@ def test_packet_order_vote_counts_the_whole_warp(bvh):
 @pytest.mark.parametrize("query", ["closest", "any"])
 @pytest.mark.parametrize("scheme", [*SPECULATIVE_SCHEMES, "packet"])
 def test_approximation_error_is_bounded(bvh, scheme, query):
-    """The replay's approximations move the totals, but by a bounded amount."""
+    """The replay's approximations move the totals, but by a bounded amount: on these
+    rays at most 1.2% (persistent speculative), 6.3% (speculative dynamic fetch) and
+    11.9% (packet, any-hit) when measured, each bound about twice that."""
     rays = make_rays(320, query, seed=8)
     err = approximation_error(bvh, rays, get_scheme(scheme), ir_for(scheme), GPU)
     assert err["rays"] == 320
+    bound = APPROXIMATION_BOUND[scheme]
     for m in ("warp_instructions", "simd_efficiency", "mrays_upper"):
-        assert abs(err[f"{m}_rel_err"]) < 0.5, (m, err)
+        assert abs(err[f"{m}_rel_err"]) < bound, (m, err)
     assert err["warp_instructions_exact"] > 0
     if scheme in SPECULATIVE_SCHEMES:
         # extra visits with a stale tmax: the exact kernel works more than the replay says

@@ -33,7 +33,6 @@ TRACE_SCHEMES = names("trace", layout="bvh2")
 #: schemes whose idle lanes refill from the pool: their counts follow the launch and costs
 REFILLING = tuple(s for s in TRACE_SCHEMES if "threshold" in get_scheme(s).params)
 COSTS = {b: i + 1 for i, b in enumerate(BLOCKS)}
-INDEPENDENT = ("while_while", "if_if", "packet")
 
 
 def ir_for(scheme: str, scale: int = 1, arch: str = "sm_75") -> KernelIR:
@@ -313,6 +312,23 @@ def test_gtx285_speculative_step_pays_no_divergent_fallback() -> None:
     )
     # re-costing keeps the GPU's rule
     assert old.recost(ir).block_instructions["trav_diverged"] == 0
+
+
+def test_gtx285_speculative_dynamic_fetch_pays_no_divergent_fallback() -> None:
+    """The Kepler class's speculative step follows the same rule: its diverged steps pay
+    ``trav_diverged`` only on a GPU with independent thread scheduling."""
+    spec = get_scheme("speculative_dynamic_fetch")
+    ir = kernels_ir.load(spec.kernel, "sm_75")
+    trace = synthetic_trace(32 * 40, seed=3, coherence=32, divergence=0.3)
+    old, new = (
+        simulate_traces([trace], spec, ir, get_gpu(g), resident_warps=1)
+        for g in ("gtx285", "rtx2080ti")
+    )
+    diverged = int(new.executions["trav_diverged"])
+    assert diverged > 0 and ir.cost("trav_diverged") > 0
+    assert old.block_instructions["trav_diverged"] == 0
+    assert new.block_instructions["trav_diverged"] == diverged * ir.cost("trav_diverged")
+    assert old.warp_instructions < new.warp_instructions
 
 
 def test_gtx285_refill_pays_no_convergence_spin() -> None:

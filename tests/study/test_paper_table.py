@@ -12,17 +12,19 @@ import pytest
 
 import kernels_ir
 from kernels_ir.kernel_ir import BALLOT_FREE_TWINS
-from simt_sim.simt.gpus import executed_on
+from simt_sim.errors import SimtSimError
+from simt_sim.simt.gpus import executed_on, runs_in_rounds
+from simt_sim.study.plan import plan_study
 from simt_sim.study.protocol import PAPER_TESTS
-from simt_sim.study.run import run_study
+from simt_sim.study.run import run_plan, run_study
 from simt_sim.study.spec import StudySpec
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
 import paper_table  # noqa: E402
 
 
-def _study(tests: str) -> dict:
-    spec = StudySpec(
+def _spec(tests: str) -> StudySpec:
+    return StudySpec(
         scene="room",
         ray_types=paper_table.RAY_TYPES,
         schemes=paper_table.SCHEMES,
@@ -32,7 +34,10 @@ def _study(tests: str) -> dict:
         spp=2,
         tests=tests,
     )
-    res, _ = run_study(spec, progress=False)
+
+
+def _study(tests: str) -> dict:
+    res, _ = run_study(_spec(tests), progress=False)
     return {(r.scheme, r.ray_type): r for r in res}
 
 
@@ -142,6 +147,32 @@ def test_calibrated_costs_scale_what_the_gpu_runs(results) -> None:
 
 def _errors(res, paper) -> pd.Series:
     return paper_table.ratio_table(res, paper).set_index(["ratio", "ray_type"])["rel_error"]
+
+
+def test_the_kepler_column_replays_what_keplers_code_schedules_apart(published_results) -> None:
+    """The by-target sm_35 column comes from a twin of the GTX 285 costed with Kepler's
+    code (``code_twin``): a kernel whose sm_35 traversal loop that GPU runs in rounds
+    (persistent speculative while-while) is replayed so, every other one costs what the
+    GTX 285's own replay re-costed with the same sm_35 IR would."""
+    plan, twin = paper_table.code_twin(plan_study(_spec(PAPER_TESTS)), kernels_ir.KEPLER_ARCH)
+    results, _ = run_plan(plan, progress=False)
+    stack = {(r.scheme, r.ray_type): r for r in results if r.gpu.id == twin}
+    assert twin == "gtx285_sm_35" and stack.keys() == published_results.keys()
+    in_rounds = set()
+    for key, r in stack.items():
+        card = r.model_card
+        assert (card["ir_arch"], card["ir_tests"]) == (kernels_ir.KEPLER_ARCH, PAPER_TESTS)
+        ir = kernels_ir.load(card["ir_kernel"], kernels_ir.KEPLER_ARCH, PAPER_TESTS)
+        base = published_results[key]
+        if runs_in_rounds(ir, r.gpu):  # a re-cost cannot give it: the schedule moved
+            in_rounds.add(key[0])
+            assert card["traversal_rounds"] and not base.model_card.get("traversal_rounds")
+            with pytest.raises(SimtSimError, match="in rounds"):
+                base.recost(ir)
+        elif card["recostable"]:
+            assert r.warp_instructions == base.recost(ir).warp_instructions, key
+    assert in_rounds == {"persistent_speculative_while_while"}
+    assert stack[("packet", "ao")].model_card["ir_kernel"] == BALLOT_FREE_TWINS["packet"]
 
 
 def test_each_target_is_costed_with_the_tables_own_tests(published_results, paper) -> None:
