@@ -887,8 +887,9 @@ def render(
         "triangle of an entered leaf), so the rows above are the kernel's. A trace without "
         "its rays gets the union replay instead, which charges the union of the lanes' "
         "recorded nodes and sees none of that. Here both run on "
-        f"{PACKET_WINDOWS} windows of 2^21 consecutive rays per ray type, spread evenly "
-        "over the protocol's stream and aligned to its launches (the machinery of "
+        f"up to {PACKET_WINDOWS} windows of 2^21 consecutive rays per ray type (as many as "
+        "its stream holds: `rays`), spread evenly over the protocol's stream and aligned "
+        "to its launches (the machinery of "
         "`experiments/secondary_order.py`): `union / kernel` is the replay's MRays/s over "
         "the kernel's on those rays, the windows' ratios to while-while beside it.",
         "",

@@ -1,7 +1,8 @@
 """How the paper's scheme ratios move with the order of the secondary rays.
 
 Usage: python experiments/secondary_order.py [--scene conference] [--resolution 1024x768]
-       [--spp 32] [--gpu gtx285] [--windows 5] [--out docs/secondary_order.md]
+       [--spp 32] [--gpu gtx285] [--windows 5] [--tests published]
+       [--out docs/secondary_order.md]
 
 Aila & Laine sort each launch of 2^20 secondary rays by a 6D Morton key of origin and
 direction before tracing; which key and which batch size decide how coherent a warp's rays
@@ -44,7 +45,7 @@ from simt_sim.schemes import get_scheme
 from simt_sim.simt.gpus import DEFAULT_GPU, costed_ir, get_gpu
 from simt_sim.simt.replay import simulate_traces
 from simt_sim.simt.result import merge
-from simt_sim.study.protocol import PAPER_PROTOCOL
+from simt_sim.study.protocol import PAPER_PROTOCOL, PAPER_TESTS
 from simt_sim.study.published import PAPER_CSV, reference_dir
 from simt_sim.study.workload import parse_resolution
 from simt_sim.trace.record import record_all
@@ -159,15 +160,17 @@ def render(args, df: pd.DataFrame, t: pd.DataFrame, seconds: float) -> str:
         [
             "# Secondary-ray order and the scheme ratios",
             "",
-            f"Made by `python experiments/secondary_order.py {' '.join(sys.argv[1:])}`".rstrip()
-            + f", {dt.date.today().isoformat()}, in {seconds:.0f} s on this machine.",
+            f"Made by `{' '.join(['python experiments/secondary_order.py', *sys.argv[1:]])}`"
+            f", {dt.date.today().isoformat()}, in {seconds:.0f} s on this machine.",
             "",
             f"Scene `{args.scene}`, every camera; AO and diffuse rays spawned {args.spp} per "
             f"primary hit of a {args.resolution} image (the paper's protocol), of which "
             f"{args.windows} windows of 2^21 consecutive rays, spread evenly over the "
             f"stream and aligned to its launches ({df.rays.iloc[0]:,} AO and "
-            f"{df.rays.iloc[-1]:,} diffuse rays); GPU `{args.gpu}` with its IR costs; the "
-            f"BVH built with `--bvh-build {args.bvh_build}` (the paper table's tree). "
+            f"{df.rays.iloc[-1]:,} diffuse rays); GPU `{args.gpu}` with its IR costs and "
+            f"the `{args.tests}` box and triangle tests"
+            + (" (the paper table's)" if args.tests == PAPER_TESTS else "")
+            + f"; the BVH built with `--bvh-build {args.bvh_build}` (the paper table's tree). "
             "Orders: `pixel` is the order rays are spawned in (a pixel's rays side by "
             "side, pixels in 2D Morton order); `morton 2^k` sorts each consecutive launch "
             "of 2^k rays by a 6D Morton key: origin normalised to the launch's origin "
@@ -211,12 +214,18 @@ def main(argv: list[str] | None = None) -> int:
         "--windows", type=int, default=WINDOWS, help="windows of 2^21 rays per ray type"
     )
     ap.add_argument("--bvh-build", default=PROTOCOL_BUILD, help="the BVH builder's method")
+    ap.add_argument(
+        "--tests",
+        default=PAPER_TESTS,
+        choices=kernels_ir.TESTS,
+        help="box and triangle tests the kernels are costed with (default: the paper's)",
+    )
     ap.add_argument("--out", default=str(REPO / "docs" / "secondary_order.md"))
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     df = measure(
         args.scene, parse_resolution(args.resolution), args.spp, args.gpu, args.windows,
-        build=args.bvh_build,
+        build=args.bvh_build, tests=args.tests,
     )  # fmt: skip
     table = ratios(df, pd.read_csv(reference_dir() / PAPER_CSV, comment="#"))
     doc = render(args, df, table, time.perf_counter() - t0)
