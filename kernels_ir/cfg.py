@@ -17,7 +17,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 from kernels_ir.errors import KernelIRError
-from kernels_ir.sass import SassInstruction, base_opcode, branch_target, stack_pop
+from kernels_ir.sass import SassInstruction, base_opcode, branch_target, local_call, stack_pop
 
 #: opcodes that end a path (an unguarded one has no fall-through successor)
 _ENDS = ("EXIT", "RET", "KILL")
@@ -96,7 +96,17 @@ class ControlFlow:
 
 
 def _is_branch(ins: SassInstruction) -> bool:
-    return base_opcode(ins.opcode) in _BRANCHES or stack_pop(ins)
+    return base_opcode(ins.opcode) in _BRANCHES or stack_pop(ins) or local_call(ins)
+
+
+def _conditional(ins: SassInstruction) -> bool:
+    """Whether a branch also falls through: guarded, with a predicate operand (``BRA P2,
+    target``), or a ``_sync`` intrinsic's ``BRA.DIV`` / ``BRA.CONV``, which the warp's
+    convergence decides."""
+    op, *modifiers = ins.opcode.split(".")
+    return ins.guarded or (
+        op in _BRANCHES and (len(ins.text.split(",")) > 1 or bool({"DIV", "CONV"} & set(modifiers)))
+    )
 
 
 def _passes_on(ins: SassInstruction) -> bool:
@@ -156,11 +166,9 @@ def build_cfg(
         succ: list[int] = []
         if _is_branch(ins):
             succ.append(index[at[branch_target(ins) or ""]])
-        # a guarded branch or end falls through; so does anything that is neither
-        conditional = ins.guarded or (
-            base_opcode(ins.opcode) in _BRANCHES and len(ins.text.split(",")) > 1
-        )
-        if (not (_is_branch(ins) or op in _ENDS) or conditional) and last + 1 < n:
+        # a conditional branch or a guarded end falls through; so does anything that is
+        # neither
+        if (not (_is_branch(ins) or op in _ENDS) or _conditional(ins)) and last + 1 < n:
             succ.append(b + 1)
         successors.append(tuple(dict.fromkeys(succ)))
     reachable = _reachable(successors)

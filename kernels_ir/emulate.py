@@ -331,7 +331,9 @@ def run_warp(
             pc[group & ~m] += 1
             release()
         elif op == "BREAK":
-            barrier[d.operands[0].n] &= ~m
+            if len(d.operands) > 1:  # "@!P0 BREAK P1, B4": only the lanes whose P1 holds
+                m = m & read_pred(s, d.operands[0])
+            barrier[d.operands[-1].n] &= ~m
             pc[group] += 1
             release()
         elif op == "BMOV":
@@ -346,6 +348,8 @@ def run_warp(
         elif op == "CALL":
             pc[group] += 1
             pc[m] = program.target(d.operands[-1])
+            if apart and m.any() and (group & ~m).any():  # a guarded jump (local_call)
+                together[m] = together.max() + 1
         elif op == "RET":
             back = read_bits(s, d.operands[0])
             pc[group] += 1

@@ -137,6 +137,14 @@ def branch_target(ins: SassInstruction) -> str | None:
     return m.group("name") if m else None
 
 
+def local_call(ins: SassInstruction) -> bool:
+    """Whether ``ins`` is a ``CALL`` to a label of its own function, not a subroutine:
+    ptxas closes some loops on sm_80 to sm_89 with ``@!P0 CALL.REL.NOINC `(.L_x_16)``,
+    a (guarded) jump that pushes no return."""
+    target = branch_target(ins) if base_opcode(ins.opcode) == "CALL" else None
+    return target is not None and target.startswith(".L")
+
+
 def region_end(ins: SassInstruction) -> str | None:
     """The label a ``BSSY`` names: the instruction just after the ``BSYNC`` that closes the
     convergence region it opens; ``None`` for anything else."""

@@ -233,6 +233,37 @@ def test_cfg_follows_keplers_stack_pops_as_branches() -> None:
     ]
 
 
+def test_cfg_follows_a_local_call_and_a_sync_intrinsics_branches() -> None:
+    """A ``CALL`` to a label of the function is a jump (ptxas's loop exit on sm_80 to
+    sm_89), guarded it falls through; ``BRA.DIV`` and ``BRA.CONV`` fall through too (the
+    warp's convergence decides), so the converged path is reachable."""
+    rows = [
+        (3, "BSSY B0, `(.L_x_1)"),
+        ".L_x_0",
+        (5, "ISETP.NE.AND P0, PT, R0, RZ, PT"),
+        (5, "@!P0 CALL.REL.NOINC `(.L_x_2)"),
+        (5, "BRA `(.L_x_0)"),
+        ".L_x_2",
+        (5, "BSYNC B0"),
+        ".L_x_1",
+        (7, "BRA.DIV `(.L_x_3)"),
+        (7, "VOTE.ANY R1, PT, P0"),
+        ".L_x_4",
+        (9, "EXIT"),
+        ".L_x_3",
+        (7, "MOV R1, 0x0"),
+        (7, "BRA `(.L_x_4)"),
+    ]
+    ins = parse_listing(_listing(rows))
+    cfg = build_cfg(ins)
+    assert cfg.reachable == set(range(len(cfg.starts)))
+    call, div = cfg.block_of[2], cfg.block_of[5]
+    assert cfg.successors[call] == (cfg.block_of[4], cfg.block_of[3])
+    assert cfg.successors[div] == (cfg.block_of[8], cfg.block_of[6])
+    (loop,) = cfg.loops.values()  # the BSYNC after the jump is outside the loop
+    assert (loop.header, loop.body) == (cfg.block_of[1], {cfg.block_of[1], cfg.block_of[3]})
+
+
 def test_cfg_refuses_indirect_branches_and_unknown_labels() -> None:
     with pytest.raises(KernelIRError, match="indirect branch"):
         build_cfg(parse_listing(_listing([(3, "BRX R2 -0x10"), (3, "EXIT")])))

@@ -174,6 +174,52 @@ def test_the_divergent_fallback_runs_only_for_a_diverged_warp() -> None:
     assert apart.lanes.tolist() == [32, 32, 32, 16, 0, 16, 16, 16, 16]
 
 
+def test_a_break_with_a_predicate_operand_releases_only_its_lanes() -> None:
+    """``@P2 BREAK P1, B1`` takes out of barrier B1 the guarded lanes whose P1 holds (here
+    lanes 16 to 31; lanes 8 to 15 only jump away), as ``@P1 BREAK B1`` would: the lanes
+    left in the region meet at its BSYNC, the broken-out ones go on without them."""
+
+    def rows(brk: str) -> list[str]:
+        return [
+            "S2R R0, SR_LANEID",
+            "ISETP.GE.AND P1, PT, R0, 0x10, PT",
+            "ISETP.GE.AND P2, PT, R0, 0x8, PT",
+            "BSSY B1, `(.L_x_1)",
+            brk,
+            "@P2 BRA `(.L_x_3)",
+            ".L_x_0:", "BSYNC B1",
+            ".L_x_1:", "FADD R6, R6, 1", "EXIT",
+            ".L_x_3:", "@P1 BRA `(.L_x_1)", "FADD R5, R5, 1", "BRA `(.L_x_0)",
+        ]  # fmt: skip
+
+    operand = _run(rows("@P2 BREAK P1, B1"))
+    guard = _run(rows("@P1 BREAK B1"))
+    assert operand.issued.tolist() == guard.issued.tolist()
+    assert operand.lanes.tolist() == guard.lanes.tolist()
+    assert operand.issued[8] == 2  # the FADD after the region: the broken-out lanes first
+
+
+def test_a_guarded_call_to_a_local_label_is_a_jump() -> None:
+    """ptxas closes a loop on sm_80 to sm_89 with ``@!P0 CALL.REL.NOINC`` to its exit's
+    BSYNC: the lanes whose P0 fails jump there, the others go round."""
+    run = _run([
+        "S2R R0, SR_LANEID",
+        "IADD3 R0, R0, 0x1, RZ",
+        "BSSY B0, `(.L_x_2)",
+        ".L_x_0:",
+        "IADD3 R0, R0, -0x1, RZ",
+        "ISETP.GT.AND P0, PT, R0, RZ, PT",
+        "@!P0 CALL.REL.NOINC `(.L_x_1)",
+        "BRA `(.L_x_0)",
+        ".L_x_1:",
+        "BSYNC B0",
+        ".L_x_2:",
+        "EXIT",
+    ])  # fmt: skip
+    assert run.issued[3:7].tolist() == [32, 32, 32, 31]  # the last pass does not go round
+    assert run.issued[7:].tolist() == [1, 1]
+
+
 def test_a_deadlock_and_an_unmodelled_opcode_are_refused() -> None:
     with pytest.raises(KernelIRError, match="deadlocked"):
         _run([
