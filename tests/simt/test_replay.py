@@ -282,6 +282,25 @@ def test_recost_to_a_target_without_the_divergent_fallback() -> None:
     assert recosted.block_instructions["trav_diverged"] == 0
 
 
+def _diverged_on_both(scheme: str, resident_warps: int):
+    """A diverging trace replayed by a speculative ``scheme`` on the GTX 285 and the RTX
+    2080 Ti with the same sm_75 IR: only the latter, which schedules threads
+    independently, pays ``trav_diverged``, once per diverged step. Returns the IR, both
+    results and the diverged steps."""
+    spec = get_scheme(scheme)
+    ir = kernels_ir.load(spec.kernel, "sm_75")
+    trace = synthetic_trace(32 * 40, seed=3, coherence=32, divergence=0.3)
+    old, new = (
+        simulate_traces([trace], spec, ir, get_gpu(g), resident_warps=resident_warps)
+        for g in ("gtx285", "rtx2080ti")
+    )
+    diverged = int(new.executions["trav_diverged"])
+    assert diverged > 0 and ir.cost("trav_diverged") > 0
+    assert old.block_instructions["trav_diverged"] == 0
+    assert new.block_instructions["trav_diverged"] == diverged * ir.cost("trav_diverged")
+    return ir, old, new, diverged
+
+
 def test_gtx285_speculative_step_pays_no_divergent_fallback() -> None:
     """GT200 has no independent thread scheduling: its vote is one instruction for any
     warp, so a diverged speculative step costs what a converged one does; the RTX 2080 Ti
@@ -289,18 +308,8 @@ def test_gtx285_speculative_step_pays_no_divergent_fallback() -> None:
     puts in the step, the loop control and ``finish`` (5 charged instructions each: the
     branch back, which only lanes that arrive apart take, is charged nowhere), and its
     barriers issued by groups that arrive apart (``reconverge``)."""
-    spec = get_scheme("persistent_speculative_while_while")
-    ir = kernels_ir.load(spec.kernel, "sm_75")
-    trace = synthetic_trace(32 * 40, seed=3, coherence=32, divergence=0.3)
-    old, new = (
-        simulate_traces([trace], spec, ir, get_gpu(g), resident_warps=4)
-        for g in ("gtx285", "rtx2080ti")
-    )
+    ir, old, new, diverged = _diverged_on_both("persistent_speculative_while_while", 4)
     same(old, new)  # one schedule: the fallback is charged, it does not reorder
-    diverged = int(new.executions["trav_diverged"])
-    assert diverged > 0 and ir.cost("trav_diverged") > 0
-    assert old.block_instructions["trav_diverged"] == 0
-    assert new.block_instructions["trav_diverged"] == diverged * ir.cost("trav_diverged")
     spins = {b: sum(row.values()) for b, row in ir.spins.items()}
     assert spins == {"trav_step": 5, "loop_control": 5, "finish": 5}
     spun = sum(int(new.executions[b]) * n for b, n in spins.items())
@@ -317,17 +326,7 @@ def test_gtx285_speculative_step_pays_no_divergent_fallback() -> None:
 def test_gtx285_speculative_dynamic_fetch_pays_no_divergent_fallback() -> None:
     """The Kepler class's speculative step follows the same rule: its diverged steps pay
     ``trav_diverged`` only on a GPU with independent thread scheduling."""
-    spec = get_scheme("speculative_dynamic_fetch")
-    ir = kernels_ir.load(spec.kernel, "sm_75")
-    trace = synthetic_trace(32 * 40, seed=3, coherence=32, divergence=0.3)
-    old, new = (
-        simulate_traces([trace], spec, ir, get_gpu(g), resident_warps=1)
-        for g in ("gtx285", "rtx2080ti")
-    )
-    diverged = int(new.executions["trav_diverged"])
-    assert diverged > 0 and ir.cost("trav_diverged") > 0
-    assert old.block_instructions["trav_diverged"] == 0
-    assert new.block_instructions["trav_diverged"] == diverged * ir.cost("trav_diverged")
+    _, old, new, _ = _diverged_on_both("speculative_dynamic_fetch", 1)
     assert old.warp_instructions < new.warp_instructions
 
 
