@@ -24,7 +24,7 @@ from kernels_ir import DEFAULT_TESTS
 from simt_sim.report.markdown import splice_file
 from simt_sim.simt.gpus import PIPES, load_gpus
 from simt_sim.study.protocol import PAPER_TESTS
-from simt_sim.study.published import check_published
+from simt_sim.study.published import check_published, published_specs
 from simt_sim.study.sampling import check_fraction
 
 REPO = Path(__file__).resolve().parents[1]
@@ -82,10 +82,17 @@ def main(argv: list[str] | None = None) -> int:
     watertight = check_published(args.sample, DEFAULT_TESTS, progress=sys.stderr.isatty())
     secs = time.perf_counter() - t0
     print(check.to_string(), file=sys.stderr)
+    whole = " and ".join(
+        s.replace("_", " ")
+        for spec in published_specs(args.sample, PAPER_TESTS)
+        if spec.sample == 1.0 and args.sample < 1.0
+        for s in spec.schemes
+    )
     stamp = (
         f"Made by `python experiments/bounds_vs_measured.py` (Conference, paper protocol, "
-        f"{args.sample:g} of the warps, every warp for speculative dynamic fetch, whose "
-        "sampled estimate is biased low; both sets of tests) in "
+        f"{args.sample:g} of the warps"
+        + (f", every warp for {whole}, whose sampled estimate is biased low" if whole else "")
+        + "; both sets of tests) in "
         f"{secs:.0f} s. `bound` and `ratio` cost the kernels with the published tests, which "
         "the measured kernels ran; `interval` is the bound's 95% half-width; the "
         "`watertight_` columns cost them with simt-sim's own tests."
