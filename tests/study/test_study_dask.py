@@ -9,6 +9,7 @@ import pytest
 from test_cli import SMALL, assert_clean_error, run_cli
 
 from simt_sim.errors import SimtSimError
+from simt_sim.study import cluster
 from simt_sim.study.cluster import dask_client
 from simt_sim.study.run import run_study
 from simt_sim.study.spec import StudySpec
@@ -46,9 +47,18 @@ def test_workers_flag_through_the_cli():
 
 def test_bad_scheduler_address_is_one_line_and_exit_2(tmp_path):
     out = tmp_path / "t.csv"
-    proc = run_cli("table", *SMALL, "--scheduler", "tcp://127.0.0.1:9", "--out", str(out))
+    proc = run_cli("table", *SMALL, "--scheduler", "bogus://x", "--out", str(out))
     assert_clean_error(proc, "scheduler")
     assert not out.exists()
+
+
+def test_a_scheduler_that_never_answers_is_given_up_after_the_timeout(monkeypatch):
+    """A closed port is retried until ``CONNECT_TIMEOUT_S`` (a scheduler may still be
+    starting), then refused with the address; shortened here so the suite does not wait."""
+    monkeypatch.setattr(cluster, "CONNECT_TIMEOUT_S", 1)
+    with pytest.raises(SimtSimError, match=r"cannot reach a Dask scheduler at 'tcp://127.0.0.1:9'"):
+        with dask_client(scheduler="tcp://127.0.0.1:9"):
+            pass
 
 
 def test_cluster_arguments_are_checked():
