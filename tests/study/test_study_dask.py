@@ -9,7 +9,6 @@ import pytest
 from test_cli import SMALL, assert_clean_error, run_cli
 
 from simt_sim.errors import SimtSimError
-from simt_sim.study import cluster
 from simt_sim.study.cluster import dask_client
 from simt_sim.study.run import run_study
 from simt_sim.study.spec import StudySpec
@@ -55,7 +54,7 @@ def test_bad_scheduler_address_is_one_line_and_exit_2(tmp_path):
 def test_a_scheduler_that_never_answers_is_given_up_after_the_timeout(monkeypatch):
     """A closed port is retried until ``CONNECT_TIMEOUT_S`` (a scheduler may still be
     starting), then refused with the address; shortened here so the suite does not wait."""
-    monkeypatch.setattr(cluster, "CONNECT_TIMEOUT_S", 1)
+    monkeypatch.setattr("simt_sim.study.cluster.CONNECT_TIMEOUT_S", 1)
     with pytest.raises(SimtSimError, match=r"cannot reach a Dask scheduler at 'tcp://127.0.0.1:9'"):
         with dask_client(scheduler="tcp://127.0.0.1:9"):
             pass
