@@ -20,24 +20,58 @@ from simt_sim.errors import SimtSimError
 
 def write_atomic(path: str | os.PathLike[str], data: str | bytes) -> None:
     """Write ``data`` to ``path`` through a temporary file and an atomic rename."""
-    target = Path(path)
-    if target.is_dir():
-        raise SimtSimError(f"output path {target} is a directory; give a file name")
-    parent = target.parent if str(target.parent) else Path(".")
-    if not parent.is_dir():
-        raise SimtSimError(f"output directory {parent} does not exist; create it first")
+    target = check_writable(path)
     mode = "wb" if isinstance(data, bytes) else "w"
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=parent)
+    fd, tmp = temporary_beside(target)
     try:
         with progress.temporary(tmp):
-            os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual mode
             with os.fdopen(fd, mode) as fh:
                 fh.write(data)
             progress.checkpoint()  # Ctrl-C while writing: the target stays as it was
             os.replace(tmp, target)
+    except OSError as exc:  # a full disk, or a target made a directory meanwhile
+        Path(tmp).unlink(missing_ok=True)
+        raise unwritable(target, exc) from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def check_writable(path: str | os.PathLike[str]) -> Path:
+    """``path`` as a Path once it can be written: not a directory, in a folder that
+    exists and that this user may write to. A command checks its output so before its
+    work, not after it."""
+    target = Path(path)
+    if target.is_dir():
+        raise SimtSimError(f"output path {target} is a directory; give a file name")
+    parent = target.parent
+    if not parent.is_dir():
+        what = "is not a directory" if parent.exists() else "does not exist; create it first"
+        raise SimtSimError(f"output directory {parent} {what}")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise SimtSimError(
+            f"cannot write {target}: permission denied; choose a folder you can write to"
+        )
+    return target
+
+
+def temporary_beside(target: Path) -> tuple[int, str]:
+    """A new temporary file in ``target``'s folder, with the mode a new file gets there
+    (``mkstemp`` makes it 0600): its descriptor and path. A folder the user cannot write
+    to is refused in one line."""
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    except OSError as exc:
+        raise unwritable(target, exc) from None
+    os.fchmod(fd, 0o666 & ~_umask())
+    return fd, tmp
+
+
+def unwritable(target: Path, exc: OSError) -> SimtSimError:
+    """The one-line error for an output the system refused to write."""
+    return SimtSimError(
+        f"cannot write {target}: {exc.strerror or exc}; choose a folder you can write to"
+    )
 
 
 def _umask() -> int:

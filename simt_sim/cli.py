@@ -23,7 +23,7 @@ from kernels_ir.build import DEFAULT_ARCH, KERNELS
 from kernels_ir.errors import KernelIRError
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 from simt_sim import __version__, progress
-from simt_sim.atomic import write_atomic
+from simt_sim.atomic import check_writable, write_atomic
 from simt_sim.bvh.build import DEFAULT_MAX_LEAF, DEFAULT_METHOD, DEFAULT_NODE_COST
 from simt_sim.bvh.build import METHODS as BUILD_METHODS
 from simt_sim.errors import SimtSimError
@@ -58,6 +58,17 @@ PAPER = {
 }
 #: the scene and ray types of table and plot when none are named
 _DEFAULTS = {"scene": DEFAULT_SCENE, "rays": ",".join(TRACE_RAY_TYPES)}
+#: the scene and tree flags' defaults: a table of saved traces refuses any other value
+#: (the files fix them), so each is written once, here
+_TREE_DEFAULTS = {
+    "up": None,
+    "camera_file": None,
+    "seed": 0,
+    "max_leaf": DEFAULT_MAX_LEAF,
+    "bvh": DEFAULT_LAYOUT,
+    "node_cost": DEFAULT_NODE_COST,
+    "bvh_build": None,
+}
 #: the workload every command but ``plot`` and ``report`` runs by default (small enough for
 #: a laptop; those two draw one camera's, :func:`_add_figure_args`)
 DEFAULT_WORKLOAD = {"resolution": "256x192", "spp": 8, "camera": "all"}
@@ -83,14 +94,14 @@ def _add_workload_args(
     p.add_argument(
         "--up",
         choices=("x", "y", "z", "auto"),
-        default=None,
+        default=_TREE_DEFAULTS["up"],
         help="the scene's up axis (default: auto, the scene description's axis, or for a "
         "mesh path the one its floors face)",
     )
     p.add_argument(
         "--camera-file",
         metavar="FILE",
-        default=None,
+        default=_TREE_DEFAULTS["camera_file"],
         help="TOML or JSON [[camera]] tables (position, look_at or forward, up, fov_y_deg, "
         "near, far; the scene's units) replacing the scene's cameras",
     )
@@ -110,18 +121,23 @@ def _add_workload_args(
         "names others",
     )
     p.set_defaults(workload_defaults={"resolution": resolution, "spp": spp, "camera": camera})
-    p.add_argument("--seed", type=int, default=0, help="sample seed (default: %(default)s)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=_TREE_DEFAULTS["seed"],
+        help="sample seed (default: %(default)s)",
+    )
     p.add_argument(
         "--max-leaf",
         type=int,
-        default=DEFAULT_MAX_LEAF,
+        default=_TREE_DEFAULTS["max_leaf"],
         metavar="N",
         help="BVH builder: largest leaf, in triangles (default: %(default)s)",
     )
     p.add_argument(
         "--bvh",
         choices=LAYOUTS,
-        default=DEFAULT_LAYOUT,
+        default=_TREE_DEFAULTS["bvh"],
         help="BVH layout: bvh2 (binary, Aila-Laine), bvh4 / bvh8 (the binary tree collapsed to "
         "4 / 8 children per node), cwbvh (compressed 8-wide, Ylitie et al. 2017) "
         "(default: %(default)s)",
@@ -129,7 +145,7 @@ def _add_workload_args(
     p.add_argument(
         "--node-cost",
         type=float,
-        default=DEFAULT_NODE_COST,
+        default=_TREE_DEFAULTS["node_cost"],
         metavar="X",
         help="BVH builder: SAH cost of a node step relative to a triangle test; higher "
         "makes larger leaves (default: %(default)s)",
@@ -137,7 +153,7 @@ def _add_workload_args(
     p.add_argument(
         "--bvh-build",
         choices=BUILD_METHODS,
-        default=None,
+        default=_TREE_DEFAULTS["bvh_build"],
         help="BVH builder: binned SAH, a full SAH sweep, or binned with spatial splits "
         "(Stich et al. 2009; a triangle a plane crosses sits in both children unless keeping "
         f"it whole on one side is cheaper, as in the paper's trees) (default: {DEFAULT_METHOD}"
@@ -785,21 +801,23 @@ def _resolve_workload(args: argparse.Namespace) -> None:
     defaults = getattr(args, "workload_defaults", None)
     if defaults is None:
         return
+    given = [k for k in defaults if getattr(args, k) is not None]
+    if getattr(args, "trace", None):
+        fixed = given + [k for k in ("scene", "rays") if getattr(args, k) != _DEFAULTS[k]]
+        fixed += [k for k, v in _TREE_DEFAULTS.items() if getattr(args, k) != v]
+        if args.paper or fixed:
+            flag = "paper" if args.paper else fixed[0].replace("_", "-")
+            raise SimtSimError(
+                f"--{flag} cannot be used with --trace: the trace files fix the scene, its "
+                "tree, the rays and the workload they were recorded with"
+            )
     paper = args.paper and not getattr(args, "trace", None)
     # the tree and the tests are not the workload: --bvh-build and --tests override --paper
     if args.bvh_build is None:
         args.bvh_build = PAPER_PROTOCOL["build"] if paper else DEFAULT_METHOD
     if getattr(args, "tests", DEFAULT_TESTS) is None:
         args.tests = PAPER_TESTS if paper else DEFAULT_TESTS
-    given = [k for k in defaults if getattr(args, k) is not None]
     if getattr(args, "trace", None):
-        fixed = given + [k for k in ("scene", "rays") if getattr(args, k) != _DEFAULTS[k]]
-        if args.paper or fixed:
-            flag = "paper" if args.paper else fixed[0]
-            raise SimtSimError(
-                f"--{flag} cannot be used with --trace: the trace files fix the scene, rays "
-                "and workload they were recorded with"
-            )
         return
     if args.paper:
         if given:
@@ -864,12 +882,21 @@ def main(argv: Sequence[str] | None = None) -> int:
             args = parser.parse_args(argv)
             progress.checkpoint()  # a Ctrl-C while modules loaded or arguments were read
             _resolve_workload(args)
+            if getattr(args, "out", None) and args.command != "plot":  # plot's is a folder
+                check_writable(args.out)  # before the work, not after it
             code = int(args.func(args))
             progress.checkpoint()  # a Ctrl-C after the command's last checkpoint
             held.flush()
             return code
         except (SimtSimError, KernelIRError) as exc:
             print(f"simt-sim: error: {exc}", file=sys.stderr)
+            return 2
+        except MemoryError:  # numpy's and numba's allocations; nothing was written
+            print(
+                "simt-sim: error: out of memory: this run needs more than the machine has; "
+                "ask for less work (a smaller --resolution, --spp or --max-leaf, or --sample)",
+                file=sys.stderr,
+            )
             return 2
         except KeyboardInterrupt:
             return progress.say_interrupted()

@@ -1053,6 +1053,22 @@ def _unit_outputs(n, warp_size):
     )
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _start_unit(base, lanes, origin, direction, tmin, tmax, root, persistent, warp_size, cnt,
+                hist, costs):  # fmt: skip
+    """A unit's start: its lanes' integer and float state (``li``, ``lf``), given rays
+    ``base ..`` and the node ``root``, and the instructions of its fetch (``persistent``)
+    and ray setup, charged."""
+    li = np.zeros((lanes, _N_INT), np.int32)
+    lf = np.zeros((lanes, _N_FLOAT), np.float32)
+    for lane in range(lanes):
+        _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, root)
+    cost = np.int64(0)
+    if persistent:
+        cost += charge_fetch(cnt, hist, costs, lanes, warp_size)
+    return li, lf, cost + charge(cnt, hist, costs, RAY_SETUP, lanes)
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _store_hits(hit, lf, lanes, base, tri_index, out_tri, out_t):
     """Each lane's hit (a float4 of ``woop`` in ``hit``, -1: none) as a scene triangle and
@@ -1302,16 +1318,13 @@ def _execute_cwbvh(nodes, woop, tri_index, origin, direction, tmin, tmax, any_hi
         for u in range(bounds[k], bounds[k + 1]):
             base = u * warp_size
             lanes = min(warp_size, n - base)
-            li = np.zeros((lanes, _N_INT), np.int32)
-            lf = np.zeros((lanes, _N_FLOAT), np.float32)
+            c = cnt[u]
+            li, lf, cost = _start_unit(base, lanes, origin, direction, tmin, tmax, 0, True,
+                                       warp_size, c, h, costs)  # fmt: skip
             lc = np.zeros((lanes, _N_CW), np.int64)
             stack = np.empty((lanes, cap, 3), np.int64)
             for lane in range(lanes):
-                _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, 0)
                 _cw_init_lane(lc, lf, lane)
-            c = cnt[u]
-            cost = charge_fetch(c, h, costs, lanes, warp_size)
-            cost += charge(c, h, costs, RAY_SETUP, lanes)
             rest = _cw_group(lc, lf, stack, lanes, nodes, nodes_f, nodes_u, woop, any_hit, ops,
                              base, c, h, costs)  # fmt: skip
             overflow[u] = rest < 0
@@ -1324,7 +1337,12 @@ def _execute_cwbvh(nodes, woop, tri_index, origin, direction, tmin, tmax, any_hi
 def _execute(body, persistent, nodes, width, woop, tri_index, root, origin, direction, tmin,
              tmax, any_hit, cap, warp_size, costs, rounds):  # fmt: skip
     """Run every warp (or fetched group) of the batch; parallel over independent units.
-    ``width`` is 0 for a binary tree, else the wide tree's (the while-while body only).
+    ``body`` is the while-while, if-if or speculative one, or None for the packet
+    kernel: numba compiles none of the branches a None ``body`` rules out, nor the
+    packet's for an int, so a study, which runs the packet kernel alone
+    (``SchemeInfo.executed``), does not compile the bodies only the replay's checks run
+    (about 13 s of its first run's compile). ``width`` is 0 for a binary tree, else the
+    wide tree's (the while-while body only).
 
     Returns per-unit counters ``cnt`` (units, 2, N_BLOCKS), ``hist`` (units, N_BLOCKS,
     warp_size + 1), per-unit cost, per-ray hit triangle, ``t`` and op counts, and whether
@@ -1339,30 +1357,24 @@ def _execute(body, persistent, nodes, width, woop, tri_index, root, origin, dire
         for u in range(bounds[k], bounds[k + 1]):
             base = u * warp_size
             lanes = min(warp_size, n - base)
-            li = np.zeros((lanes, _N_INT), np.int32)
-            lf = np.zeros((lanes, _N_FLOAT), np.float32)
-            stack = np.empty((lanes, cap), np.int32)
-            for lane in range(lanes):
-                _init_lane(li, lf, lane, base + lane, origin, direction, tmin, tmax, root)
-                if width:
-                    _wide_planes(li, lf, lane, width)
             c = cnt[u]
-            cost = np.int64(0)
-            if persistent:
-                cost += charge_fetch(c, h, costs, lanes, warp_size)
-            cost += charge(c, h, costs, RAY_SETUP, lanes)
-            if body == WHILE_WHILE_BODY:
+            li, lf, cost = _start_unit(base, lanes, origin, direction, tmin, tmax, root,
+                                       persistent, warp_size, c, h, costs)  # fmt: skip
+            stack = np.empty((lanes, cap), np.int32)
+            for lane in range(lanes if width else 0):
+                _wide_planes(li, lf, lane, width)
+            if body is None:
+                rest = _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop,
+                               woop_i, any_hit, ops, base, c, h, costs)  # fmt: skip
+            elif body == WHILE_WHILE_BODY:
                 rest = _while_while(li, lf, stack, lanes, nodes, nodes_i, width, woop, woop_i,
                                     any_hit, ops, base, c, h, costs)  # fmt: skip
             elif body == IF_IF_BODY:
                 rest = _if_if(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i, any_hit,
                               ops, base, c, h, costs)  # fmt: skip
-            elif body == SPECULATIVE_BODY:
+            else:
                 rest = _speculative(li, lf, stack, lanes, nodes, nodes_i, woop, woop_i,
                                     any_hit, ops, base, c, h, costs, rounds)  # fmt: skip
-            else:
-                rest = _packet(li, lf, lanes, warp_size, cap, root, nodes, nodes_i, woop,
-                               woop_i, any_hit, ops, base, c, h, costs)  # fmt: skip
             overflow[u] = rest < 0
             unit_cost[u] = cost + rest
             _store_hits(li[:, _HIT], lf, lanes, base, tri_index, out_tri, out_t)
@@ -1654,8 +1666,9 @@ def execute(
     else:
         rounds = runs_in_rounds(ir, g)
         wide = 0 if width == 2 else width  # the wide while-while kernels (_tree_width)
+        body = None if scheme.lockstep == PACKET_BODY else scheme.lockstep
         cnt, hist, unit_cost, tri, t, ops, overflow = _execute(
-            scheme.lockstep, persistent, bvh.nodes, wide, *args[1:], g.warp_size, costs, rounds
+            body, persistent, bvh.nodes, wide, *args[1:], g.warp_size, costs, rounds
         )
         counts = _unit_counts(cnt, hist, unit_cost, r if persistent else 0, costs)
     # each fixed warp's counters, costed; speculative dynamic fetch's lanes refill instead

@@ -35,6 +35,14 @@ def compare_tables(a: pd.DataFrame, b: pd.DataFrame) -> pd.DataFrame:
                 f"the {name} run has no column {missing[0]}; compare tables written by "
                 "`simt-sim table --out FILE.json`"
             )
+        for metric in METRICS:
+            given = df[metric].dropna()
+            bad = given[pd.to_numeric(given, errors="coerce").isna()]
+            if len(bad):
+                raise SimtSimError(
+                    f"the {name} run's {metric} holds {bad.iloc[0]!r}, not a number; compare "
+                    "tables written by `simt-sim table --out FILE.json`"
+                )
     cols = [*KEYS, *METRICS, "limit"]
     both = a.reindex(columns=cols).merge(
         b.reindex(columns=cols), on=list(KEYS), how="outer", suffixes=("_a", "_b")

@@ -155,7 +155,7 @@ def read_table(path: str) -> tuple[pd.DataFrame, dict[str, Any]]:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
     except OSError as exc:
         raise SimtSimError(f"cannot read {path}: {exc.strerror}; check the path") from None
-    except json.JSONDecodeError:
+    except (json.JSONDecodeError, UnicodeDecodeError):
         raise SimtSimError(
             f"{path} is not JSON; write runs with `simt-sim table --out FILE.json`"
         ) from None

@@ -92,7 +92,8 @@ class SceneDescription:
 def read_table(path: Path, what: str) -> dict[str, Any]:
     """A TOML or JSON file as a dict; any problem is one line naming the file."""
     if not path.is_file():
-        raise SimtSimError(f"{what} {path} does not exist; check the path")
+        what_is = "is a directory" if path.is_dir() else "does not exist"
+        raise SimtSimError(f"{what} {path} {what_is}; give a file")
     try:
         text = path.read_text(encoding="utf-8")
         if path.suffix.lower() == ".json":

@@ -90,12 +90,22 @@ def scene_names() -> tuple[str, ...]:
 def _read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Raw float64 vertices and int64 triangles of a mesh file (several meshes are
     concatenated with their scene-graph transforms applied)."""
-    if path.suffix.lower() == ".obj":
+    suffix = path.suffix.lower()
+    if suffix == ".obj":
         return read_obj(path)
+    if suffix not in UP_CONVENTION:
+        raise SimtSimError(
+            f"cannot read mesh {path}: {suffix or 'no'} suffix; give a {MESH_FORMATS} file"
+        )
     import trimesh
 
     try:
         mesh = trimesh.load(str(path), force="mesh", process=False)
+    except ImportError:  # trimesh decodes non-UTF-8 text with a package it may not have
+        raise SimtSimError(
+            f"cannot read mesh {path}: it is neither a binary {suffix[1:].upper()} file nor "
+            "UTF-8 text; repair or re-export it"
+        ) from None
     except Exception as exc:  # trimesh raises many types for unreadable files
         reason = " ".join(f"{type(exc).__name__}: {exc}".split())
         raise SimtSimError(
@@ -237,7 +247,8 @@ def load_mesh(
     """
     path = Path(path)
     if not path.is_file():
-        raise SimtSimError(f"mesh file {path} does not exist; check the path")
+        what_is = "is a directory" if path.is_dir() else "does not exist"
+        raise SimtSimError(f"mesh file {path} {what_is}; check the path")
     vertices, triangles = _read_mesh(path)
     return _make_scene(
         name or path.stem,
@@ -274,6 +285,8 @@ def _from_description(
     """Load the mesh a description names, with its transform, cameras and AO radius;
     ``up`` and ``camera_file`` (the command line) override the description's."""
     path = desc.mesh
+    if path.is_dir():
+        raise SimtSimError(f"scene {desc.name!r}: mesh {path} is a directory; name a mesh file")
     if not path.is_file():
         raise SimtSimError(f"scene {desc.name!r}: mesh not found at {path}; {missing}")
     if sha256 and sha256_of(path) != sha256:

@@ -420,6 +420,10 @@ def load_gpus(extra: Path | None = None) -> dict[str, GpuConfig]:
             raise SimtSimError(
                 f"cannot read GPU file {path}: {exc.strerror}; check the path"
             ) from None
+        except UnicodeDecodeError:
+            raise SimtSimError(
+                f"GPU file {path} is not UTF-8 text; give a TOML file of [[gpu]] tables"
+            ) from None
         gpus.update(_read(text, str(path)))
     return gpus
 

@@ -12,6 +12,7 @@ bit for bit. Only this module imports dask, and only when a cluster is asked for
 from __future__ import annotations
 
 import logging
+import os
 import signal
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -36,6 +37,12 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
         raise SimtSimError("give either --workers N or --scheduler ADDRESS, not both")
     if workers is not None and workers < 1:
         raise SimtSimError(f"--workers must be at least 1, got {workers}")
+    cores = os.cpu_count() or 1
+    if workers is not None and workers > cores:  # each is a single-threaded process
+        raise SimtSimError(
+            f"--workers {workers} is more than this machine's {cores} cores; give at most "
+            f"{cores}, or --scheduler ADDRESS for a cluster of several machines"
+        )
     if workers is not None:
         with _sigint_blocked():  # importing distributed may start threads: inside too
             from distributed import Client, LocalCluster

@@ -156,4 +156,10 @@ def make_workload(
         seed=seed,
         tracer=lambda r: trace(tree, r),
     )
+    if stream.n_rays == 0:  # secondary rays start where primary rays hit: none did
+        views = ", ".join(map(str, cams))
+        raise SimtSimError(
+            f"no {ray_type} rays: no primary ray of camera {views} hits scene {sc.name!r}; "
+            f"aim the cameras at the scene (--camera-file) or leave {ray_type} out of --rays"
+        )
     return Workload(sc, tree, stream, cams, resolution, spp, seed, make_tree(tree, layout))

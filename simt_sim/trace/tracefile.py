@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import zipfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -30,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from simt_sim import progress
+from simt_sim.atomic import temporary_beside, unwritable
 from simt_sim.errors import SimtSimError
 from simt_sim.trace.record import concat_traces
 from simt_sim.types.hits import Hits
@@ -67,9 +67,11 @@ def save_trace(path: str | os.PathLike, traces: Iterable[OpTrace], meta: dict) -
         raise SimtSimError(
             f"trace metadata is not JSON-serialisable ({exc}); pass plain values"
         ) from None
+    if path.is_dir():
+        raise SimtSimError(f"output path {path} is a directory; give a file name")
     if not path.parent.is_dir():
         raise SimtSimError(f"folder {path.parent} does not exist; create it first")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = temporary_beside(path)
     os.close(fd)
     try:
         with (
@@ -102,6 +104,9 @@ def save_trace(path: str | os.PathLike, traces: Iterable[OpTrace], meta: dict) -
             zf.close()
             progress.checkpoint()  # Ctrl-C while writing: the file at path stays as it was
             os.replace(tmp, path)
+    except OSError as exc:  # a full disk, or the path made a directory meanwhile
+        os.unlink(tmp)
+        raise unwritable(path, exc) from None
     except BaseException:
         os.unlink(tmp)
         raise
@@ -117,7 +122,7 @@ def _open(path: Path) -> tuple[zipfile.ZipFile, dict]:
         raise SimtSimError(f"{path} is not a simt-sim trace file ({exc}); re-record it") from None
     try:
         header = json.loads(zf.read(HEADER))
-    except (KeyError, ValueError):
+    except (KeyError, ValueError, zipfile.BadZipFile):
         zf.close()
         raise SimtSimError(f"{path} has no valid {HEADER}; it is not a simt-sim trace") from None
     if header.get("format") != FORMAT:
@@ -157,7 +162,7 @@ def _iter_batches(path: Path, zf: zipfile.ZipFile, header: dict) -> Iterator[OpT
         for b in range(header["batches"]):
             try:
                 offsets, op, addr, tri, t = (_read_array(zf, _member(b, f)) for f, _ in _FIELDS)
-            except (KeyError, ValueError, OSError) as exc:
+            except (KeyError, ValueError, OSError, zipfile.BadZipFile) as exc:  # a bad CRC too
                 msg = f"{path} is damaged in batch {b} ({exc}); re-record it"
                 raise SimtSimError(msg) from None
             yield OpTrace(

@@ -1,0 +1,195 @@
+"""Bad input a review found ending in a traceback, a hang or a misleading line, in process.
+
+Each case must end as every user mistake does: one line on stderr that says what is wrong
+and what to do, status 2, and no output file. ``main`` is called in this process (the
+subprocess runs of tests/test_cli.py cost a second each for the imports alone): an
+exception it lets through fails the test as a traceback would.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import stat
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from simt_sim import atomic
+from simt_sim.cli import main
+from simt_sim.errors import SimtSimError
+from simt_sim.study import run as study_run
+
+TINY = ["--scene", "cornell-box", "--resolution", "16x16", "--camera", "0"]
+
+
+def error_line(capsys: pytest.CaptureFixture[str], *argv: str) -> str:
+    """The one line ``simt-sim argv`` prints on stderr, once it exits with status 2."""
+    code = main(list(argv))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2, err
+    assert len(err) == 1, err
+    return err[0]
+
+
+@pytest.fixture(scope="module")
+def saved_trace(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("trace") / "primary.trace"
+    assert main(["trace", *TINY, "--rays", "primary", "--quiet", "--out", str(path)]) == 0
+    return path
+
+
+def _unwritable_mkstemp(*args: object, **kwargs: object) -> tuple[int, str]:
+    raise OSError(errno.EROFS, "Read-only file system")
+
+
+def test_a_folder_the_system_refuses_is_one_line(tmp_path, capsys, monkeypatch):
+    """A read-only file system (or one where root may not create files, as /sys) refuses
+    the temporary file: it is said, with the path, and nothing is left."""
+    monkeypatch.setattr(tempfile, "mkstemp", _unwritable_mkstemp)
+    out = tmp_path / "gpus.csv"
+    line = error_line(capsys, "gpus", "--out", str(out))
+    assert f"cannot write {out}: Read-only file system" in line
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_failed_rename_leaves_neither_file(tmp_path, monkeypatch):
+    """An error at the rename (a full disk, a path made a folder meanwhile) removes the
+    temporary file and says so in one line."""
+
+    def refuse(src: str, dst: str) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", refuse)
+    with pytest.raises(SimtSimError, match="No space left on device; choose a folder"):
+        atomic.write_atomic(tmp_path / "t.md", "x")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_output_is_checked_before_the_work(tmp_path, capsys, monkeypatch):
+    """A missing folder, a folder given as the file, a file given as the folder: refused
+    before the study runs (a 1024x768 table took 90 s to say so)."""
+
+    def must_not_run(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the study ran before its output was checked")
+
+    monkeypatch.setattr(study_run, "run_study", must_not_run)
+    a_file = tmp_path / "f.csv"
+    a_file.write_text("mine")
+    for out, says in (
+        (tmp_path / "no" / "t.csv", "does not exist"),
+        (tmp_path, "is a directory"),
+        (a_file / "t.csv", "is not a directory"),
+    ):
+        assert says in error_line(capsys, "table", *TINY, "--out", str(out))
+    for cmd in (["trace", *TINY], ["bench", *TINY], ["report", *TINY]):
+        assert "is a directory" in error_line(capsys, *cmd, "--out", str(tmp_path))
+    assert a_file.read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.csv"]
+
+
+def test_a_trace_file_gets_the_usual_mode(saved_trace):
+    """mkstemp makes 0600; a trace file is as readable as every other output."""
+    mask = os.umask(0)
+    os.umask(mask)
+    assert stat.S_IMODE(saved_trace.stat().st_mode) == 0o666 & ~mask
+
+
+def test_a_gpu_file_that_is_not_text(tmp_path, capsys):
+    bad = tmp_path / "g.toml"
+    bad.write_bytes(b"\xff\xfe[[gpu]]\x00\xcb")
+    assert "is not UTF-8 text" in error_line(capsys, "gpus", "--gpus", str(bad))
+
+
+def test_compare_refuses_binary_files_and_values_that_are_not_numbers(
+    tmp_path, capsys, saved_trace
+):
+    table = tmp_path / "a.json"
+    assert main(["table", *TINY, "--rays", "primary", "--schemes", "while_while", "--quiet",
+                 "--out", str(table)]) == 0  # fmt: skip
+    capsys.readouterr()
+    assert "is not JSON" in error_line(capsys, "compare", str(table), str(saved_trace))
+    doc = json.loads(table.read_text())
+    doc["rows"][0]["mrays_upper"] = "fast"
+    words = tmp_path / "b.json"
+    words.write_text(json.dumps(doc))
+    line = error_line(capsys, "compare", str(table), str(words))
+    assert "the second run's mrays_upper holds 'fast', not a number" in line
+
+
+def test_a_trace_whose_checksum_fails(tmp_path, capsys, saved_trace):
+    """A flipped byte inside a member fails its CRC: damaged, re-record it."""
+    data = bytearray(saved_trace.read_bytes())
+    member = data.find(b"b000000.op.npy")
+    assert member > 0
+    start = member + 200  # inside that member's array bytes
+    data[start : start + 8] = bytes(b ^ 0xFF for b in data[start : start + 8])
+    flipped = tmp_path / "flipped.trace"
+    flipped.write_bytes(bytes(data))
+    line = error_line(capsys, "table", "--trace", str(flipped), "--schemes", "while_while")
+    assert "is damaged" in line and "re-record it" in line
+
+
+@pytest.mark.parametrize(
+    "flag",
+    [["--seed", "3"], ["--max-leaf", "4"], ["--bvh", "bvh4"], ["--node-cost", "2"],
+     ["--bvh-build", "sweep"], ["--up", "y"], ["--camera-file", "c.toml"], ["--scene", "bunny"]],
+)  # fmt: skip
+def test_a_saved_trace_refuses_the_flags_it_fixes(capsys, saved_trace, flag):
+    line = error_line(capsys, "table", "--trace", str(saved_trace), *flag)
+    assert f"{flag[0]} cannot be used with --trace" in line
+
+
+def test_running_out_of_memory_is_one_line(capsys, monkeypatch):
+    def too_big(*args: object, **kwargs: object) -> None:
+        raise MemoryError("Unable to allocate 32.0 GiB")
+
+    monkeypatch.setattr(study_run, "run_study", too_big)
+    line = error_line(capsys, "table", *TINY)
+    assert line.startswith("simt-sim: error: out of memory") and "--resolution" in line
+
+
+def test_more_local_workers_than_cores(capsys, monkeypatch):
+    """A local cluster of 100,000 processes never started, and ignored Ctrl-C meanwhile."""
+    import distributed
+
+    def must_not_start(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a local cluster started")
+
+    monkeypatch.setattr(distributed, "LocalCluster", must_not_start)
+    line = error_line(capsys, "table", *TINY, "--workers", "100000")
+    assert f"more than this machine's {os.cpu_count()} cores" in line
+
+
+def test_a_camera_that_sees_nothing_has_no_secondary_rays(tmp_path, capsys):
+    cams = tmp_path / "away.toml"
+    cams.write_text(
+        "[[camera]]\nposition = [100.0, 100.0, 100.0]\nlook_at = [200.0, 200.0, 200.0]\n"
+    )
+    line = error_line(capsys, "table", *TINY, "--rays", "ao", "--camera-file", str(cams))
+    assert "no ao rays: no primary ray of camera 0 hits scene" in line
+    assert "--camera-file" in line
+
+
+def test_mesh_files_that_no_reader_takes(tmp_path, capsys):
+    garbage = tmp_path / "garbage.stl"
+    garbage.write_bytes(bytes(range(256)) * 3)
+    line = error_line(capsys, "table", "--scene", str(garbage), "--resolution", "16x16")
+    # trimesh decodes such bytes with charset_normalizer where it is installed: either
+    # way the line is about the file, never a missing module
+    assert f"cannot read mesh {garbage}" in line and "Module" not in line
+    unknown = tmp_path / "points.xyz"
+    unknown.write_text("0 0 0\n1 0 0\n0 1 0\n")
+    line = error_line(capsys, "table", "--scene", str(unknown), "--resolution", "16x16")
+    assert ".xyz suffix; give a OBJ" in line
+
+
+def test_a_folder_where_a_file_belongs_is_named_so(tmp_path, capsys):
+    line = error_line(capsys, "table", *TINY, "--camera-file", str(tmp_path))
+    assert f"camera file {tmp_path} is a directory; give a file" in line
+    desc = tmp_path / "scene.toml"
+    desc.write_text('mesh = "."\n')
+    line = error_line(capsys, "table", "--scene", str(desc), "--resolution", "16x16")
+    assert "is a directory; name a mesh file" in line
