@@ -10,6 +10,7 @@ regenerated goldens are all written this way.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 from pathlib import Path
@@ -46,7 +47,11 @@ def check_writable(path: str | os.PathLike[str]) -> Path:
         raise SimtSimError(f"output path {target} is a directory; give a file name")
     parent = target.parent
     if not parent.is_dir():
-        what = "is not a directory" if parent.exists() else "does not exist; create it first"
+        what = (
+            "is not a directory; give a path in a folder"
+            if parent.exists()
+            else "does not exist; create it first"
+        )
         raise SimtSimError(f"output directory {parent} {what}")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise SimtSimError(
@@ -63,7 +68,8 @@ def temporary_beside(target: Path) -> tuple[int, str]:
         fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     except OSError as exc:
         raise unwritable(target, exc) from None
-    os.fchmod(fd, 0o666 & ~_umask())
+    with contextlib.suppress(OSError):  # a file system without modes (vfat) refuses it
+        os.fchmod(fd, 0o666 & ~_umask())
     return fd, tmp
 
 

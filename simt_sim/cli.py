@@ -69,6 +69,8 @@ _TREE_DEFAULTS = {
     "node_cost": DEFAULT_NODE_COST,
     "bvh_build": None,
 }
+#: values of those flags that ask for what their default gives
+_SAME_AS_DEFAULT = {"up": "auto", "bvh_build": DEFAULT_METHOD}
 #: the workload every command but ``plot`` and ``report`` runs by default (small enough for
 #: a laptop; those two draw one camera's, :func:`_add_figure_args`)
 DEFAULT_WORKLOAD = {"resolution": "256x192", "spp": 8, "camera": "all"}
@@ -804,7 +806,11 @@ def _resolve_workload(args: argparse.Namespace) -> None:
     given = [k for k in defaults if getattr(args, k) is not None]
     if getattr(args, "trace", None):
         fixed = given + [k for k in ("scene", "rays") if getattr(args, k) != _DEFAULTS[k]]
-        fixed += [k for k, v in _TREE_DEFAULTS.items() if getattr(args, k) != v]
+        fixed += [
+            k
+            for k, v in _TREE_DEFAULTS.items()
+            if getattr(args, k) not in (v, _SAME_AS_DEFAULT.get(k, v))
+        ]
         if args.paper or fixed:
             flag = "paper" if args.paper else fixed[0].replace("_", "-")
             raise SimtSimError(
@@ -891,10 +897,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (SimtSimError, KernelIRError) as exc:
             print(f"simt-sim: error: {exc}", file=sys.stderr)
             return 2
-        except MemoryError:  # numpy's and numba's allocations; nothing was written
+        except MemoryError as exc:  # numpy's and numba's allocations; nothing was written
+            said = " ".join(str(exc).split())
             print(
-                "simt-sim: error: out of memory: this run needs more than the machine has; "
-                "ask for less work (a smaller --resolution, --spp or --max-leaf, or --sample)",
+                f"simt-sim: error: out of memory{f' ({said})' if said else ''}: this run "
+                "needs more than the machine has; trace fewer rays (a smaller --resolution "
+                "or --spp)",
                 file=sys.stderr,
             )
             return 2

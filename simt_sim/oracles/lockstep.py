@@ -1666,6 +1666,8 @@ def execute(
     else:
         rounds = runs_in_rounds(ir, g)
         wide = 0 if width == 2 else width  # the wide while-while kernels (_tree_width)
+        if scheme.lockstep not in (WHILE_WHILE_BODY, IF_IF_BODY, SPECULATIVE_BODY, PACKET_BODY):
+            raise SimtSimError(f"scheme {scheme.name!r}: no lockstep body {scheme.lockstep}")
         body = None if scheme.lockstep == PACKET_BODY else scheme.lockstep
         cnt, hist, unit_cost, tri, t, ops, overflow = _execute(
             body, persistent, bvh.nodes, wide, *args[1:], g.warp_size, costs, rounds

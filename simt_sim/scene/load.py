@@ -103,8 +103,8 @@ def _read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
         mesh = trimesh.load(str(path), force="mesh", process=False)
     except ImportError:  # trimesh decodes non-UTF-8 text with a package it may not have
         raise SimtSimError(
-            f"cannot read mesh {path}: it is neither a binary {suffix[1:].upper()} file nor "
-            "UTF-8 text; repair or re-export it"
+            f"cannot read mesh {path}: no {suffix[1:].upper()} data trimesh can read, and "
+            "its bytes are not UTF-8 text; repair or re-export it"
         ) from None
     except Exception as exc:  # trimesh raises many types for unreadable files
         reason = " ".join(f"{type(exc).__name__}: {exc}".split())
@@ -184,14 +184,13 @@ def _make_scene(
     (:mod:`simt_sim.types.frame`), place cameras and build the Scene."""
     v, tris = _used_vertices(vertices, triangles, path)
     if up is None:
-        convention = UP_CONVENTION.get(path.suffix.lower(), "z")
+        convention = UP_CONVENTION[path.suffix.lower()]
         guess = detect_up(v, tris, convention)
         up = guess.axis
         up_source = (
             f"auto: {guess.share:.0%} of the area faces it, floors unpaired"
             if guess.clear
-            else f"auto: no clear floor, {path.suffix or 'the'} format's convention; "
-            "set --up if it is wrong"
+            else f"auto: no clear floor, {path.suffix} format's convention; set --up if it is wrong"
         )
     lo, hi = v.min(axis=0), v.max(axis=0)
     frame = fit_frame(lo, hi, up)

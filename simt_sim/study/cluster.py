@@ -24,6 +24,8 @@ from simt_sim.study.spec import StudySpec
 
 #: seconds to wait for a scheduler given by address before giving up
 CONNECT_TIMEOUT_S = 10
+#: local workers per core at most (single-threaded processes; more only queue)
+WORKERS_PER_CORE = 4
 
 # per worker process: the last study's plan
 _cache: dict[str, object] = {"spec": None, "plan": None}
@@ -37,11 +39,11 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
         raise SimtSimError("give either --workers N or --scheduler ADDRESS, not both")
     if workers is not None and workers < 1:
         raise SimtSimError(f"--workers must be at least 1, got {workers}")
-    cores = os.cpu_count() or 1
-    if workers is not None and workers > cores:  # each is a single-threaded process
+    most = WORKERS_PER_CORE * (os.cpu_count() or 1)
+    if workers is not None and workers > most:  # 100,000 never started, deaf to Ctrl-C
         raise SimtSimError(
-            f"--workers {workers} is more than this machine's {cores} cores; give at most "
-            f"{cores}, or --scheduler ADDRESS for a cluster of several machines"
+            f"--workers {workers} is more than {WORKERS_PER_CORE} per core of this machine; "
+            f"give at most {most}, or --scheduler ADDRESS for a cluster of several machines"
         )
     if workers is not None:
         with _sigint_blocked():  # importing distributed may start threads: inside too
