@@ -40,11 +40,13 @@ def write_atomic(path: str | os.PathLike[str], data: str | bytes) -> None:
 
 def check_writable(path: str | os.PathLike[str]) -> Path:
     """``path`` as a Path once it can be written: not a directory, in a folder that
-    exists and that this user may write to. A command checks its output so before its
-    work, not after it."""
+    exists and that this user may write to; a symbolic link as the file it names. A
+    command checks its output so before its work, not after it."""
     target = Path(path)
     if target.is_dir():
         raise SimtSimError(f"output path {target} is a directory; give a file name")
+    if target.is_symlink():  # write the file it names: the link stays the user's
+        target = Path(os.path.realpath(target))  # a loop is left as it is
     parent = target.parent
     if not parent.is_dir():
         what = (

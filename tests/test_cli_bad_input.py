@@ -208,3 +208,26 @@ def test_a_folder_where_a_file_belongs_is_named_so(tmp_path, capsys):
     desc.write_text('mesh = "."\n')
     line = error_line(capsys, "table", "--scene", str(desc), "--resolution", "16x16")
     assert "is a directory; name a mesh file" in line
+
+
+def test_an_output_given_as_a_link_writes_the_file_it_names(tmp_path):
+    """The link the user made stays a link; the file it names gets the table."""
+    real = tmp_path / "real.md"
+    real.write_text("old")
+    link = tmp_path / "link.md"
+    link.symlink_to(real)
+    atomic.write_atomic(link, "new")
+    assert link.is_symlink() and real.read_text() == "new"
+    loop = tmp_path / "loop.md"
+    loop.symlink_to(loop)
+    atomic.write_atomic(loop, "x")  # a link to itself: replaced, as any file
+    assert loop.read_text() == "x"
+
+
+def test_a_bad_named_scene_mesh_gets_its_error_alone(tmp_path, capsys, monkeypatch):
+    """The sha256 warning is said once the mesh loads: an empty file gets one line."""
+    (tmp_path / "bunny").mkdir()
+    (tmp_path / "bunny" / "bunny.obj").write_text("")
+    monkeypatch.setenv("SIMT_SIM_SCENES", str(tmp_path))
+    line = error_line(capsys, "table", "--scene", "bunny", "--resolution", "16x16")
+    assert "has no triangles" in line

@@ -288,17 +288,12 @@ def _from_description(
         raise SimtSimError(f"scene {desc.name!r}: mesh {path} is a directory; name a mesh file")
     if not path.is_file():
         raise SimtSimError(f"scene {desc.name!r}: mesh not found at {path}; {missing}")
-    if sha256 and sha256_of(path) != sha256:
-        warnings.warn(
-            f"scene {desc.name!r}: {path} differs from the descriptor's sha256; results "
-            "may not match the published numbers",
-            stacklevel=3,
-        )
+    differs = bool(sha256) and sha256_of(path) != sha256
     vertices, triangles = _read_mesh(path)
     if desc.transform is not None:
         m = desc.transform
         vertices = vertices @ m[:, :3].T + m[:, 3]
-    return _make_scene(
+    scene = _make_scene(
         desc.name,
         vertices,
         triangles,
@@ -309,6 +304,13 @@ def _from_description(
         source=f"{desc.source}: {path}",
         up_source="command line" if up is not None else "description",
     )
+    if differs:  # said once the mesh loads: a file that does not gets its error alone
+        warnings.warn(
+            f"scene {desc.name!r}: {path} differs from the descriptor's sha256; results "
+            "may not match the published numbers",
+            stacklevel=3,
+        )
+    return scene
 
 
 def _load_room(params: dict[str, Any], up: str | None, camera_file: Any) -> Scene:
