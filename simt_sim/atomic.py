@@ -4,8 +4,8 @@ An error (or Ctrl-C) never leaves a half-written file and never destroys what wa
 on the command line a Ctrl-C pressed while the file is written stops the rename
 (:func:`simt_sim.progress.checkpoint`), and a second one, which ends the process at once,
 removes the temporary file. One pressed just after the rename finds the file whole: the
-run still ends as interrupted (status 130), beside the finished file. Tables, figures and
-regenerated goldens are all written this way.
+run still ends as interrupted (status 130), beside the finished file. Tables, figures,
+trace files and regenerated goldens are all written this way (:func:`written_whole`).
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 from simt_sim import progress
@@ -21,18 +22,31 @@ from simt_sim.errors import SimtSimError
 
 def write_atomic(path: str | os.PathLike[str], data: str | bytes) -> None:
     """Write ``data`` to ``path`` through a temporary file and an atomic rename."""
+    with written_whole(path) as tmp, open(tmp, "wb" if isinstance(data, bytes) else "w") as fh:
+        fh.write(data)
+
+
+@contextlib.contextmanager
+def written_whole(path: str | os.PathLike[str]) -> Iterator[str]:
+    """The path of a temporary file beside ``path`` to write, renamed onto ``path`` when
+    the block ends without an error or a Ctrl-C, and removed otherwise. An output the
+    system refuses (a read-only folder, a full disk) is one line."""
     target = check_writable(path)
-    mode = "wb" if isinstance(data, bytes) else "w"
-    fd, tmp = temporary_beside(target)
     try:
-        with progress.temporary(tmp):
-            with os.fdopen(fd, mode) as fh:
-                fh.write(data)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    except OSError as exc:
+        raise _unwritable(target, exc) from None
+    with contextlib.suppress(OSError):  # mkstemp makes 0600; vfat refuses any mode
+        os.fchmod(fd, 0o666 & ~_umask())
+    os.close(fd)
+    try:
+        with progress.temporary(tmp):  # a second Ctrl-C removes it until it is renamed
+            yield tmp
             progress.checkpoint()  # Ctrl-C while writing: the target stays as it was
             os.replace(tmp, target)
     except OSError as exc:  # a full disk, or a target made a directory meanwhile
         Path(tmp).unlink(missing_ok=True)
-        raise unwritable(target, exc) from None
+        raise _unwritable(target, exc) from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -62,20 +76,7 @@ def check_writable(path: str | os.PathLike[str]) -> Path:
     return target
 
 
-def temporary_beside(target: Path) -> tuple[int, str]:
-    """A new temporary file in ``target``'s folder, with the mode a new file gets there
-    (``mkstemp`` makes it 0600): its descriptor and path. A folder the user cannot write
-    to is refused in one line."""
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    except OSError as exc:
-        raise unwritable(target, exc) from None
-    with contextlib.suppress(OSError):  # a file system without modes (vfat) refuses it
-        os.fchmod(fd, 0o666 & ~_umask())
-    return fd, tmp
-
-
-def unwritable(target: Path, exc: OSError) -> SimtSimError:
+def _unwritable(target: Path, exc: OSError) -> SimtSimError:
     """The one-line error for an output the system refused to write."""
     return SimtSimError(
         f"cannot write {target}: {exc.strerror or exc}; choose a folder you can write to"

@@ -28,8 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from simt_sim import progress
-from simt_sim.atomic import temporary_beside, unwritable
+from simt_sim.atomic import written_whole
 from simt_sim.errors import SimtSimError
 from simt_sim.trace.record import concat_traces
 from simt_sim.types.hits import Hits
@@ -67,49 +66,33 @@ def save_trace(path: str | os.PathLike, traces: Iterable[OpTrace], meta: dict) -
         raise SimtSimError(
             f"trace metadata is not JSON-serialisable ({exc}); pass plain values"
         ) from None
-    if path.is_dir():
-        raise SimtSimError(f"output path {path} is a directory; give a file name")
-    if not path.parent.is_dir():
-        raise SimtSimError(f"folder {path.parent} does not exist; create it first")
-    fd, tmp = temporary_beside(path)
-    os.close(fd)
-    try:
-        with (
-            progress.temporary(tmp),  # a second Ctrl-C removes it until it is renamed
-            zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf,
-        ):
-            query = ray_type = layout = None
-            batches = rays = ops = 0
-            for tr in traces:
-                if query is None:
-                    query, ray_type, layout = tr.query, tr.ray_type, tr.layout
-                elif (tr.query, tr.ray_type, tr.layout) != (query, ray_type, layout):
-                    raise SimtSimError(
-                        "trace batches mix queries, ray types or BVH layouts; save them to "
-                        "separate files"
-                    )
-                arrays = (tr.offsets, tr.op, tr.addr, tr.hits.tri, tr.hits.t)
-                for (field, dtype), arr in zip(_FIELDS, arrays, strict=True):
-                    _write_array(zf, _member(batches, field), arr.astype(dtype, copy=False))
-                batches += 1
-                rays += tr.n_rays
-                ops += int(tr.offsets[-1] - tr.offsets[0])
-            if batches == 0:
-                raise SimtSimError("no trace batches to save; record at least one ray")
-            header = {
-                "format": FORMAT, "version": VERSION, "query": query, "ray_type": ray_type,
-                "layout": layout, "batches": batches, "rays": rays, "ops": ops, "meta": meta,
-            }  # fmt: skip
-            zf.writestr(HEADER, json.dumps(header, indent=1))
-            zf.close()
-            progress.checkpoint()  # Ctrl-C while writing: the file at path stays as it was
-            os.replace(tmp, path)
-    except OSError as exc:  # a full disk, or the path made a directory meanwhile
-        os.unlink(tmp)
-        raise unwritable(path, exc) from None
-    except BaseException:
-        os.unlink(tmp)
-        raise
+    with (
+        written_whole(path) as tmp,
+        zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf,
+    ):
+        query = ray_type = layout = None
+        batches = rays = ops = 0
+        for tr in traces:
+            if query is None:
+                query, ray_type, layout = tr.query, tr.ray_type, tr.layout
+            elif (tr.query, tr.ray_type, tr.layout) != (query, ray_type, layout):
+                raise SimtSimError(
+                    "trace batches mix queries, ray types or BVH layouts; save them to "
+                    "separate files"
+                )
+            arrays = (tr.offsets, tr.op, tr.addr, tr.hits.tri, tr.hits.t)
+            for (field, dtype), arr in zip(_FIELDS, arrays, strict=True):
+                _write_array(zf, _member(batches, field), arr.astype(dtype, copy=False))
+            batches += 1
+            rays += tr.n_rays
+            ops += int(tr.offsets[-1] - tr.offsets[0])
+        if batches == 0:
+            raise SimtSimError("no trace batches to save; record at least one ray")
+        header = {
+            "format": FORMAT, "version": VERSION, "query": query, "ray_type": ray_type,
+            "layout": layout, "batches": batches, "rays": rays, "ops": ops, "meta": meta,
+        }  # fmt: skip
+        zf.writestr(HEADER, json.dumps(header, indent=1))
     return path
 
 
