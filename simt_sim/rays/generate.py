@@ -21,6 +21,7 @@ import numpy as np
 from numba import njit, prange
 
 from simt_sim.errors import SimtSimError
+from simt_sim.rays.hostmemory import check_room
 from simt_sim.rays.morton import bounds3, morton2d_order, morton6d_keys, stable_argsort
 from simt_sim.rays.offset import spawn_points
 from simt_sim.types.camera import Camera
@@ -478,26 +479,55 @@ def ray_stream(
         )
     if ray_type != "primary" and tracer is None:
         raise SimtSimError(f"{ray_type} rays need a tracer for the primary hits; pass tracer=")
+    pixels = int(width) * int(height)
+    if ray_type == "primary":
+        return RayStream(
+            scene, ray_type, int(spp), seed, _all_primary(scene, chosen, width, height), None,
+            pixels * len(chosen),
+        )  # fmt: skip
     parts = []
     for c in chosen:
+        check_room(pixels * PRIMARY_RAYS_PEAK_BYTES, f"the {pixels:,} primary rays of camera {c}")
         p = primary_rays(scene.cameras[c], width, height, camera_index=c)
-        if ray_type == "primary":
-            parts.append(p)
-        else:
-            hits = tracer(p)
-            parts.append(_HitRays.of(p, hits, _check_secondary(scene, p, hits, ray_type, spp)))
-    if ray_type == "primary":
-        primary = RayBatch(
-            *(np.concatenate([getattr(p, f) for p in parts]) for f in _RAY_FIELDS[:4]),
-            "closest", "primary",
-            *(np.concatenate([getattr(p, f) for p in parts]) for f in _RAY_FIELDS[4:]),
-        )  # fmt: skip
-        return RayStream(scene, ray_type, int(spp), seed, primary, None, len(primary))
+        hits = tracer(p)
+        parts.append(_HitRays.of(p, hits, _check_secondary(scene, p, hits, ray_type, spp)))
+    hits_kept = sum(len(part) for part in parts)
+    check_room(hits_kept * RAY_ROW_BYTES, f"the {hits_kept:,} primary hits of the {ray_type} rays")
     hit = _HitRays.concat(parts)
     return RayStream(scene, ray_type, int(spp), seed, None, hit, len(hit) * int(spp))
 
 
+def _all_primary(scene: Scene, chosen: Sequence[int], width: int, height: int) -> RayBatch:
+    """The primary rays of the ``chosen`` cameras, camera after camera in one batch,
+    allocated once and filled: the stream needs its own memory and one camera's
+    generation, not twice its own."""
+    pixels = int(width) * int(height)
+    n = pixels * len(chosen)
+    check_room(
+        n * RAY_ROW_BYTES + pixels * PRIMARY_RAYS_PEAK_BYTES,
+        f"the {n:,} primary rays of {len(chosen)} camera{'s' * (len(chosen) != 1)} at "
+        f"{width}x{height}",
+    )
+    out = _empty_batch(n, "closest", "primary")
+    for k, c in enumerate(chosen):
+        p = primary_rays(scene.cameras[c], width, height, camera_index=c)
+        for f in _RAY_FIELDS:
+            getattr(out, f)[k * pixels : (k + 1) * pixels] = getattr(p, f)
+    return out
+
+
 _RAY_FIELDS = ("origin", "direction", "tmin", "tmax", "camera", "pixel")
+RAY_ROW_BYTES = sum(
+    a.itemsize * math.prod(a.shape[1:])
+    for a in (getattr(_empty_batch(0, "closest", "primary"), f) for f in _RAY_FIELDS)
+)
+"""Bytes of one ray in a batch (origin, direction, extent, camera, pixel); a kept primary
+hit takes as many. :func:`ray_stream` asks :func:`~simt_sim.rays.hostmemory.check_room` for
+them before it keeps rays or hits."""
+PRIMARY_RAYS_PEAK_BYTES = 104
+"""Bytes per pixel :func:`primary_rays` holds at its peak: its rays and numpy's float64
+temporaries, as tracemalloc measures them. tests/rays/test_hostmemory.py keeps it at most the
+measured figure, so the memory check refuses no run that would fit."""
 
 
 def paper_ray_batches(

@@ -41,7 +41,8 @@ import numpy as np
 
 from simt_sim.bvh.layout import BVH
 from simt_sim.errors import SimtSimError
-from simt_sim.rays.generate import primary_rays
+from simt_sim.rays.generate import RAY_ROW_BYTES, primary_rays
+from simt_sim.rays.hostmemory import check_room
 from simt_sim.rays.offset import spawn_points
 from simt_sim.trace.record import DEFAULT_BATCH, record_all
 from simt_sim.types.paths import PathTrace, RectLight
@@ -189,6 +190,8 @@ def trace_paths(
     chosen = _check(scene, cameras, max_bounces, rr_start, albedo)
     light = default_light(scene) if light is None else light
     albedo = float(albedo)
+    paths = int(width) * int(height) * len(chosen)
+    check_room(2 * paths * RAY_ROW_BYTES, f"the {paths:,} paths' primary rays")  # and copies
     prim = [primary_rays(scene.cameras[c], width, height, camera_index=c) for c in chosen]
     camera = np.concatenate([p.camera for p in prim])
     pixel = np.concatenate([p.pixel for p in prim])

@@ -1,0 +1,130 @@
+"""The memory check before the ray streams allocate (simt_sim.rays.hostmemory).
+
+A run larger than the machine must end in one line before it allocates, not be killed by
+the kernel later with no line; a run that fits must never be refused, so the figures the
+check asks for must be floors of what the code really holds.
+"""
+
+from __future__ import annotations
+
+import tracemalloc
+
+import pytest
+
+from simt_sim.bvh.build import build_bvh
+from simt_sim.cli import main
+from simt_sim.errors import SimtSimError
+from simt_sim.rays import hostmemory
+from simt_sim.rays.generate import (
+    PRIMARY_RAYS_PEAK_BYTES,
+    RAY_ROW_BYTES,
+    primary_rays,
+    ray_stream,
+)
+from simt_sim.scene.room import make_room
+from simt_sim.tracers.numba_tracer import trace
+
+ROOM = make_room()
+TINY = ["--scene", "cornell-box", "--resolution", "16x16", "--camera", "0", "--quiet"]
+
+
+def test_primary_rays_peak_is_at_least_the_figure_the_check_asks_for():
+    """The check asks for PRIMARY_RAYS_PEAK_BYTES a pixel before primary_rays runs: if
+    the function held less at its peak, the check could refuse a run that fits."""
+    camera = ROOM.cameras[0]
+    primary_rays(camera, 8, 8)  # numba's and numpy's first-call allocations, not counted
+    width, height = 256, 192
+    tracemalloc.start()
+    try:
+        rays = primary_rays(camera, width, height)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    pixels = width * height
+    assert peak >= PRIMARY_RAYS_PEAK_BYTES * pixels
+    assert peak < (PRIMARY_RAYS_PEAK_BYTES + 8) * pixels  # the figure is the peak, not far off
+    kept = sum(getattr(rays, f).nbytes for f in ("origin", "direction", "tmin", "tmax"))
+    assert kept + rays.camera.nbytes + rays.pixel.nbytes == RAY_ROW_BYTES * pixels
+
+
+def test_a_kept_primary_hit_takes_a_ray_row():
+    stream = ray_stream(ROOM, "ao", cameras=[0], width=8, height=4, tracer=_trace)
+    kept = stream.hits
+    assert sum(a.nbytes for a in vars(kept).values()) == RAY_ROW_BYTES * len(kept) > 0
+
+
+def test_a_cgroup_limit_lowers_the_free_memory(tmp_path):
+    (tmp_path / "memory.max").write_text("1000\n")
+    (tmp_path / "memory.current").write_text("400\n")
+    assert hostmemory.free_bytes(tmp_path) == 600
+    (tmp_path / "memory.current").write_text("5000\n")
+    assert hostmemory.free_bytes(tmp_path) == 0
+    (tmp_path / "memory.max").write_text("max\n")
+    assert hostmemory.free_bytes(tmp_path) == hostmemory.free_bytes(tmp_path / "absent") > 0
+
+
+def test_more_than_is_free_is_one_line_that_says_what_to_do(monkeypatch):
+    monkeypatch.setattr(hostmemory, "free_bytes", lambda: 3 * 2**30)
+    hostmemory.check_room(3 * 2**30, "these rays")
+    with pytest.raises(SimtSimError) as caught:
+        hostmemory.check_room(3 * 2**30 + 1, "these rays")
+    assert str(caught.value) == (
+        "these rays need 3.0 GiB of memory and 3.0 GiB is free; trace fewer rays (a smaller "
+        "--resolution or fewer cameras with --camera)"
+    )
+
+
+@pytest.mark.parametrize("ray_type", ["primary", "ao"])
+def test_a_stream_asks_before_it_allocates(monkeypatch, ray_type):
+    """Primary rays ask for the stream and one camera's generation; secondary rays ask for
+    each camera's primary rays before they are made, so nothing is traced."""
+    scene = ROOM
+    asked = []
+
+    def refuse(nbytes: int, what: str) -> None:
+        asked.append((nbytes, what))
+        raise SimtSimError("refused")
+
+    monkeypatch.setattr("simt_sim.rays.generate.check_room", refuse)
+
+    def tracer(rays):
+        raise AssertionError("traced rays the check refused")
+
+    with pytest.raises(SimtSimError, match="refused"):
+        ray_stream(scene, ray_type, cameras=[0, 1], width=32, height=16, tracer=tracer)
+    pixels = 32 * 16
+    expected = {
+        "primary": (
+            2 * pixels * RAY_ROW_BYTES + pixels * PRIMARY_RAYS_PEAK_BYTES,
+            "the 1,024 primary rays of 2 cameras at 32x16",
+        ),
+        "ao": (pixels * PRIMARY_RAYS_PEAK_BYTES, "the 512 primary rays of camera 0"),
+    }
+    assert asked == [expected[ray_type]]
+
+
+def test_the_kept_hits_are_asked_for_before_they_are_joined(monkeypatch):
+    calls = []
+    monkeypatch.setattr(
+        "simt_sim.rays.generate.check_room", lambda nbytes, what: calls.append((nbytes, what))
+    )
+    stream = ray_stream(ROOM, "ao", cameras=[0, 1], width=16, height=8, spp=2, tracer=_trace)
+    hits = stream.n_rays // 2
+    assert calls[-1] == (hits * RAY_ROW_BYTES, f"the {hits:,} primary hits of the ao rays")
+    assert len(calls) == 3  # each camera, then the hits
+
+
+def _trace(rays):
+    return trace(build_bvh(ROOM.vertices, ROOM.triangles), rays)
+
+
+@pytest.mark.parametrize("rays", ["primary", "ao"])
+def test_a_table_too_large_for_the_machine_is_one_line(capsys, monkeypatch, tmp_path, rays):
+    monkeypatch.setattr(hostmemory, "free_bytes", lambda: 1000)
+    out = tmp_path / "table.md"
+    code = main(["table", *TINY, "--rays", rays, "--schemes", "while_while", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1, err
+    assert "of memory and 1000 bytes is free; trace fewer rays" in err[0]
+    assert not out.exists()
