@@ -14,6 +14,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 #: what a cell shows where a row has no value (a scheme that does not apply)
@@ -51,7 +52,8 @@ def sig(value: Any, digits: int = 3) -> str:
 
 def compact(df: pd.DataFrame, *, keep_not_applicable: bool = False) -> pd.DataFrame:
     """The compact rows of a study table: one per scheme that applies, with ``pct_of_best``
-    and ``winner`` per ray type x GPU group; rows without numbers (a path scheme for trace
+    and ``winner`` per ray type x GPU group, each group's rows together (a study gives a
+    scheme's GPUs one after the other); rows without numbers (a path scheme for trace
     rays) are left out unless ``keep_not_applicable``."""
     rows = df.copy()
     applies = rows["mrays_upper"].notna() if "mrays_upper" in rows else pd.Series(False, rows.index)
@@ -66,6 +68,8 @@ def compact(df: pd.DataFrame, *, keep_not_applicable: bool = False) -> pd.DataFr
     if "limit" not in rows:
         rows["limit"] = ""
     rows["limit"] = rows["limit"].fillna("").replace("", NOT_APPLICABLE)
+    order = pd.DataFrame({k: pd.factorize(rows[k])[0] for k in ("ray_type", "gpu")})
+    rows = rows.iloc[np.lexsort((order["gpu"], order["ray_type"]))]
     return rows[[c for _, c in COLUMNS]].reset_index(drop=True)
 
 

@@ -72,3 +72,27 @@ def test_compact_rows_rank_each_group_and_leave_out_what_does_not_apply() -> Non
     assert rows["pct_of_best"].tolist() == [100.0, 80.0, 100.0]
     kept = compact(df, keep_not_applicable=True)
     assert kept.loc[kept["scheme"] == "path_only", "limit"].item() == NOT_APPLICABLE
+
+
+def test_compact_rows_show_each_ray_type_and_gpu_together() -> None:
+    """A study gives a scheme's GPUs one after the other; the compact table groups them by
+    ray type and GPU, in the order the study gave them (it had one group per row)."""
+    df = pd.DataFrame(
+        {
+            "ray_type": ["primary"] * 4 + ["ao"] * 4,
+            "gpu": ["x", "a", "x", "a"] * 2,
+            "scheme": ["s", "s", "t", "t"] * 2,
+            "simd_efficiency": [0.5] * 8,
+            "simd_efficiency_traversal": [0.5] * 8,
+            "simd_efficiency_intersection": [0.5] * 8,
+            "mrays_upper": [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0],
+            "limit": ["issue"] * 8,
+        }
+    )
+    rows = compact(df)
+    assert list(zip(rows["ray_type"], rows["gpu"], rows["scheme"], strict=True)) == [
+        ("primary", "x", "s"), ("primary", "x", "t"), ("primary", "a", "s"),
+        ("primary", "a", "t"), ("ao", "x", "s"), ("ao", "x", "t"), ("ao", "a", "s"),
+        ("ao", "a", "t"),
+    ]  # fmt: skip
+    assert rows["winner"].tolist() == ["", WINNER] * 4
