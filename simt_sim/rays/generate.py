@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit, prange
 
 from simt_sim.errors import SimtSimError
-from simt_sim.rays.hostmemory import check_room
+from simt_sim.rays.hostmemory import FEWER_RAYS, SMALLER_IMAGE, check_room
 from simt_sim.rays.morton import bounds3, morton2d_order, morton6d_keys, stable_argsort
 from simt_sim.rays.offset import spawn_points
 from simt_sim.types.camera import Camera
@@ -487,12 +487,18 @@ def ray_stream(
         )  # fmt: skip
     parts = []
     for c in chosen:
-        check_room(pixels * PRIMARY_RAYS_PEAK_BYTES, f"the {pixels:,} primary rays of camera {c}")
+        check_room(
+            pixels * PRIMARY_RAYS_PEAK_BYTES, f"the {pixels:,} primary rays of camera {c}",
+            SMALLER_IMAGE,
+        )  # fmt: skip
         p = primary_rays(scene.cameras[c], width, height, camera_index=c)
         hits = tracer(p)
         parts.append(_HitRays.of(p, hits, _check_secondary(scene, p, hits, ray_type, spp)))
     hits_kept = sum(len(part) for part in parts)
-    check_room(hits_kept * RAY_ROW_BYTES, f"the {hits_kept:,} primary hits of the {ray_type} rays")
+    check_room(
+        hits_kept * RAY_ROW_BYTES, f"the {hits_kept:,} primary hits of the {ray_type} rays",
+        FEWER_RAYS,
+    )  # fmt: skip
     hit = _HitRays.concat(parts)
     return RayStream(scene, ray_type, int(spp), seed, None, hit, len(hit) * int(spp))
 
@@ -503,10 +509,11 @@ def _all_primary(scene: Scene, chosen: Sequence[int], width: int, height: int) -
     generation, not twice its own."""
     pixels = int(width) * int(height)
     n = pixels * len(chosen)
-    check_room(
-        n * RAY_ROW_BYTES + pixels * PRIMARY_RAYS_PEAK_BYTES,
+    check_room(  # the rows written so far, and the last camera's own peak beyond its rows
+        n * RAY_ROW_BYTES + pixels * (PRIMARY_RAYS_PEAK_BYTES - RAY_ROW_BYTES),
         f"the {n:,} primary rays of {len(chosen)} camera{'s' * (len(chosen) != 1)} at "
         f"{width}x{height}",
+        FEWER_RAYS,
     )
     out = _empty_batch(n, "closest", "primary")
     for k, c in enumerate(chosen):

@@ -14,7 +14,7 @@ from typing import Any
 
 import pandas as pd
 
-from simt_sim.report.summary import aligned, header, sig
+from simt_sim.report.summary import aligned, grouped, header, sig
 from simt_sim.simt.result import SimResult
 
 #: the columns of :func:`block_rows`
@@ -51,7 +51,7 @@ def render_blocks(df: pd.DataFrame, meta: Mapping[str, Any]) -> str:
     head = ["ray type", "gpu", "scheme", "block", "cost", "executions", "instructions",
             "share %", "simd eff"]  # fmt: skip
     cells = [head]
-    for r in df.to_dict("records"):
+    for r in grouped(df).to_dict("records"):
         cells.append([
             r["ray_type"], r["gpu"], r["scheme"], r["block"], str(r["cost"]),
             str(r["executions"]), str(r["warp_instructions"]), sig(100 * r["share"]),

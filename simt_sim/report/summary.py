@@ -68,9 +68,15 @@ def compact(df: pd.DataFrame, *, keep_not_applicable: bool = False) -> pd.DataFr
     if "limit" not in rows:
         rows["limit"] = ""
     rows["limit"] = rows["limit"].fillna("").replace("", NOT_APPLICABLE)
-    order = pd.DataFrame({k: pd.factorize(rows[k])[0] for k in ("ray_type", "gpu")})
-    rows = rows.iloc[np.lexsort((order["gpu"], order["ray_type"]))]
-    return rows[[c for _, c in COLUMNS]].reset_index(drop=True)
+    return grouped(rows)[[c for _, c in COLUMNS]].reset_index(drop=True)
+
+
+def grouped(rows: pd.DataFrame) -> pd.DataFrame:
+    """``rows`` with each ray type x GPU group together, groups and the rows within them
+    in the order they first appear: a study gives a scheme's GPUs one after the other,
+    and :func:`aligned` sets a blank line between groups."""
+    order = [pd.factorize(rows[k], use_na_sentinel=False)[0] for k in ("gpu", "ray_type")]
+    return rows.iloc[np.lexsort(order)]
 
 
 def header(meta: Mapping[str, Any]) -> str:

@@ -42,7 +42,7 @@ import numpy as np
 from simt_sim.bvh.layout import BVH
 from simt_sim.errors import SimtSimError
 from simt_sim.rays.generate import RAY_ROW_BYTES, primary_rays
-from simt_sim.rays.hostmemory import check_room
+from simt_sim.rays.hostmemory import FEWER_RAYS, check_room
 from simt_sim.rays.offset import spawn_points
 from simt_sim.trace.record import DEFAULT_BATCH, record_all
 from simt_sim.types.paths import PathTrace, RectLight
@@ -191,7 +191,9 @@ def trace_paths(
     light = default_light(scene) if light is None else light
     albedo = float(albedo)
     paths = int(width) * int(height) * len(chosen)
-    check_room(2 * paths * RAY_ROW_BYTES, f"the {paths:,} paths' primary rays")  # and copies
+    check_room(  # the cameras' rays, then beside them the paths' copies, indices and weights
+        2 * paths * RAY_ROW_BYTES, f"the {paths:,} paths' primary rays", FEWER_RAYS
+    )
     prim = [primary_rays(scene.cameras[c], width, height, camera_index=c) for c in chosen]
     camera = np.concatenate([p.camera for p in prim])
     pixel = np.concatenate([p.pixel for p in prim])

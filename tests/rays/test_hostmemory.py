@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import tracemalloc
 
+import psutil
 import pytest
 
 from simt_sim.bvh.build import build_bvh
@@ -53,25 +54,62 @@ def test_a_kept_primary_hit_takes_a_ray_row():
     assert sum(a.nbytes for a in vars(kept).values()) == RAY_ROW_BYTES * len(kept) > 0
 
 
-def test_a_cgroup_limit_lowers_the_free_memory(tmp_path):
+class _Memory:
+    """psutil's figures, fixed: ``available`` memory and ``free`` swap."""
+
+    def __init__(self, available: int = 0, free: int = 0) -> None:
+        self.available, self.free = available, free
+
+
+@pytest.fixture()
+def host(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A host with 10,000 bytes available and 500 of swap free."""
+    monkeypatch.setattr(psutil, "virtual_memory", lambda: _Memory(available=10_000))
+    monkeypatch.setattr(psutil, "swap_memory", lambda: _Memory(free=500))
+
+
+def test_the_host_gives_its_available_memory_and_free_swap(host, tmp_path):
+    assert hostmemory.free_bytes(tmp_path / "absent") == 10_500
+    (tmp_path / "memory.max").write_text("max\n")
+    (tmp_path / "memory.current").write_text("400\n")
+    assert hostmemory.free_bytes(tmp_path) == 10_500
+
+
+def test_a_cgroup_limit_lowers_the_free_memory(host, tmp_path):
     (tmp_path / "memory.max").write_text("1000\n")
     (tmp_path / "memory.current").write_text("400\n")
     assert hostmemory.free_bytes(tmp_path) == 600
     (tmp_path / "memory.current").write_text("5000\n")
     assert hostmemory.free_bytes(tmp_path) == 0
-    (tmp_path / "memory.max").write_text("max\n")
-    assert hostmemory.free_bytes(tmp_path) == hostmemory.free_bytes(tmp_path / "absent") > 0
+    (tmp_path / "memory.max").write_text("not a number\n")
+    assert hostmemory.free_bytes(tmp_path) == 10_500
+
+
+def test_a_cgroup_s_file_cache_and_swap_count_as_room(host, tmp_path):
+    """The kernel drops inactive file cache before it kills, and a group may swap."""
+    (tmp_path / "memory.max").write_text("1000\n")
+    (tmp_path / "memory.current").write_text("900\n")
+    (tmp_path / "memory.stat").write_text("anon 200\ninactive_file 300\nactive_file 400\n")
+    assert hostmemory.free_bytes(tmp_path) == 400
+    (tmp_path / "memory.swap.max").write_text("max\n")
+    (tmp_path / "memory.swap.current").write_text("0\n")
+    assert hostmemory.free_bytes(tmp_path) == 900  # the host's 500 of swap
+    (tmp_path / "memory.swap.max").write_text("250\n")
+    (tmp_path / "memory.swap.current").write_text("50\n")
+    assert hostmemory.free_bytes(tmp_path) == 600
 
 
 def test_more_than_is_free_is_one_line_that_says_what_to_do(monkeypatch):
     monkeypatch.setattr(hostmemory, "free_bytes", lambda: 3 * 2**30)
-    hostmemory.check_room(3 * 2**30, "these rays")
+    hostmemory.check_room(3 * 2**30, "these rays", hostmemory.FEWER_RAYS)
     with pytest.raises(SimtSimError) as caught:
-        hostmemory.check_room(3 * 2**30 + 1, "these rays")
+        hostmemory.check_room(5 * 2**30, "these rays", hostmemory.FEWER_RAYS)
     assert str(caught.value) == (
-        "these rays need 3.0 GiB of memory and 3.0 GiB is free; trace fewer rays (a smaller "
-        "--resolution or fewer cameras with --camera)"
+        "these rays need 5.0 GiB of memory and only 3.0 GiB is free; trace fewer rays (a "
+        "smaller --resolution, or fewer cameras with --camera)"
     )
+    with pytest.raises(SimtSimError, match=r"need 3\.000000002 GiB .* only 3\.000000000 GiB"):
+        hostmemory.check_room(3 * 2**30 + 2, "these rays", hostmemory.SMALLER_IMAGE)
 
 
 @pytest.mark.parametrize("ray_type", ["primary", "ao"])
@@ -81,8 +119,8 @@ def test_a_stream_asks_before_it_allocates(monkeypatch, ray_type):
     scene = ROOM
     asked = []
 
-    def refuse(nbytes: int, what: str) -> None:
-        asked.append((nbytes, what))
+    def refuse(nbytes: int, what: str, remedy: str) -> None:
+        asked.append((nbytes, what, remedy))
         raise SimtSimError("refused")
 
     monkeypatch.setattr("simt_sim.rays.generate.check_room", refuse)
@@ -95,10 +133,15 @@ def test_a_stream_asks_before_it_allocates(monkeypatch, ray_type):
     pixels = 32 * 16
     expected = {
         "primary": (
-            2 * pixels * RAY_ROW_BYTES + pixels * PRIMARY_RAYS_PEAK_BYTES,
+            2 * pixels * RAY_ROW_BYTES + pixels * (PRIMARY_RAYS_PEAK_BYTES - RAY_ROW_BYTES),
             "the 1,024 primary rays of 2 cameras at 32x16",
+            hostmemory.FEWER_RAYS,
         ),
-        "ao": (pixels * PRIMARY_RAYS_PEAK_BYTES, "the 512 primary rays of camera 0"),
+        "ao": (
+            pixels * PRIMARY_RAYS_PEAK_BYTES,
+            "the 512 primary rays of camera 0",
+            hostmemory.SMALLER_IMAGE,
+        ),
     }
     assert asked == [expected[ray_type]]
 
@@ -106,11 +149,16 @@ def test_a_stream_asks_before_it_allocates(monkeypatch, ray_type):
 def test_the_kept_hits_are_asked_for_before_they_are_joined(monkeypatch):
     calls = []
     monkeypatch.setattr(
-        "simt_sim.rays.generate.check_room", lambda nbytes, what: calls.append((nbytes, what))
+        "simt_sim.rays.generate.check_room",
+        lambda nbytes, what, remedy: calls.append((nbytes, what, remedy)),
     )
     stream = ray_stream(ROOM, "ao", cameras=[0, 1], width=16, height=8, spp=2, tracer=_trace)
     hits = stream.n_rays // 2
-    assert calls[-1] == (hits * RAY_ROW_BYTES, f"the {hits:,} primary hits of the ao rays")
+    assert calls[-1] == (
+        hits * RAY_ROW_BYTES,
+        f"the {hits:,} primary hits of the ao rays",
+        hostmemory.FEWER_RAYS,
+    )
     assert len(calls) == 3  # each camera, then the hits
 
 
@@ -118,13 +166,21 @@ def _trace(rays):
     return trace(build_bvh(ROOM.vertices, ROOM.triangles), rays)
 
 
-@pytest.mark.parametrize("rays", ["primary", "ao"])
-def test_a_table_too_large_for_the_machine_is_one_line(capsys, monkeypatch, tmp_path, rays):
+@pytest.mark.parametrize(
+    ("rays", "what"),
+    [
+        ("primary", "the 256 primary rays of 1 camera at 16x16"),
+        ("ao", "the 256 primary rays of camera 0"),
+        ("path", "the 256 paths' primary rays"),
+    ],
+)
+def test_a_table_too_large_for_the_machine_is_one_line(capsys, monkeypatch, tmp_path, rays, what):
     monkeypatch.setattr(hostmemory, "free_bytes", lambda: 1000)
     out = tmp_path / "table.md"
     code = main(["table", *TINY, "--rays", rays, "--schemes", "while_while", "--out", str(out)])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2
     assert len(err) == 1, err
-    assert "of memory and 1000 bytes is free; trace fewer rays" in err[0]
+    assert f"{what} need " in err[0]
+    assert "of memory and only 1000 bytes is free; trace fewer rays" in err[0]
     assert not out.exists()

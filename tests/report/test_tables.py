@@ -9,6 +9,7 @@ import pytest
 
 from simt_sim.atomic import write_atomic
 from simt_sim.errors import SimtSimError
+from simt_sim.report.blocks import render_blocks
 from simt_sim.report.summary import NOT_APPLICABLE, WINNER, compact, sig
 from simt_sim.report.tables import render
 
@@ -96,3 +97,21 @@ def test_compact_rows_show_each_ray_type_and_gpu_together() -> None:
         ("ao", "a", "t"),
     ]  # fmt: skip
     assert rows["winner"].tolist() == ["", WINNER] * 4
+
+
+def test_the_block_breakdown_shows_each_ray_type_and_gpu_together() -> None:
+    df = pd.DataFrame(
+        [
+            {"ray_type": "primary", "gpu": gpu, "scheme": scheme, "block": "trav_step",
+             "cost": 1, "executions": 1, "warp_instructions": 1, "share": 1.0,
+             "simd_efficiency": 1.0}
+            for scheme in ("s", "t") for gpu in ("x", "a")
+        ]
+    )  # fmt: skip
+    run = {"scene": "room", "ray_types": ["primary"], "resolution": [8, 4], "spp": 1,
+           "cameras": "all", "tests": "watertight", "sample": 1.0}  # fmt: skip
+    meta = {"run": run, "ir": "sm_75", "versions": {"simt_sim": "0"}}
+    lines = render_blocks(df, meta).splitlines()[3:]
+    assert [ln.split()[1:3] if ln else [] for ln in lines] == [
+        ["x", "s"], ["x", "t"], [], ["a", "s"], ["a", "t"],
+    ]  # fmt: skip
