@@ -284,6 +284,7 @@ def cmd_trace(args: argparse.Namespace) -> int:
             "camera_file": args.camera_file,
             "ray_type": args.rays,
             "cameras": list(wl.cameras),
+            "camera": args.camera,  # as named ("all"): the replayed table's header says it
             "resolution": list(wl.resolution),
             "spp": wl.spp,
             "seed": wl.seed,
@@ -444,12 +445,18 @@ def cmd_plot(args: argparse.Namespace) -> int:
     if args.warp is not None and args.warp < 0:
         raise SimtSimError(f"--warp must be a warp index >= 0, got {args.warp}")
     if args.trace:
+        from dataclasses import replace
+
+        from simt_sim.trace.tracefile import read_meta
+
         spec = _saved_spec(args)
-        if not spec.cameras.isdigit():
+        held = read_meta(args.trace[0])["meta"]["cameras"]
+        if len(held) != 1:
             raise SimtSimError(
-                f"the traces hold cameras {spec.cameras}; plot draws one view: record one "
-                "camera (simt-sim trace --camera K)"
+                f"the traces hold cameras {','.join(map(str, held))}; plot draws one view: "
+                "record one camera (simt-sim trace --camera K)"
             )
+        spec = replace(spec, cameras=str(held[0]))  # its index, also where "all" named it
     else:
         if not args.camera.strip().isdigit():
             raise SimtSimError(f"--camera {args.camera!r} is not one camera index like 0")

@@ -59,7 +59,7 @@ def saved_spec(paths: Sequence[str], **fields: Any) -> StudySpec:
         up=first.get("up"),
         camera_file=first.get("camera_file"),
         ray_types=tuple(ray_types),
-        cameras=",".join(str(c) for c in first["cameras"]),
+        cameras=str(first.get("camera", _indices(first["cameras"]))),
         resolution=(int(first["resolution"][0]), int(first["resolution"][1])),
         spp=int(first["spp"]),
         seed=int(first["seed"]),
@@ -99,6 +99,10 @@ def _check_tree(plan: StudyPlan, path: str) -> None:
         )
 
 
+def _indices(cameras: Sequence[int]) -> str:
+    return ",".join(map(str, cameras))
+
+
 def _rays_of(plan: StudyPlan, ray_type: str, path: str) -> Iterator[RayBatch | None]:
     """The rays of each launch of ``path``, remade from the spec, where a scheme executes
     on them (else ``None`` for every launch)."""
@@ -126,6 +130,12 @@ def run_saved(
         )
     spec = replace(spec, ray_types=tuple(read_meta(p)["meta"]["ray_type"] for p in paths))
     plan = plan_study(spec) if plan is None else plan
+    recorded = tuple(read_meta(paths[0])["meta"]["cameras"])
+    if plan.cameras != recorded:  # "all" names the scene's cameras of today
+        raise SimtSimError(
+            f"{paths[0]} holds the rays of cameras {_indices(recorded)}, but --camera "
+            f"{spec.cameras} now names {_indices(plan.cameras)} of its scene; re-record it"
+        )
     results: list[SimResult] = []
     rows: list[dict] = []
     for path, rt in zip(paths, spec.ray_types, strict=True):

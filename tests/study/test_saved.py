@@ -26,10 +26,35 @@ def test_a_saved_trace_replays_to_the_recorded_runs_numbers_exactly(tmp_path: Pa
         assert proc.returncode == 0, proc.stderr
     meta = read_meta(ao)
     assert meta["rays"] > 2**20 and meta["meta"]["resolution"] == [256, 192]  # table's defaults
-    saved = run_cli("table", "--trace", str(primary), str(ao), "--format", "csv")
-    fresh = run_cli("table", "--rays", "primary,ao", "--quiet", "--format", "csv")
-    assert saved.returncode == 0 and fresh.returncode == 0, saved.stderr + fresh.stderr
-    assert saved.stdout == fresh.stdout
+    for fmt in ("csv", "md"):  # the numbers, then the compact table under its header
+        saved = run_cli("table", "--trace", str(primary), str(ao), "--format", fmt)
+        fresh = run_cli("table", "--rays", "primary,ao", "--quiet", "--format", fmt)
+        assert saved.returncode == 0 and fresh.returncode == 0, saved.stderr + fresh.stderr
+        assert saved.stdout == fresh.stdout
+    assert "; cameras all; " in saved.stdout.splitlines()[0]
+
+
+def test_a_trace_of_all_cameras_is_refused_once_its_scene_has_others(tmp_path, capsys) -> None:
+    """``--camera all`` is replayed as named (the fresh table's header says it), so the
+    cameras it names are checked against those the file holds."""
+    cams = tmp_path / "cams.toml"
+    camera = "[[camera]]\nposition = [0, 1, 3.4]\nlook_at = [0, 1, 0]\n"
+    cams.write_text(camera)
+    path = tmp_path / "primary.trace"
+    small = ["--scene", "cornell-box", "--camera-file", str(cams), "--resolution", "16x12"]
+    assert main(["trace", *small, "--rays", "primary", "--out", str(path), "--quiet"]) == 0
+    assert main(["table", "--trace", str(path), "--quiet", "--schemes", "while_while"]) == 0
+    assert "; cameras all; " in capsys.readouterr().out
+    figures = tmp_path / "figures"  # one camera, though named "all": plot draws its view
+    assert main(["plot", "--trace", str(path), "--out", str(figures), "--quiet"]) == 0
+    assert any(figures.iterdir())
+    capsys.readouterr()
+    cams.write_text(camera * 2)
+    code = main(["table", "--trace", str(path), "--quiet", "--schemes", "while_while"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1
+    assert "holds the rays of cameras 0, but --camera all now names 0,1" in err[0]
+    assert "re-record it" in err[0]
 
 
 def test_a_trace_short_of_its_protocols_rays_is_refused_where_packet_needs_them(tmp_path):
