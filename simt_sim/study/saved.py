@@ -59,7 +59,7 @@ def saved_spec(paths: Sequence[str], **fields: Any) -> StudySpec:
         up=first.get("up"),
         camera_file=first.get("camera_file"),
         ray_types=tuple(ray_types),
-        cameras=str(first.get("camera", _indices(first["cameras"]))),
+        cameras=_camera_label(metas),
         resolution=(int(first["resolution"][0]), int(first["resolution"][1])),
         spp=int(first["spp"]),
         seed=int(first["seed"]),
@@ -103,6 +103,13 @@ def _indices(cameras: Sequence[int]) -> str:
     return ",".join(map(str, cameras))
 
 
+def _camera_label(metas: Sequence[dict]) -> str:
+    """The cameras as the files' ``--camera`` named them (``all``), as a fresh run's header
+    says them; their indices where the files named them apart, or are older than the name."""
+    labels = {str(m.get("camera", _indices(m["cameras"]))) for m in metas}
+    return labels.pop() if len(labels) == 1 else _indices(metas[0]["cameras"])
+
+
 def _rays_of(plan: StudyPlan, ray_type: str, path: str) -> Iterator[RayBatch | None]:
     """The rays of each launch of ``path``, remade from the spec, where a scheme executes
     on them (else ``None`` for every launch)."""
@@ -132,9 +139,11 @@ def run_saved(
     plan = plan_study(spec) if plan is None else plan
     recorded = tuple(read_meta(paths[0])["meta"]["cameras"])
     if plan.cameras != recorded:  # "all" names the scene's cameras of today
+        source = f"camera file {spec.camera_file}" if spec.camera_file else f"scene {spec.scene}"
         raise SimtSimError(
-            f"{paths[0]} holds the rays of cameras {_indices(recorded)}, but --camera "
-            f"{spec.cameras} now names {_indices(plan.cameras)} of its scene; re-record it"
+            f"{paths[0]} was recorded with --camera {spec.cameras}, which named cameras "
+            f"{_indices(recorded)} then; {source} now makes it cameras "
+            f"{_indices(plan.cameras)}; re-record it"
         )
     results: list[SimResult] = []
     rows: list[dict] = []

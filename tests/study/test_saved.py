@@ -13,6 +13,7 @@ from simt_sim import cli
 from simt_sim.bvh.build import DEFAULT_METHOD
 from simt_sim.cli import main
 from simt_sim.study.protocol import PAPER_PROTOCOL, PAPER_TESTS
+from simt_sim.study.saved import saved_spec
 from simt_sim.trace.tracefile import load_trace, read_meta, save_trace
 
 
@@ -53,8 +54,25 @@ def test_a_trace_of_all_cameras_is_refused_once_its_scene_has_others(tmp_path, c
     code = main(["table", "--trace", str(path), "--quiet", "--schemes", "while_while"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1
-    assert "holds the rays of cameras 0, but --camera all now names 0,1" in err[0]
-    assert "re-record it" in err[0]
+    said = f"with --camera all, which named cameras 0 then; camera file {cams} now makes it"
+    assert f"{said} cameras 0,1; re-record it" in err[0]
+
+
+def test_files_that_named_their_cameras_apart_are_labelled_by_index(tmp_path) -> None:
+    """Files of the same cameras, one named ``all`` and one by indices, get the indices in
+    either order (the header cannot depend on it), as does a file older than the name."""
+    small = ["--scene", "cornell-box", "--resolution", "8x4", "--quiet"]
+    by_name, by_index = tmp_path / "all.trace", tmp_path / "indices.trace"
+    assert main(["trace", *small, "--rays", "primary", "--out", str(by_name)]) == 0
+    assert main(["trace", *small, "--rays", "ao", "--camera", "0,1,2,3,4",
+                 "--out", str(by_index)]) == 0  # fmt: skip
+    assert saved_spec([str(by_name)]).cameras == "all"
+    for pair in ((by_name, by_index), (by_index, by_name)):
+        assert saved_spec([str(p) for p in pair]).cameras == "0,1,2,3,4"
+    trace, meta = load_trace(by_name)
+    older = tmp_path / "older.trace"
+    save_trace(older, [trace], {k: v for k, v in meta.items() if k != "camera"})
+    assert saved_spec([str(older)]).cameras == "0,1,2,3,4"
 
 
 def test_a_trace_short_of_its_protocols_rays_is_refused_where_packet_needs_them(tmp_path):
