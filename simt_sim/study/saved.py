@@ -135,9 +135,10 @@ def run_saved(
         raise SimtSimError(
             "--sample replays a sample of freshly recorded warps; drop it with --trace"
         )
-    spec = replace(spec, ray_types=tuple(read_meta(p)["meta"]["ray_type"] for p in paths))
+    metas = [read_meta(p)["meta"] for p in paths]
+    spec = replace(spec, ray_types=tuple(m["ray_type"] for m in metas))
     plan = plan_study(spec) if plan is None else plan
-    recorded = tuple(read_meta(paths[0])["meta"]["cameras"])
+    recorded = tuple(metas[0]["cameras"])
     if plan.cameras != recorded:  # "all" names the scene's cameras of today
         source = f"camera file {spec.camera_file}" if spec.camera_file else f"scene {spec.scene}"
         raise SimtSimError(
