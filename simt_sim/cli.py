@@ -285,6 +285,7 @@ def cmd_trace(args: argparse.Namespace) -> int:
             "ray_type": args.rays,
             "cameras": list(wl.cameras),
             "camera": args.camera,  # as named ("all"): the replayed table's header says it
+            "views": [wl.scene.cameras[c].card() for c in wl.cameras],  # to find one moved
             "resolution": list(wl.resolution),
             "spp": wl.spp,
             "seed": wl.seed,

@@ -2,10 +2,12 @@
 
 A run larger than the machine does not end in a ``MemoryError``: Linux lends memory it
 does not have, and its out-of-memory killer ends the process later, with status 137 and
-no line. So the ray streams, which grow with the image and the cameras, ask here before
-they allocate, and a run that cannot fit ends in one line at once. What they ask for is
-a floor (the arrays a stream keeps, and what making one camera's rays holds at its
-peak), so no run that fits is refused; a run that passes can still outgrow memory later.
+no line. So what grows with the image and the cameras asks here before it allocates:
+the ray streams, and the recorder before it stores each batch's ops (path tracing keeps
+every bounce's). A run that cannot fit ends in one line. What they ask for is a floor
+(the arrays a stream keeps, what making one camera's rays holds at its peak, the ops
+counted before they are stored), so no run that fits is refused; a run that passes can
+still outgrow memory later, in the arrays nothing asks for.
 """
 
 from __future__ import annotations
@@ -17,7 +19,8 @@ import psutil
 from simt_sim.errors import SimtSimError
 
 CGROUP = Path("/sys/fs/cgroup")
-"""cgroup v2's folder: a container's own memory limit, which the host's figures do not show."""
+"""cgroup's folder: a container's own memory limit, which the host's figures do not show
+(cgroup v2's files, or v1's in its ``memory`` folder)."""
 SMALLER_IMAGE = "trace fewer rays (a smaller --resolution)"
 """What to do when one camera's rays do not fit."""
 FEWER_RAYS = "trace fewer rays (a smaller --resolution, or fewer cameras with --camera)"
@@ -26,16 +29,18 @@ FEWER_RAYS = "trace fewer rays (a smaller --resolution, or fewer cameras with --
 
 def free_bytes(cgroup: Path = CGROUP) -> int:
     """Memory this process may still take: the host's available memory and free swap, or
-    less under a cgroup v2 limit (a container)."""
+    less under a cgroup limit (a container)."""
     host = int(psutil.virtual_memory().available) + int(psutil.swap_memory().free)
     room = _cgroup_room(cgroup)
+    if room is None:
+        room = _cgroup_v1_room(cgroup / "memory")
     return host if room is None else max(0, min(host, room))
 
 
 def _cgroup_room(cgroup: Path) -> int | None:
     """What a cgroup v2 limit leaves: the limit less the working set (the usage less the
     inactive file cache, which the kernel reclaims before it kills), plus the group's swap
-    room; None without a limit (the host, or cgroup v1, whose limit is not read)."""
+    room; None without a limit (the host, or cgroup v1)."""
     try:
         limit = (cgroup / "memory.max").read_text().strip()
         if limit == "max":
@@ -44,12 +49,37 @@ def _cgroup_room(cgroup: Path) -> int | None:
         room = int(limit) - used
     except (OSError, ValueError):
         return None
+    return room + _stat(cgroup, "inactive_file") + _cgroup_swap_room(cgroup)
+
+
+def _cgroup_v1_room(folder: Path) -> int | None:
+    """What a cgroup v1 limit leaves, as :func:`_cgroup_room` reads v2's: the limit less
+    the working set, plus the host's free swap, or less where the group's memory and swap
+    together are limited (``memsw``, only with swap accounting on); None without one (a
+    v1 group with no limit reads as a limit larger than the host)."""
     try:
-        stat = (cgroup / "memory.stat").read_text().split()
-        room += int(stat[stat.index("inactive_file") + 1])
+        limit = int((folder / "memory.limit_in_bytes").read_text())
+        used = int((folder / "memory.usage_in_bytes").read_text())
+    except (OSError, ValueError):
+        return None
+    cache = _stat(folder, "total_inactive_file")
+    room = limit - used + cache + int(psutil.swap_memory().free)
+    try:
+        both = int((folder / "memory.memsw.limit_in_bytes").read_text())
+        both -= int((folder / "memory.memsw.usage_in_bytes").read_text())
+    except (OSError, ValueError):
+        return room
+    return min(room, both + cache)
+
+
+def _stat(folder: Path, field: str) -> int:
+    """A figure of the group's ``memory.stat``; 0 where it has none, which only asks for
+    less (the usage then counts all of the cache)."""
+    try:
+        stat = (folder / "memory.stat").read_text().split()
+        return int(stat[stat.index(field) + 1])
     except (OSError, ValueError, IndexError):
-        pass  # no cache figure: the usage counts all of it, which only asks for less
-    return room + _cgroup_swap_room(cgroup)
+        return 0
 
 
 def _cgroup_swap_room(cgroup: Path) -> int:

@@ -28,7 +28,7 @@ from simt_sim.simt.result import SimResult
 from simt_sim.study.bench import timed
 from simt_sim.study.plan import plan_study
 from simt_sim.study.run import run_plan
-from simt_sim.study.saved import run_saved
+from simt_sim.study.saved import run_saved, saved_plan
 from simt_sim.study.spec import StudySpec
 from simt_sim.study.workload import Workload
 from simt_sim.trace.record import record_all
@@ -89,7 +89,7 @@ def study_figures(
     :func:`figure_steps` but the writes. ``traces`` are saved trace files of ``spec``
     (:func:`~simt_sim.study.saved.saved_spec`), replayed instead of recording.
     """
-    plan = plan_study(spec)
+    plan = saved_plan(spec, traces) if traces else plan_study(spec)
     saved = {read_meta(p)["meta"]["ray_type"]: p for p in traces}
     if saved:
         results, table = run_saved(spec, traces, plan)

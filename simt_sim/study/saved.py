@@ -26,6 +26,7 @@ from simt_sim.study.batches import BatchResults, RecordedBatch, replay_batch
 from simt_sim.study.plan import StudyPlan, plan_study
 from simt_sim.study.run import table_frame, trace_rows
 from simt_sim.study.spec import StudySpec
+from simt_sim.study.workload import MissingCamera
 from simt_sim.trace.record import concat_traces
 from simt_sim.trace.tracefile import iter_trace, read_meta
 from simt_sim.types.optrace import OpTrace
@@ -99,6 +100,39 @@ def _check_tree(plan: StudyPlan, path: str) -> None:
         )
 
 
+def _check_views(plan: StudyPlan, path: str, meta: dict) -> None:
+    """Each camera the file's rays came from must still be where it was: a camera moved
+    since would make the replayed table another view's (and packet's rays, made anew, not
+    the file's). A file older than its ``views`` is not checked."""
+    for index, view in zip(meta["cameras"], meta.get("views", ()), strict=False):
+        now = plan.scene.cameras[index].card()
+        moved = [k for k in view if k != "name" and view[k] != now.get(k)]
+        if moved:
+            raise SimtSimError(
+                f"{path} was recorded from camera {index} as it was then; "
+                f"{_camera_source(plan.spec)} now gives it another {', '.join(moved)}; "
+                "re-record it"
+            )
+
+
+def _camera_source(spec: StudySpec) -> str:
+    """What names the cameras of ``spec`` today."""
+    return f"camera file {spec.camera_file}" if spec.camera_file else f"scene {spec.scene}"
+
+
+def saved_plan(spec: StudySpec, paths: Sequence[str]) -> StudyPlan:
+    """:func:`~simt_sim.study.plan.plan_study` of the files' study (:func:`saved_spec`); a
+    camera the files hold that their scene or camera file has lost since is the files'
+    fault, told as such."""
+    try:
+        return plan_study(spec)
+    except MissingCamera as gone:
+        raise SimtSimError(
+            f"{paths[0]} was recorded with --camera {spec.cameras}; {_camera_source(spec)} "
+            f"now has cameras 0..{gone.count - 1}; re-record it"
+        ) from None
+
+
 def _indices(cameras: Sequence[int]) -> str:
     return ",".join(map(str, cameras))
 
@@ -137,15 +171,16 @@ def run_saved(
         )
     metas = [read_meta(p)["meta"] for p in paths]
     spec = replace(spec, ray_types=tuple(m["ray_type"] for m in metas))
-    plan = plan_study(spec) if plan is None else plan
+    plan = saved_plan(spec, paths) if plan is None else plan
     recorded = tuple(metas[0]["cameras"])
     if plan.cameras != recorded:  # "all" names the scene's cameras of today
-        source = f"camera file {spec.camera_file}" if spec.camera_file else f"scene {spec.scene}"
         raise SimtSimError(
             f"{paths[0]} was recorded with --camera {spec.cameras}, which named cameras "
-            f"{_indices(recorded)} then; {source} now makes it cameras "
+            f"{_indices(recorded)} then; {_camera_source(spec)} now makes it cameras "
             f"{_indices(plan.cameras)}; re-record it"
         )
+    for path, meta in zip(paths, metas, strict=True):
+        _check_views(plan, path, meta)
     results: list[SimResult] = []
     rows: list[dict] = []
     for path, rt in zip(paths, spec.ray_types, strict=True):

@@ -27,6 +27,15 @@ from simt_sim.types.raybatch import TRACE_RAY_TYPES, RayBatch
 from simt_sim.types.scene import Scene
 
 
+class MissingCamera(SimtSimError):
+    """A camera index the scene does not have; ``count`` is how many cameras it has (a
+    saved trace that names one is a file to re-record, not a typo)."""
+
+    def __init__(self, message: str, count: int) -> None:
+        super().__init__(message)
+        self.count = count
+
+
 @dataclass(frozen=True)
 class Workload:
     """A scene, its BVH and a ray set in warp order, streamed or whole; ``tree`` is the BVH
@@ -72,8 +81,8 @@ def parse_cameras(text: str | None, scene: Scene) -> tuple[int, ...]:
         raise SimtSimError(f"camera {text!r} is not 'all' or a list of indices like 0,2") from None
     bad = [k for k in picked if not 0 <= k < n]
     if bad:
-        raise SimtSimError(
-            f"camera {bad[0]} does not exist; scene {scene.name!r} has cameras 0..{n - 1}"
+        raise MissingCamera(
+            f"camera {bad[0]} does not exist; scene {scene.name!r} has cameras 0..{n - 1}", n
         )
     twice = sorted({k for k in picked if picked.count(k) > 1})
     if twice:

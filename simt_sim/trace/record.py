@@ -15,20 +15,32 @@ import numpy as np
 from simt_sim.bvh.layouts import Tree, check_tree, layout_of, trace_arrays
 from simt_sim.bvh.traverse import ray_arrays
 from simt_sim.errors import SimtSimError
+from simt_sim.rays.hostmemory import FEWER_RAYS, check_room
 from simt_sim.types.hits import Hits
 from simt_sim.types.optrace import OpTrace
 from simt_sim.types.raybatch import RayBatch
 
 DEFAULT_BATCH = 1 << 18
+OFFSET_DTYPE, OP_DTYPE, ADDR_DTYPE = np.dtype(np.int64), np.dtype(np.uint8), np.dtype(np.int32)
+OP_BYTES = OP_DTYPE.itemsize + ADDR_DTYPE.itemsize
+"""What a trace holds per op: its code and its address."""
+HIT_BYTES = np.dtype(np.int32).itemsize + np.dtype(np.float32).itemsize
+"""What a trace holds per ray besides its offset: the hit's triangle and distance."""
 
 
 def _record_batch(tree: Tree, rays: RayBatch) -> OpTrace:
     _, _, counts = trace_arrays(tree, rays)
-    offsets = np.zeros(counts.shape[0] + 1, dtype=np.int64)
+    offsets = np.zeros(counts.shape[0] + 1, dtype=OFFSET_DTYPE)
     np.cumsum(counts, out=offsets[1:])
     total = int(offsets[-1])
-    op = np.empty(total, dtype=np.uint8)
-    addr = np.empty(total, dtype=np.int32)
+    # the first pass counted the ops exactly: ask before the second one stores them
+    check_room(
+        total * OP_BYTES + len(rays) * HIT_BYTES,
+        f"the {total:,} ops of {len(rays):,} rays",
+        FEWER_RAYS,
+    )
+    op = np.empty(total, dtype=OP_DTYPE)
+    addr = np.empty(total, dtype=ADDR_DTYPE)
     out_tri, out_t, _ = trace_arrays(tree, rays, offsets, op, addr)
     return OpTrace(
         offsets=offsets,
@@ -78,9 +90,17 @@ def concat_traces(traces: list[OpTrace]) -> OpTrace:
         )
     if len(traces) == 1:
         return first
+    ops = sum(int(t.offsets[-1]) for t in traces)
+    rays = sum(t.n_rays for t in traces)
+    check_room(  # the joined copy, beside the batches
+        ops * OP_BYTES + rays * HIT_BYTES + (rays + 1) * OFFSET_DTYPE.itemsize,
+        f"the {ops:,} ops of {rays:,} rays, joined,",
+        FEWER_RAYS,
+    )
     shifts = np.cumsum([0] + [int(t.offsets[-1]) for t in traces[:-1]])
     offsets = np.concatenate(
-        [np.zeros(1, np.int64)] + [t.offsets[1:] + s for t, s in zip(traces, shifts, strict=True)]
+        [np.zeros(1, OFFSET_DTYPE)]
+        + [t.offsets[1:] + s for t, s in zip(traces, shifts, strict=True)]
     )
     return OpTrace(
         offsets=offsets,

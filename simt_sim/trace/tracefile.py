@@ -30,7 +30,7 @@ import numpy as np
 
 from simt_sim.atomic import written_whole
 from simt_sim.errors import SimtSimError
-from simt_sim.trace.record import concat_traces
+from simt_sim.trace.record import ADDR_DTYPE, OFFSET_DTYPE, OP_DTYPE, concat_traces
 from simt_sim.types.hits import Hits
 from simt_sim.types.optrace import OpTrace
 
@@ -40,7 +40,7 @@ READS = (1, 2, 3)
 """Versions this simt-sim reads (1: binary trees only, no ``layout`` field; 1 and 2: no
 triangle-test stages)."""
 HEADER = "header.json"
-_FIELDS = (("offsets", np.int64), ("op", np.uint8), ("addr", np.int32), ("tri", np.int32),
+_FIELDS = (("offsets", OFFSET_DTYPE), ("op", OP_DTYPE), ("addr", ADDR_DTYPE), ("tri", np.int32),
            ("t", np.float32))  # fmt: skip
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -22,3 +22,17 @@ class Camera:
     fov_y_deg: float
     near: float
     far: float
+
+    def card(self) -> dict:
+        """The camera in plain JSON values, exact (a trace file's header keeps the views
+        its rays were made from, so a camera moved since is found)."""
+        return {f.name: _plain(getattr(self, f.name)) for f in fields(self)}
+
+
+def _plain(value: str | float | np.ndarray) -> str | float | list[float]:
+    """A camera field as JSON keeps it exactly: a name, a number, a list of numbers."""
+    if isinstance(value, str):
+        return value
+    if isinstance(value, np.ndarray):
+        return [float(x) for x in value]
+    return float(value)

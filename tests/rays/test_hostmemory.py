@@ -7,6 +7,7 @@ check asks for must be floors of what the code really holds.
 
 from __future__ import annotations
 
+import re
 import tracemalloc
 
 import psutil
@@ -23,6 +24,7 @@ from simt_sim.rays.generate import (
     ray_stream,
 )
 from simt_sim.scene.room import make_room
+from simt_sim.trace.record import concat_traces, record
 from simt_sim.tracers.numba_tracer import trace
 
 ROOM = make_room()
@@ -97,6 +99,25 @@ def test_a_cgroup_s_file_cache_and_swap_count_as_room(host, tmp_path):
     (tmp_path / "memory.swap.max").write_text("250\n")
     (tmp_path / "memory.swap.current").write_text("50\n")
     assert hostmemory.free_bytes(tmp_path) == 600
+
+
+def test_a_cgroup_v1_limit_lowers_the_free_memory(host, tmp_path):
+    """cgroup v1 keeps its limit in the ``memory`` folder; swap counts unless the group's
+    memory and swap together are limited, and no limit reads as a huge one."""
+    v1 = tmp_path / "memory"
+    v1.mkdir()
+    (v1 / "memory.limit_in_bytes").write_text("1000\n")
+    (v1 / "memory.usage_in_bytes").write_text("900\n")
+    (v1 / "memory.stat").write_text("inactive_file 7\ntotal_inactive_file 300\n")
+    assert hostmemory.free_bytes(tmp_path) == 900  # 100 + the cache + the host's swap
+    (v1 / "memory.memsw.limit_in_bytes").write_text("1500\n")
+    (v1 / "memory.memsw.usage_in_bytes").write_text("1250\n")
+    assert hostmemory.free_bytes(tmp_path) == 550  # 250 + the cache
+    (v1 / "memory.limit_in_bytes").write_text("9223372036854771712\n")
+    (v1 / "memory.memsw.limit_in_bytes").write_text("9223372036854771712\n")
+    assert hostmemory.free_bytes(tmp_path) == 10_500
+    (v1 / "memory.usage_in_bytes").write_text("\n")
+    assert hostmemory.free_bytes(tmp_path) == 10_500
 
 
 def test_more_than_is_free_is_one_line_that_says_what_to_do(monkeypatch):
@@ -183,4 +204,50 @@ def test_a_table_too_large_for_the_machine_is_one_line(capsys, monkeypatch, tmp_
     assert len(err) == 1, err
     assert f"{what} need " in err[0]
     assert "of memory and only 1000 bytes is free; trace fewer rays" in err[0]
+    assert not out.exists()
+
+
+def test_a_recording_asks_for_exactly_the_ops_it_stores_and_joins(monkeypatch):
+    """Each batch asks, once its ops are counted, for the arrays it then fills, and
+    joining the batches for the joined copy: exact figures, so never more than it holds."""
+    asked = []
+    monkeypatch.setattr(
+        "simt_sim.trace.record.check_room",
+        lambda nbytes, what, remedy: asked.append((nbytes, what, remedy)),
+    )
+    rays = primary_rays(ROOM.cameras[0], 16, 8)
+    batches = list(record(build_bvh(ROOM.vertices, ROOM.triangles), rays, batch_size=64))
+    joined = concat_traces(batches)
+
+    def stored(t, *fields):
+        return sum(a.nbytes for a in (t.op, t.addr, t.hits.tri, t.hits.t, *fields))
+
+    assert [nbytes for nbytes, _, _ in asked] == [stored(b) for b in batches] + [
+        stored(joined, joined.offsets)
+    ]
+    ops = [int(b.offsets[-1]) for b in batches]
+    assert [what for _, what, _ in asked] == [f"the {k:,} ops of 64 rays" for k in ops] + [
+        f"the {sum(ops):,} ops of 128 rays, joined,"
+    ]
+    assert {remedy for _, _, remedy in asked} == {hostmemory.FEWER_RAYS}
+
+
+def test_a_path_run_that_outgrows_memory_while_it_records_is_one_line(
+    capsys, monkeypatch, tmp_path
+):
+    """Path tracing keeps every bounce's op stream: here the paths' primary rays fit, and
+    then memory runs short, so the first bounce's ops do not: one line, not a kill."""
+    frees = iter([10**9])
+    monkeypatch.setattr(hostmemory, "free_bytes", lambda: next(frees, 1000))
+    out = tmp_path / "table.md"
+    code = main(["table", *TINY, "--rays", "path", "--schemes", "megakernel", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1, err
+    assert re.fullmatch(
+        r"simt-sim: error: the [\d,]+ ops of 256 rays need [\d.]+ KiB of memory and only "
+        r"1000 bytes is free; trace fewer rays \(a smaller --resolution, or fewer cameras "
+        r"with --camera\)",
+        err[0],
+    ), err[0]
     assert not out.exists()

@@ -58,6 +58,52 @@ def test_a_trace_of_all_cameras_is_refused_once_its_scene_has_others(tmp_path, c
     assert f"{said} cameras 0,1; re-record it" in err[0]
 
 
+def test_a_trace_whose_camera_was_lost_or_moved_since_is_refused(tmp_path, capsys) -> None:
+    """A file recorded by index names cameras its camera file may have lost since, and a
+    camera may move: either way the table would be of other rays than the file's, so the
+    replay is refused in one line that names the file; an unchanged file replays."""
+    cams = tmp_path / "cams.toml"
+    near, far = (f"[[camera]]\nposition = [0, 1, {z}]\nlook_at = [0, 1, 0]\n" for z in (2, 3.4))
+    cams.write_text(near + far)
+    small = ["--scene", "cornell-box", "--camera-file", str(cams), "--resolution", "16x12"]
+    both, second = tmp_path / "both.trace", tmp_path / "second.trace"
+    for camera, path in (("0,1", both), ("1", second)):
+        code = main(["trace", *small, "--rays", "primary", "--camera", camera,
+                     "--out", str(path), "--quiet"])  # fmt: skip
+        assert code == 0
+    table = ["table", "--quiet", "--schemes", "while_while", "--trace"]
+    plot = ["plot", "--quiet", "--schemes", "while_while", "--trace", str(second), "--out"]
+    assert main([*table, str(both)]) == 0
+    capsys.readouterr()
+
+    def refused(argv: list[str]) -> str:
+        code = main(argv)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1, err
+        return err[0]
+
+    cams.write_text(near)
+    for argv, path, camera in (
+        ([*table, str(both)], both, "0,1"),
+        ([*plot, str(tmp_path / "lost")], second, "1"),
+    ):
+        assert refused(argv).endswith(
+            f"{path} was recorded with --camera {camera}; camera file {cams} now has "
+            "cameras 0..0; re-record it"
+        )
+    assert not (tmp_path / "lost").exists()
+    cams.write_text(near + far.replace("3.4", "3.5"))
+    for argv, path in (([*table, str(both)], both), ([*plot, str(tmp_path / "moved")], second)):
+        assert refused(argv).endswith(
+            f"{path} was recorded from camera 1 as it was then; camera file {cams} now gives "
+            "it another position; re-record it"
+        )
+    trace, meta = load_trace(both)  # a file older than its views is not checked
+    older = tmp_path / "older.trace"
+    save_trace(older, [trace], {k: v for k, v in meta.items() if k != "views"})
+    assert main([*table, str(older)]) == 0
+
+
 def test_files_that_named_their_cameras_apart_are_labelled_by_index(tmp_path) -> None:
     """Files of the same cameras, one named ``all`` and one by indices, get the indices in
     either order (the header cannot depend on it), as does a file older than the name."""
