@@ -25,6 +25,11 @@ SMALLER_IMAGE = "trace fewer rays (a smaller --resolution)"
 """What to do when one camera's rays do not fit."""
 FEWER_RAYS = "trace fewer rays (a smaller --resolution, or fewer cameras with --camera)"
 """What to do when all the cameras' rays do not fit."""
+SMALLER_TRACE = (
+    "replay it where more memory is free, or re-record it with fewer rays (a smaller "
+    "--resolution, or fewer cameras with --camera)"
+)
+"""What to do when a saved trace's rays do not fit (its flags are fixed)."""
 
 
 def free_bytes(cgroup: Path = CGROUP) -> int:

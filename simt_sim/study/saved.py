@@ -21,6 +21,7 @@ import pandas as pd
 from simt_sim.bvh.build import DEFAULT_METHOD
 from simt_sim.bvh.layouts import tree_card
 from simt_sim.errors import SimtSimError
+from simt_sim.rays.hostmemory import SMALLER_TRACE
 from simt_sim.simt.result import SimResult
 from simt_sim.study.batches import BatchResults, RecordedBatch, replay_batch
 from simt_sim.study.plan import StudyPlan, plan_study
@@ -80,24 +81,37 @@ def _launches(path: str, size: int) -> Iterator[OpTrace]:
         held.append(trace)
         n += trace.n_rays
         while n >= size:
-            joined = concat_traces(held)
+            joined = concat_traces(held, SMALLER_TRACE)
             yield joined.slice(0, size)
             rest = joined.slice(size, joined.n_rays)
             held, n = ([rest] if rest.n_rays else []), rest.n_rays
     if n:
-        yield concat_traces(held)
+        yield concat_traces(held, SMALLER_TRACE)
 
 
 def _check_tree(plan: StudyPlan, path: str) -> None:
     recorded = read_meta(path)["meta"]["bvh"]
     # a version-1 file's card has the binary build's fields only: compare those it has
-    built = tree_card(plan.tree)
-    if any(recorded[k] != built.get(k) for k in recorded):
+    changed = _changes(recorded, tree_card(plan.tree))
+    if changed:
         raise SimtSimError(
             f"{path} was recorded on another tree than this simt-sim builds for scene "
-            f"{plan.scene.name!r} (its header: {recorded['interior_nodes']} interior nodes, "
-            f"now {built['interior_nodes']}); re-record it"
+            f"{plan.scene.name!r} ({changed[0]}: its mesh or tree changed since); re-record it"
         )
+
+
+def _changes(then: dict, now: dict) -> list[str]:
+    """What ``then`` says otherwise than ``now`` (fields ``then`` has), as ``key A then,
+    B now``: the card's own fields before those of the cards it holds."""
+    own, held = [], []
+    for key, was in then.items():
+        is_now = now.get(key)
+        if isinstance(was, dict):
+            inner = is_now if isinstance(is_now, dict) else {}
+            held += [f"{key} {change}" for change in _changes(was, inner)]
+        elif was != is_now:
+            own.append(f"{key} {was} then, {is_now} now")
+    return own + held
 
 
 def _check_views(plan: StudyPlan, path: str, meta: dict) -> None:
@@ -179,12 +193,13 @@ def run_saved(
             f"{_indices(recorded)} then; {_camera_source(spec)} now makes it cameras "
             f"{_indices(plan.cameras)}; re-record it"
         )
+    for path in paths:  # a changed mesh also moves its cameras: the tree tells it first
+        _check_tree(plan, path)
     for path, meta in zip(paths, metas, strict=True):
         _check_views(plan, path, meta)
     results: list[SimResult] = []
     rows: list[dict] = []
     for path, rt in zip(paths, spec.ray_types, strict=True):
-        _check_tree(plan, path)
         batches: list[BatchResults] = []
         # as many launches as rays (checked), or None without end: not strict
         launches = zip(_launches(path, spec.launch_size), _rays_of(plan, rt, path), strict=False)

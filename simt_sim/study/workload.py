@@ -35,6 +35,9 @@ class MissingCamera(SimtSimError):
         super().__init__(message)
         self.count = count
 
+    def __reduce__(self) -> tuple:  # a Dask worker's error reaches the client whole
+        return type(self), (str(self), self.count)
+
 
 @dataclass(frozen=True)
 class Workload:

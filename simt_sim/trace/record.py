@@ -16,7 +16,7 @@ from simt_sim.bvh.layouts import Tree, check_tree, layout_of, trace_arrays
 from simt_sim.bvh.traverse import ray_arrays
 from simt_sim.errors import SimtSimError
 from simt_sim.rays.hostmemory import FEWER_RAYS, check_room
-from simt_sim.types.hits import Hits
+from simt_sim.types.hits import T_DTYPE, TRI_DTYPE, Hits
 from simt_sim.types.optrace import OpTrace
 from simt_sim.types.raybatch import RayBatch
 
@@ -24,7 +24,7 @@ DEFAULT_BATCH = 1 << 18
 OFFSET_DTYPE, OP_DTYPE, ADDR_DTYPE = np.dtype(np.int64), np.dtype(np.uint8), np.dtype(np.int32)
 OP_BYTES = OP_DTYPE.itemsize + ADDR_DTYPE.itemsize
 """What a trace holds per op: its code and its address."""
-HIT_BYTES = np.dtype(np.int32).itemsize + np.dtype(np.float32).itemsize
+HIT_BYTES = TRI_DTYPE.itemsize + T_DTYPE.itemsize
 """What a trace holds per ray besides its offset: the hit's triangle and distance."""
 
 
@@ -76,8 +76,9 @@ def _batches(tree: Tree, rays: RayBatch, batch_size: int) -> Iterator[OpTrace]:
         yield _record_batch(tree, rays.slice(start, min(len(rays), start + batch_size)))
 
 
-def concat_traces(traces: list[OpTrace]) -> OpTrace:
-    """Join batches (same query and ray type) into one OpTrace, rays in batch order."""
+def concat_traces(traces: list[OpTrace], remedy: str = FEWER_RAYS) -> OpTrace:
+    """Join batches (same query and ray type) into one OpTrace, rays in batch order;
+    ``remedy`` says what to do when the joined copy does not fit in memory."""
     if not traces:
         raise SimtSimError("no trace batches to join; record at least one ray")
     first = traces[0]
@@ -95,7 +96,7 @@ def concat_traces(traces: list[OpTrace]) -> OpTrace:
     check_room(  # the joined copy, beside the batches
         ops * OP_BYTES + rays * HIT_BYTES + (rays + 1) * OFFSET_DTYPE.itemsize,
         f"the {ops:,} ops of {rays:,} rays, joined,",
-        FEWER_RAYS,
+        remedy,
     )
     shifts = np.cumsum([0] + [int(t.offsets[-1]) for t in traces[:-1]])
     offsets = np.concatenate(

@@ -30,8 +30,9 @@ import numpy as np
 
 from simt_sim.atomic import written_whole
 from simt_sim.errors import SimtSimError
+from simt_sim.rays.hostmemory import SMALLER_TRACE
 from simt_sim.trace.record import ADDR_DTYPE, OFFSET_DTYPE, OP_DTYPE, concat_traces
-from simt_sim.types.hits import Hits
+from simt_sim.types.hits import T_DTYPE, TRI_DTYPE, Hits
 from simt_sim.types.optrace import OpTrace
 
 FORMAT = "simt-sim-trace"
@@ -40,8 +41,8 @@ READS = (1, 2, 3)
 """Versions this simt-sim reads (1: binary trees only, no ``layout`` field; 1 and 2: no
 triangle-test stages)."""
 HEADER = "header.json"
-_FIELDS = (("offsets", OFFSET_DTYPE), ("op", OP_DTYPE), ("addr", ADDR_DTYPE), ("tri", np.int32),
-           ("t", np.float32))  # fmt: skip
+_FIELDS = (("offsets", OFFSET_DTYPE), ("op", OP_DTYPE), ("addr", ADDR_DTYPE), ("tri", TRI_DTYPE),
+           ("t", T_DTYPE))  # fmt: skip
 
 
 def _member(batch: int, field: str) -> str:
@@ -162,4 +163,4 @@ def _iter_batches(path: Path, zf: zipfile.ZipFile, header: dict) -> Iterator[OpT
 def load_trace(path: str | os.PathLike) -> tuple[OpTrace, dict]:
     """The whole trace in one :class:`OpTrace` (batches joined), and the caller's ``meta``."""
     meta = read_meta(path)["meta"]
-    return concat_traces(list(iter_trace(path))), meta
+    return concat_traces(list(iter_trace(path)), SMALLER_TRACE), meta

@@ -8,6 +8,8 @@ import numpy as np
 
 MISS = -1
 UNKNOWN_TRI = -2
+TRI_DTYPE, T_DTYPE = np.dtype(np.int32), np.dtype(np.float32)
+"""What a :class:`Hits` holds per ray: the triangle's index and the distance."""
 
 
 @dataclass(frozen=True)

@@ -2,18 +2,24 @@
 
 from __future__ import annotations
 
+import pickle
 import shutil
 from collections import namedtuple
 from pathlib import Path
 
+import pytest
+import trimesh
 from test_cli import assert_clean_error, run_cli
 
 from kernels_ir.kernel_ir import DEFAULT_TESTS
 from simt_sim import cli
 from simt_sim.bvh.build import DEFAULT_METHOD
 from simt_sim.cli import main
+from simt_sim.errors import SimtSimError
+from simt_sim.rays import hostmemory
 from simt_sim.study.protocol import PAPER_PROTOCOL, PAPER_TESTS
 from simt_sim.study.saved import saved_spec
+from simt_sim.study.workload import MissingCamera
 from simt_sim.trace.tracefile import load_trace, read_meta, save_trace
 
 
@@ -102,6 +108,55 @@ def test_a_trace_whose_camera_was_lost_or_moved_since_is_refused(tmp_path, capsy
     older = tmp_path / "older.trace"
     save_trace(older, [trace], {k: v for k, v in meta.items() if k != "views"})
     assert main([*table, str(older)]) == 0
+
+
+def test_a_trace_of_a_mesh_changed_since_is_told_by_its_tree_not_its_cameras(tmp_path, capsys):
+    """A camera file's cameras are placed by the mesh's bounds, so a changed mesh moves
+    them too: the file is refused for its tree, which is what changed."""
+    mesh, cams = tmp_path / "hall.obj", tmp_path / "cams.toml"
+    trimesh.creation.icosphere(subdivisions=2).export(mesh)
+    cams.write_text("[[camera]]\nposition = [0, 0, 4]\nlook_at = [0, 0, 0]\n")
+    path = tmp_path / "primary.trace"
+    setup = ["--scene", str(mesh), "--camera-file", str(cams), "--resolution", "16x12"]
+    assert main(["trace", *setup, "--rays", "primary", "--out", str(path), "--quiet"]) == 0
+    capsys.readouterr()
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    sphere.vertices[0] *= 1.5  # its bounds grow, and the cameras in them move
+    sphere.export(mesh)
+    code = main(["table", "--trace", str(path), "--quiet", "--schemes", "while_while"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert f"{path} was recorded on another tree than this simt-sim builds" in err[0]
+    assert err[0].endswith("now: its mesh or tree changed since); re-record it")
+
+
+def test_a_saved_trace_too_large_to_join_says_what_to_do_with_a_file(tmp_path, monkeypatch, capsys):
+    """Replaying joins a file's batches into launches: where they do not fit, the line
+    says what helps a saved file (--trace refuses --resolution and --camera)."""
+    one = tmp_path / "one.trace"
+    small = ["--scene", "cornell-box", "--camera", "0", "--resolution", "16x12", "--quiet"]
+    assert main(["trace", *small, "--rays", "primary", "--out", str(one)]) == 0
+    trace, meta = load_trace(one)
+    two = tmp_path / "two.trace"
+    save_trace(two, [trace.slice(0, 96), trace.slice(96, trace.n_rays)], meta)
+    capsys.readouterr()
+    monkeypatch.setattr(hostmemory, "free_bytes", lambda: 1000)
+    out = tmp_path / "table.md"
+    code = main(["table", "--trace", str(two), "--quiet", "--schemes", "while_while",
+                 "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert err[0].endswith(f"of 192 rays, joined, need {err[0].split(' need ')[1]}")
+    assert err[0].endswith(f"1000 bytes is free; {hostmemory.SMALLER_TRACE}")
+    assert not out.exists()
+    with pytest.raises(SimtSimError, match="replay it where more memory is free"):
+        load_trace(two)
+
+
+def test_a_missing_camera_reaches_a_dask_client_whole():
+    """Dask workers plan studies too: their error is pickled back to the client."""
+    sent = pickle.loads(pickle.dumps(MissingCamera("camera 3 does not exist", 2)))
+    assert (str(sent), sent.count) == ("camera 3 does not exist", 2)
 
 
 def test_files_that_named_their_cameras_apart_are_labelled_by_index(tmp_path) -> None:
