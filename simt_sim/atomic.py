@@ -61,6 +61,8 @@ def check_writable(path: str | os.PathLike[str]) -> Path:
         raise SimtSimError(f"output path {target} is a directory; give a file name")
     if target.is_symlink():  # write the file it names: the link stays the user's
         target = Path(os.path.realpath(target))  # a loop is left as it is
+    if target.exists() and not target.is_file():  # a device, a pipe: renaming would replace it
+        raise SimtSimError(f"output path {target} is not a regular file; give a file name")
     parent = target.parent
     if not parent.is_dir():
         what = (

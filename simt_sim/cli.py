@@ -12,6 +12,7 @@ import contextlib
 import functools
 import logging
 import logging.handlers
+import os
 import sys
 from collections.abc import Iterator, Sequence
 from typing import Any
@@ -443,6 +444,9 @@ def cmd_plot(args: argparse.Namespace) -> int:
         raise SimtSimError(f"--out {out} is a file; give a directory for the figures")
     if not out.parent.is_dir():
         raise SimtSimError(f"the parent of --out {out} does not exist; create it first")
+    if not os.access(out if out.exists() else out.parent, os.W_OK | os.X_OK):
+        raise SimtSimError(f"cannot write into {out}: permission denied or read-only; "
+                           "choose a folder you can write to")  # fmt: skip
     if args.warp is not None and args.warp < 0:
         raise SimtSimError(f"--warp must be a warp index >= 0, got {args.warp}")
     if args.trace:
@@ -476,7 +480,12 @@ def cmd_plot(args: argparse.Namespace) -> int:
         )
         figures = drawn.figures
         steps.set_description("writing")
-        out.mkdir(exist_ok=True)
+        try:
+            out.mkdir(exist_ok=True)
+        except OSError as exc:
+            raise SimtSimError(
+                f"cannot create {out}: {exc.strerror or exc}; choose a folder you can write to"
+            ) from None
         written = []
         for stem, fig in figures.items():
             written += [str(p) for p in write_figure(fig, out, stem)]
@@ -877,6 +886,21 @@ def _log_lines_held() -> Iterator[logging.handlers.MemoryHandler]:
         held.buffer.clear()
 
 
+def _check_not_an_input(args: argparse.Namespace) -> None:
+    """Refuse an ``--out`` that names a file the command reads: writing it would replace
+    the user's mesh, camera file or trace."""
+    from pathlib import Path
+
+    out = Path(args.out).resolve()
+    named = [getattr(args, k, None) for k in ("scene", "camera_file", "gpus")]
+    for given in [*named, *(getattr(args, "trace", None) or ())]:
+        if given and Path(given).is_file() and Path(given).resolve() == out:
+            raise SimtSimError(
+                f"--out {args.out} is the input {given}; writing it would replace it: give "
+                "another file name"
+            )
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``simt-sim`` and ``python -m simt_sim`` (:mod:`simt_sim.__main__`).
 
@@ -898,6 +922,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             _resolve_workload(args)
             if getattr(args, "out", None) and args.command != "plot":  # plot's is a folder
                 check_writable(args.out)  # before the work, not after it
+                _check_not_an_input(args)
             code = int(args.func(args))
             progress.checkpoint()  # a Ctrl-C after the command's last checkpoint
             held.flush()

@@ -231,3 +231,59 @@ def test_a_bad_named_scene_mesh_gets_its_error_alone(tmp_path, capsys, monkeypat
     monkeypatch.setenv("SIMT_SIM_SCENES", str(tmp_path))
     line = error_line(capsys, "table", "--scene", "bunny", "--resolution", "16x16")
     assert "has no triangles" in line
+
+
+def test_an_output_that_is_no_regular_file_is_left_alone(tmp_path, capsys):
+    """Renaming onto a device or a pipe would replace it (as root, /dev/null itself)."""
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)
+    line = error_line(capsys, "table", *TINY, "--quiet", "--out", str(pipe))
+    assert line.endswith(f"output path {pipe} is not a regular file; give a file name")
+    assert stat.S_ISFIFO(pipe.stat().st_mode)
+
+
+def test_an_output_that_names_an_input_is_refused(tmp_path, capsys, saved_trace):
+    """Writing it would replace the user's mesh or trace."""
+    mesh = tmp_path / "mesh.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    before = mesh.read_bytes(), saved_trace.read_bytes()
+    for argv, given in (
+        (["trace", "--scene", str(mesh), "--out", str(mesh)], str(mesh)),
+        (["table", "--trace", str(saved_trace), "--out", str(saved_trace)], str(saved_trace)),
+    ):
+        line = error_line(capsys, *argv, "--quiet")
+        assert f"is the input {given}; writing it would replace it" in line
+    assert (mesh.read_bytes(), saved_trace.read_bytes()) == before
+
+
+@pytest.mark.parametrize("command", ["table", "bench", "trace"])
+def test_a_huge_spp_is_one_line(tmp_path, capsys, command):
+    """Past numpy's largest array (and past int64) --spp was a traceback."""
+    out = ["--out", str(tmp_path / "x.trace")] if command == "trace" else []
+    for spp in ("4611686018427387904", "99999999999999999999"):
+        line = error_line(capsys, command, *TINY, "--rays", "ao", "--spp", spp, "--quiet", *out)
+        assert "of memory and only" in line and "a smaller --spp" in line
+    assert not list(tmp_path.iterdir())
+
+
+def test_plot_refuses_a_folder_it_cannot_write_before_its_work(tmp_path, capsys, monkeypatch):
+    """A read-only file system let plot draw everything, then fail on mkdir with a
+    traceback; now the folder is checked first, and a refused mkdir is one line too."""
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: p != tmp_path and real_access(p, mode))
+    monkeypatch.setattr(figures, "study_figures", _must_not_draw)
+    line = error_line(capsys, "plot", *TINY, "--quiet", "--out", str(tmp_path / "figs"))
+    assert "cannot write into" in line and "read-only" in line
+    monkeypatch.undo()  # figures drawn for real, then the folder refused
+
+    def read_only(self, *args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(Path, "mkdir", read_only)
+    line = error_line(capsys, "plot", *TINY, "--quiet", "--out", str(tmp_path / "figs"))
+    assert line.endswith("Read-only file system; choose a folder you can write to")
+    assert not (tmp_path / "figs").exists()
+
+
+def _must_not_draw(*args, **kwargs):
+    raise AssertionError("drew figures for a folder it cannot write")

@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit, prange
 
 from simt_sim.errors import SimtSimError
-from simt_sim.rays.hostmemory import FEWER_RAYS, SMALLER_IMAGE, check_room
+from simt_sim.rays.hostmemory import FEWER_RAYS, FEWER_SAMPLES, SMALLER_IMAGE, check_room
 from simt_sim.rays.morton import bounds3, morton2d_order, morton6d_keys, stable_argsort
 from simt_sim.rays.offset import spawn_points
 from simt_sim.types.camera import Camera
@@ -389,6 +389,9 @@ class RayStream:
             return self.primary.slice(start, stop)
         assert self.hits is not None
         first, last = start // self.spp, -(-stop // self.spp)
+        rays = (last - first) * self.spp  # every sample of a hit at once: a huge --spp
+        what = f"the {rays:,} {self.ray_type} rays spawned at {last - first:,} hit points"
+        check_room(rays * RAY_ROW_BYTES, what, FEWER_SAMPLES)
         spawned = _spawn(
             self.scene, self.hits.slice(first, last), self.ray_type, self.spp, self.seed
         )
@@ -410,6 +413,12 @@ class RayStream:
         """Every ray at once; with ``sort``, secondary rays are Morton-sorted within
         consecutive batches of ``batch`` (memory: the whole ray set)."""
         _check_batch(batch)
+        if self.primary is None:  # spawned here, all at once: a stream holds only its hits
+            check_room(
+                self.n_rays * RAY_ROW_BYTES,
+                f"the {self.n_rays:,} {self.ray_type} rays, held at once,",
+                FEWER_SAMPLES,
+            )
         rays = self.rows(0, self.n_rays)
         if sort and self.primary is None:
             _sort_inplace(rays, int(batch))

@@ -25,6 +25,8 @@ SMALLER_IMAGE = "trace fewer rays (a smaller --resolution)"
 """What to do when one camera's rays do not fit."""
 FEWER_RAYS = "trace fewer rays (a smaller --resolution, or fewer cameras with --camera)"
 """What to do when all the cameras' rays do not fit."""
+FEWER_SAMPLES = "trace fewer rays (a smaller --spp or --resolution, or fewer cameras with --camera)"
+"""What to do when every secondary ray at once does not fit (``bench`` holds them all)."""
 SMALLER_TRACE = (
     "replay it where more memory is free, or re-record it with fewer rays (a smaller "
     "--resolution, or fewer cameras with --camera)"

@@ -20,6 +20,7 @@ import io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 import pandas as pd
 from matplotlib.collections import PolyCollection
@@ -314,7 +315,8 @@ def write_figure(fig: Figure, out_dir: str | Path, stem: str) -> list[Path]:
     paths = []
     for fmt, meta in (("png", {"Software": None}), ("svg", {"Date": None, "Creator": None})):
         buf = io.BytesIO()
-        fig.savefig(buf, format=fmt, dpi=120, metadata=meta)
+        with matplotlib.rc_context({"svg.hashsalt": "simt-sim"}):  # the same ids each run
+            fig.savefig(buf, format=fmt, dpi=120, metadata=meta)
         # the layout is settled by the first save; solving it again per format costs time
         fig.set_layout_engine("none")
         path = Path(out_dir) / f"{stem}.{fmt}"

@@ -41,6 +41,7 @@ READS = (1, 2, 3)
 """Versions this simt-sim reads (1: binary trees only, no ``layout`` field; 1 and 2: no
 triangle-test stages)."""
 HEADER = "header.json"
+ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
 _FIELDS = (("offsets", OFFSET_DTYPE), ("op", OP_DTYPE), ("addr", ADDR_DTYPE), ("tri", TRI_DTYPE),
            ("t", T_DTYPE))  # fmt: skip
 
@@ -49,8 +50,13 @@ def _member(batch: int, field: str) -> str:
     return f"b{batch:06d}.{field}.npy"
 
 
+def _member_info(name: str) -> zipfile.ZipInfo:
+    """A member dated the zip format's first day, not now: the same trace, the same bytes."""
+    return zipfile.ZipInfo(name, date_time=ZIP_EPOCH)
+
+
 def _write_array(zf: zipfile.ZipFile, name: str, arr: np.ndarray) -> None:
-    with zf.open(name, "w", force_zip64=True) as f:
+    with zf.open(_member_info(name), "w", force_zip64=True) as f:
         np.lib.format.write_array(f, np.ascontiguousarray(arr), allow_pickle=False)
 
 
@@ -93,7 +99,7 @@ def save_trace(path: str | os.PathLike, traces: Iterable[OpTrace], meta: dict) -
             "format": FORMAT, "version": VERSION, "query": query, "ray_type": ray_type,
             "layout": layout, "batches": batches, "rays": rays, "ops": ops, "meta": meta,
         }  # fmt: skip
-        zf.writestr(HEADER, json.dumps(header, indent=1))
+        zf.writestr(_member_info(HEADER), json.dumps(header, indent=1))
     return path
 
 

@@ -20,7 +20,7 @@ from matplotlib.image import imread
 import kernels_ir
 from kernels_ir.kernel_ir import BLOCKS, persistent_warps
 from simt_sim.errors import SimtSimError
-from simt_sim.report.plots import to_image
+from simt_sim.report.plots import to_image, write_figure
 from simt_sim.report.warpstats import timeline_schemes, warp_counts, warp_schemes, warp_timeline
 from simt_sim.schemes import get_scheme
 from simt_sim.simt.gpus import costed_ir, get_gpu
@@ -251,3 +251,19 @@ def test_plot_names_the_figures_a_scheme_cannot_have(tmp_path: Path) -> None:
     notes = [ln for ln in proc.stderr.splitlines() if ln.startswith("simt-sim: note:")]
     assert any("dynamic_fetch: no per-pixel maps or timeline" in n for n in notes)
     assert any("packet: no timeline" in n for n in notes)
+
+
+def test_a_figure_written_twice_is_the_same_files(tmp_path: Path) -> None:
+    """SVG ids come from a fixed salt, not a random one: same inputs, same bytes."""
+    from matplotlib.figure import Figure
+
+    fig = Figure()
+    ax = fig.add_subplot()
+    ax.plot([0, 1], [1, 0], marker="o")
+    ax.fill_between([0, 1], [0, 1], alpha=0.3)
+    one, two = tmp_path / "one", tmp_path / "two"
+    for out in (one, two):
+        out.mkdir()
+        write_figure(fig, out, "f")
+    for name in ("f.png", "f.svg"):
+        assert (one / name).read_bytes() == (two / name).read_bytes(), name

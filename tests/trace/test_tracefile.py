@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 import zipfile
 
 import numpy as np
@@ -45,6 +46,16 @@ def assert_same(a, b):
     np.testing.assert_array_equal(a.hits.tri, b.hits.tri)
     np.testing.assert_array_equal(a.hits.t.view(np.int32), b.hits.t.view(np.int32))
     assert (a.query, a.ray_type) == (b.query, b.ray_type)
+
+
+def test_the_same_trace_saved_twice_is_the_same_file(recorded, tmp_path, monkeypatch):
+    """No member carries the time it was written (a zip entry's date would)."""
+    bvh, rays = recorded
+    paths = []
+    for k, now in enumerate((1.0e9, 1.5e9)):  # two writes, years apart
+        monkeypatch.setattr(time, "time", lambda now=now: now)
+        paths.append(save_trace(tmp_path / f"{k}.trace", record(bvh, rays, batch_size=64), {}))
+    assert paths[0].read_bytes() == paths[1].read_bytes()
 
 
 def test_round_trip_is_bit_identical(recorded, tmp_path):
