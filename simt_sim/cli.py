@@ -920,9 +920,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             args = parser.parse_args(argv)
             progress.checkpoint()  # a Ctrl-C while modules loaded or arguments were read
             _resolve_workload(args)
+            if getattr(args, "out", None) == "":
+                raise SimtSimError(
+                    "--out is empty; give the name of a file (or of a folder, for plot)"
+                )
             if getattr(args, "out", None) and args.command != "plot":  # plot's is a folder
                 check_writable(args.out)  # before the work, not after it
                 _check_not_an_input(args)
+                if args.command != "trace" and hasattr(args, "format"):  # trace's is stdout's
+                    resolve_format(args.format, args.out)
             code = int(args.func(args))
             progress.checkpoint()  # a Ctrl-C after the command's last checkpoint
             held.flush()

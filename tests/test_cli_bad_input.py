@@ -90,6 +90,11 @@ def test_an_output_is_checked_before_the_work(tmp_path, capsys, monkeypatch):
         assert says in error_line(capsys, "table", *TINY, "--out", str(out))
     for cmd in (["trace", *TINY], ["bench", *TINY], ["report", *TINY]):
         assert "is a directory" in error_line(capsys, *cmd, "--out", str(tmp_path))
+    for cmd in (["table", *TINY], ["bench", *TINY], ["trace", *TINY], ["plot", *TINY]):
+        assert "--out is empty" in error_line(capsys, *cmd, "--out", "")
+    for cmd in (["table", *TINY], ["bench", *TINY]):
+        line = error_line(capsys, *cmd, "--out", str(tmp_path / "t.json"), "--format", "csv")
+        assert "--format csv disagrees with --out" in line
     assert a_file.read_text() == "mine"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.csv"]
 
