@@ -413,12 +413,6 @@ class RayStream:
         """Every ray at once; with ``sort``, secondary rays are Morton-sorted within
         consecutive batches of ``batch`` (memory: the whole ray set)."""
         _check_batch(batch)
-        if self.primary is None:  # spawned here, all at once: a stream holds only its hits
-            check_room(
-                self.n_rays * RAY_ROW_BYTES,
-                f"the {self.n_rays:,} {self.ray_type} rays, held at once,",
-                FEWER_SAMPLES,
-            )
         rays = self.rows(0, self.n_rays)
         if sort and self.primary is None:
             _sort_inplace(rays, int(batch))

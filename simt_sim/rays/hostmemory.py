@@ -26,7 +26,7 @@ SMALLER_IMAGE = "trace fewer rays (a smaller --resolution)"
 FEWER_RAYS = "trace fewer rays (a smaller --resolution, or fewer cameras with --camera)"
 """What to do when all the cameras' rays do not fit."""
 FEWER_SAMPLES = "trace fewer rays (a smaller --spp or --resolution, or fewer cameras with --camera)"
-"""What to do when every secondary ray at once does not fit (``bench`` holds them all)."""
+"""What to do when a launch's spawned samples do not fit (``bench`` spawns every ray in one)."""
 SMALLER_TRACE = (
     "replay it where more memory is free, or re-record it with fewer rays (a smaller "
     "--resolution, or fewer cameras with --camera)"

@@ -89,8 +89,8 @@ def _launches(path: str, size: int) -> Iterator[OpTrace]:
         yield concat_traces(held, SMALLER_TRACE)
 
 
-def _check_tree(plan: StudyPlan, path: str) -> None:
-    recorded = read_meta(path)["meta"]["bvh"]
+def _check_tree(plan: StudyPlan, path: str, meta: dict) -> None:
+    recorded = meta["bvh"]
     # a version-1 file's card has the binary build's fields only: compare those it has
     changed = _changes(recorded, tree_card(plan.tree))
     if changed:
@@ -193,8 +193,8 @@ def run_saved(
             f"{_indices(recorded)} then; {_camera_source(spec)} now makes it cameras "
             f"{_indices(plan.cameras)}; re-record it"
         )
-    for path in paths:  # a changed mesh also moves its cameras: the tree tells it first
-        _check_tree(plan, path)
+    for path, meta in zip(paths, metas, strict=True):  # a changed mesh moves its cameras too
+        _check_tree(plan, path, meta)  # so the tree tells it first
     for path, meta in zip(paths, metas, strict=True):
         _check_views(plan, path, meta)
     results: list[SimResult] = []
