@@ -106,7 +106,8 @@ def _add_workload_args(
         metavar="FILE",
         default=_TREE_DEFAULTS["camera_file"],
         help="TOML or JSON [[camera]] tables (position, look_at or forward, up, fov_y_deg, "
-        "near, far; the scene's units) replacing the scene's cameras",
+        "near, far; the scene's units; primary rays run from the camera to far, near clips "
+        "nothing) replacing the scene's cameras",
     )
     p.add_argument("--rays", default="primary", help=rays_help)
     p.add_argument("--camera", default=None, help=camera_help)

@@ -19,7 +19,7 @@ A scene description::
     look_at = [0.0, 1.2, 0.0]       # or forward = [...]
     up = [0.0, 1.0, 0.0]            # optional: the scene's up axis
     fov_y_deg = 60.0                # optional
-    near = 0.001                    # optional, user units
+    near = 0.001                    # optional, user units (kept, clips nothing)
     far = 100.0                     # optional, user units
 """
 

@@ -204,7 +204,7 @@ def _make_scene(
     clo, chi = frame.to_canonical(lo), frame.to_canonical(hi)
     clo, chi = np.minimum(clo, chi), np.maximum(clo, chi)
     user_up = frame.direction_to_user(np.array([0.0, 0.0, 1.0]))
-    diagonal = float(np.linalg.norm(hi - lo))
+    diagonal = frame.scale * float(np.linalg.norm((hi - lo) / frame.scale))  # no overflow
     if cameras:
         cams = tuple(_canonical_camera(c.camera(user_up, diagonal), frame) for c in cameras)
         views = "given"

@@ -75,8 +75,13 @@ class UpGuess:
 
 def detect_up(vertices: np.ndarray, triangles: np.ndarray, convention: str = "z") -> UpGuess:
     """The axis whose faces (within 10 degrees) score highest, if it wins by
-    :data:`UP_MARGIN`; else ``convention``."""
-    v = vertices.astype(np.float64)
+    :data:`UP_MARGIN`; else ``convention``. Areas are taken in units of the mesh's extent,
+    so the verdict does not depend on its units."""
+    v = np.asarray(vertices, np.float64)
+    lo = v.min(axis=0)
+    extent = float(np.max(v.max(axis=0) - lo))
+    if extent > 0:  # in user units a 1e-300 mesh's areas underflow, a 1e300 one's overflow
+        v = (v - lo) / extent
     a = v[triangles[:, 0]]
     n = np.cross(v[triangles[:, 1]] - a, v[triangles[:, 2]] - a)
     area2 = np.linalg.norm(n, axis=1)

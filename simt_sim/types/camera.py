@@ -12,7 +12,8 @@ class Camera:
     """Pinhole camera.
 
     ``fov_y_deg`` is the full vertical field of view; the horizontal extent follows the
-    image aspect ratio. Primary rays start at ``position`` with tmin ``0`` and tmax ``far``.
+    image aspect ratio. Primary rays start at ``position`` with tmin ``0`` and tmax ``far``,
+    as in the paper's protocol: ``near`` is kept (its cameras give one) but clips nothing.
     """
 
     name: str

@@ -9,6 +9,8 @@ import pytest
 from simt_sim.bvh.build import build_bvh
 from simt_sim.rays.generate import ray_stream
 from simt_sim.scene.load import load_mesh
+from simt_sim.scene.room import make_room
+from simt_sim.scene.views import detect_up
 from simt_sim.trace.record import record_all
 from simt_sim.tracers.agreement import agreement
 from simt_sim.tracers.bruteforce import trace_bruteforce
@@ -101,14 +103,58 @@ def test_a_convex_mesh_occludes_no_ao_ray_at_any_scale(tmp_path, write_obj, scal
     assert not trace(bvh, rays).hit_mask.any()
 
 
-def test_power_of_two_scale_gives_bit_identical_vertices(tmp_path, box_room, write_obj):
+def _load_at(tmp_path, vertices, faces, write_obj, factor: float) -> Scene:
+    path = tmp_path / f"room_{factor!r}.obj"
+    write_obj(path, vertices * factor, faces)
+    return load_mesh(path)
+
+
+#: factors no power of two is: the frame divides by the extent itself, so these give the
+#: same float32 vertices (a power of two of a frame turned x 1000 into a 0.977 times
+#: smaller canonical scene and a different tree)
+UNIT_FACTORS = (1e-300, 1e-30, 1e-4, 0.1, 3.0, 1000.0, 2.0**30, 1e30, 1e300)
+
+
+@pytest.mark.parametrize("factor", UNIT_FACTORS)
+def test_any_units_give_bit_identical_vertices_cameras_and_op_streams(
+    tmp_path, box_room, write_obj, factor
+):
     v, f = box_room
-    scenes = []
-    for k, s in enumerate((1.0, 2.0**-20, 2.0**30)):
-        path = tmp_path / f"r{k}.obj"
-        write_obj(path, v * s, f)
-        scenes.append(load_mesh(path))
-    for s in scenes[1:]:
-        assert np.array_equal(s.vertices, scenes[0].vertices)
-        for a, b in zip(s.cameras, scenes[0].cameras, strict=True):
-            np.testing.assert_array_equal(a.position, b.position)
+    base = _load_at(tmp_path, v, f, write_obj, 1.0)
+    scaled = _load_at(tmp_path, v, f, write_obj, factor)
+    assert np.array_equal(scaled.vertices, base.vertices)
+    assert scaled.notes == base.notes  # the same up axis and views found
+    assert scaled.ao_radius == base.ao_radius
+    for a, b in zip(scaled.cameras, base.cameras, strict=True):
+        assert a.card() == b.card()
+    assert scaled.frame.scale == pytest.approx(base.frame.scale * factor, rel=1e-15)
+    ops = []
+    for scene in (base, scaled):
+        bvh = build_bvh(scene.vertices, scene.triangles)
+        rays = ray_stream(scene, "primary", width=16, height=12).all_rays()
+        ops.append(record_all(bvh, rays))
+    assert np.array_equal(ops[0].op, ops[1].op) and np.array_equal(ops[0].addr, ops[1].addr)
+    assert np.array_equal(ops[0].hits.t, ops[1].hits.t)
+
+
+def test_the_built_in_room_in_millimetres_is_the_same_room(tmp_path, write_obj):
+    """The room's axis-aligned walls and grid-placed tables put many centroids exactly on
+    bin boundaries and many SAH costs exactly level: there a rounding decided the tree."""
+    room = make_room()
+    v = room.vertices.astype(np.float64)
+    metres = _load_at(tmp_path, v, room.triangles, write_obj, 1.0)
+    millimetres = _load_at(tmp_path, v, room.triangles, write_obj, 1000.0)
+    assert np.array_equal(millimetres.vertices, metres.vertices)
+    a = build_bvh(metres.vertices, metres.triangles)
+    b = build_bvh(millimetres.vertices, millimetres.triangles)
+    assert np.array_equal(a.nodes.view(np.uint32), b.nodes.view(np.uint32))  # child columns: ints
+    assert np.array_equal(a.tri_index, b.tri_index)
+
+
+@pytest.mark.parametrize("factor", [1e-300, 1e300])
+def test_the_up_axis_is_found_at_any_scale(box_room, factor):
+    """Areas in user units underflowed (1e-300: every face zero, so the format's
+    convention) or overflowed (1e300)."""
+    v, f = box_room
+    turned = v[:, [0, 2, 1]]  # y up
+    assert detect_up(turned * factor, f).axis == detect_up(turned, f).axis == "y"

@@ -10,6 +10,7 @@ import pytest
 
 from simt_sim.bvh.build import build_bvh
 from simt_sim.errors import SimtSimError
+from simt_sim.rays.generate import ray_stream
 from simt_sim.scene.load import load_mesh, load_scene
 from simt_sim.scene.views import detect_up, winding_number
 from simt_sim.study.viewcheck import check_views
@@ -94,6 +95,25 @@ def test_camera_file_in_user_units_replaces_the_cameras(tmp_path, box_room, writ
     assert _hit_rates(scene)[0] == 1.0
 
 
+def test_near_clips_nothing(tmp_path, box_room, write_obj):
+    """As the guide says: primary rays start at the camera (tmin 0, the paper's protocol),
+    so a wall nearer than ``near`` is still hit, at its own distance."""
+    v, f = box_room
+    mesh = tmp_path / "room.obj"
+    write_obj(mesh, v, f)
+    cams = tmp_path / "cams.toml"
+    cams.write_text(  # 0.5 units from the wall at x = 0, looking at it; near 3
+        "[[camera]]\nposition = [0.5, 4.5, 2.0]\nforward = [-1.0, 0.0, 0.0]\nnear = 3.0\n"
+    )
+    scene = load_scene(str(mesh), camera_file=str(cams))
+    bvh = build_bvh(scene.vertices, scene.triangles)
+    rays = ray_stream(scene, "primary", width=8, height=6).all_rays()
+    hits = trace(bvh, rays)
+    assert (rays.tmin == 0).all() and hits.hit_mask.all()
+    nearest = scene.frame.length_to_user(float(hits.t.min()))  # the centre pixels' rays
+    assert 0.5 <= nearest < 0.51 < scene.frame.length_to_user(scene.cameras[0].near) == 3.0
+
+
 def test_scene_description_sets_transform_up_cameras_and_ao_radius(tmp_path, box_room, write_obj):
     v, f = box_room
     write_obj(tmp_path / "room.obj", v @ Y_UP, f)
@@ -130,7 +150,7 @@ def test_summary_says_what_was_loaded(tmp_path, box_room, write_obj):
         "up z",
         "interior",
         "AO radius 1552 (user units)",
-        "scaled by 1/16384",
+        "scaled by 1/12000",
     ):
         assert needle in line, line
 
