@@ -74,6 +74,7 @@ def workloads() -> dict:
     """Conference, camera 0, 256x192 with 4 secondary rays per hit (:data:`WARPS` warps of
     each secondary ray type): the BVH, each ray type's rays, the recorder's hits and the
     float64 reference's."""
+    from kernels_ir.kernel_ir import WARP_SIZE
     from simt_sim.study.dyncount import pick_warps
     from simt_sim.study.workload import make_workload
     from simt_sim.trace.record import record_all
@@ -83,7 +84,8 @@ def workloads() -> dict:
     for ray_type in TRACE_RAY_TYPES:
         wl = make_workload(SCENE, ray_type, cameras="0", resolution=RESOLUTION, spp=SPP)
         work["bvh"] = wl.bvh
-        rays = wl.rays.take(pick_warps(len(wl.rays.tmin), WARPS))  # whole warps only
+        whole = len(wl.rays.tmin) // WARP_SIZE  # primary rays make fewer: all of them
+        rays = wl.rays.take(pick_warps(len(wl.rays.tmin), min(WARPS, whole)))
         work["rays"][ray_type] = rays
         hits = record_all(wl.bvh, rays).hits
         work["hits"][ray_type] = (hits.tri, hits.t)

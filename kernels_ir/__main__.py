@@ -24,7 +24,7 @@ from kernels_ir.build import (
     check,
     write_cubins,
 )
-from kernels_ir.errors import KernelIRError
+from kernels_ir.errors import KernelIRError, OneLineParser
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 
 
@@ -37,10 +37,14 @@ def to_markdown(table: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
+PROG = "python -m kernels_ir"
+"""The command's name, as its errors begin."""
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; return the exit status (2 on bad input, 1 on a failed check)."""
-    parser = argparse.ArgumentParser(prog="python -m kernels_ir", description=__doc__)
-    sub = parser.add_subparsers(dest="cmd", required=True)
+    parser = OneLineParser(prog=PROG, description=__doc__)
+    sub = parser.add_subparsers(dest="cmd", required=True, parser_class=OneLineParser)
     b = sub.add_parser("build", help="compile every kernel and write kernels_ir/ir/*.json")
     b.add_argument(
         "--check",
@@ -83,18 +87,22 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument(
         "--kernel",
         required=True,
+        type=str.lower,
         help="a trace kernel over a binary, bvh4 or cwbvh tree: while_while, "
         "bvh4_while_while, cwbvh_persistent_while_while, ...",
     )
     # defaults left to the study (simt_sim.study.dyncount), which kernels_ir may not import
     # before the command runs
     d.add_argument("--scene", default=None, help="scene name or mesh path (default: room)")
-    d.add_argument("--rays", default="primary", help="primary, ao or diffuse")
+    d.add_argument("--rays", default="primary", type=str.lower, help="primary, ao or diffuse")
     d.add_argument("--warps", type=int, default=None, help="warps, spread over the image")
-    d.add_argument("--gpu", default=None, help="GPU whose IR and rules the replay uses")
+    d.add_argument(
+        "--gpu", default=None, type=str.lower, help="GPU whose IR and rules the replay uses"
+    )
     d.add_argument(
         "--arch",
         default=None,
+        type=str.lower,
         help="code to walk and replay (default: the GPU's IR); sm_35 is Kepler's, replayed "
         "on --gpu gtx680",
     )
@@ -164,10 +172,10 @@ def main(argv: list[str] | None = None) -> int:
         print(to_markdown(summary_table(args.arch)))
         return 0
     except KernelIRError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+        print(f"{PROG}: interrupted", file=sys.stderr)
         return 130
 
 
@@ -186,10 +194,10 @@ def _dyncount(args: argparse.Namespace) -> int:
             merge=not args.split, **{k: v for k, v in given.items() if v is not None},
         )  # fmt: skip
     except (SimtSimError, KernelIRError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+        print(f"{PROG}: interrupted", file=sys.stderr)
         return 130
     print(result.summary())
     print(result.table.to_string())

@@ -5,13 +5,15 @@ on the command line a Ctrl-C pressed while the file is written stops the rename
 (:func:`simt_sim.progress.checkpoint`), and a second one, which ends the process at once,
 removes the temporary file. One pressed just after the rename finds the file whole: the
 run still ends as interrupted (status 130), beside the finished file. Tables, figures,
-trace files and regenerated goldens are all written this way (:func:`written_whole`).
+trace files and regenerated goldens are all written this way (:func:`written_whole`), a
+plot's set of figures through a temporary folder (:func:`folder_written_whole`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -50,6 +52,49 @@ def written_whole(path: str | os.PathLike[str]) -> Iterator[str]:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+@contextlib.contextmanager
+def folder_written_whole(folder: str | os.PathLike[str]) -> Iterator[Path]:
+    """A temporary folder to write a set of files into, and when the block ends without
+    an error or a Ctrl-C, the set put in place: a new ``folder`` is the temporary one
+    renamed (it appears whole), an existing one gets the files moved in, a rename each
+    (no space, next to no time). Otherwise they are removed, so a full disk or a Ctrl-C
+    while the set is written leaves ``folder`` as it was, an earlier run's files in it not
+    mixed with part of a new set. The temporary folder is made inside an existing
+    ``folder`` (only it need be writable) and beside a new one, on the file system the
+    path leads to (a link is followed)."""
+    target = Path(os.path.realpath(folder))
+    exists = target.is_dir()
+    try:
+        tmp = Path(
+            tempfile.mkdtemp(
+                prefix=f".{target.name}.", suffix=".tmp", dir=target if exists else target.parent
+            )
+        )
+    except OSError as exc:
+        raise _unwritable(target, exc) from None
+    try:
+        with progress.temporary(tmp):  # a second Ctrl-C removes it
+            yield tmp
+            progress.checkpoint()  # Ctrl-C while writing: the folder stays as it was
+            if not exists:
+                os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700
+                os.rename(tmp, target)
+                return
+            names = sorted(p.name for p in tmp.iterdir())
+            taken = [n for n in names if (target / n).is_dir()]
+            if taken:  # checked before any move: a failed move would leave a mixed set
+                raise SimtSimError(
+                    f"cannot write {target / taken[0]}: a folder of that name is there; "
+                    "move it or choose another --out"
+                )
+            for name in names:
+                os.replace(tmp / name, target / name)
+    except OSError as exc:  # a full disk, a folder made read-only meanwhile
+        raise _unwritable(target, exc) from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def check_writable(path: str | os.PathLike[str]) -> Path:

@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from kernels_ir.build import DEFAULT_ARCH, KERNELS
-from kernels_ir.errors import KernelIRError
+from kernels_ir.errors import KernelIRError, OneLineParser
 from kernels_ir.kernel_ir import DEFAULT_TESTS, TESTS
 from simt_sim import __version__, progress
 from simt_sim.atomic import check_writable, write_atomic
@@ -42,14 +42,6 @@ from simt_sim.simt.gpus import DEFAULT_GPU
 from simt_sim.study.protocol import PAPER_PROTOCOL, PAPER_TESTS
 from simt_sim.types.optrace import DEFAULT_LAYOUT, LAYOUTS
 from simt_sim.types.raybatch import TRACE_RAY_TYPES
-
-
-class _Parser(argparse.ArgumentParser):
-    """argparse that reports a usage error in one line with exit status 2."""
-
-    def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
-
 
 #: the paper's protocol as the workload flags ``--paper`` sets on every command
 PAPER = {
@@ -96,6 +88,7 @@ def _add_workload_args(
     )
     p.add_argument(
         "--up",
+        type=str.lower,
         choices=("x", "y", "z", "auto"),
         default=_TREE_DEFAULTS["up"],
         help="the scene's up axis (default: auto, the scene description's axis, or for a "
@@ -231,9 +224,11 @@ def _up(args: argparse.Namespace) -> str | None:
 def cmd_bench(args: argparse.Namespace) -> int:
     """Measure real tracers on the same rays; agreement is against the float64 reference."""
     from simt_sim import progress
-    from simt_sim.study.bench import bench_tracers, check_bench, runs, short_timings
+    from simt_sim.study.bench import TRACERS, bench_tracers, check_bench, runs, short_timings
+    from simt_sim.study.spec import one_name, parse_list
 
-    tracers = [t.strip() for t in args.tracers.split(",") if t.strip()]
+    tracers = list(parse_list(args.tracers, TRACERS, "tracer"))  # any case, as table's lists
+    args.rays = one_name(args.rays, TRACE_RAY_TYPES, "ray type")
     check_bench(tracers, args.repeats, args.check_rays)
     with progress.bar("loading", enabled=progress.wanted(args.quiet)) as bar:
         wl = _workload(args, args.rays)
@@ -252,15 +247,17 @@ def _check_trace_size(first: Any, rays: int, out: str, quiet: bool) -> None:
     import shutil
     from pathlib import Path
 
+    from simt_sim.rays.hostmemory import sizes_apart
+
     per_ray = (first.offsets.nbytes + first.op.nbytes + first.addr.nbytes
                + first.hits.tri.nbytes + first.hits.t.nbytes) / max(first.n_rays, 1)  # fmt: skip
     size = per_ray * rays
     free = shutil.disk_usage(Path(out).resolve().parent).free
     if size > free:
+        need, have = sizes_apart(size, free)
         raise SimtSimError(
-            f"the trace would take about {size / 1e9:.2f} GB but {free / 1e9:.2f} GB are free "
-            f"where {out} goes; record fewer rays (--resolution, --spp, --camera) or write "
-            "it elsewhere"
+            f"the trace would take about {need} but {have} is free where {out} goes; "
+            "record fewer rays (--resolution, --spp, --camera) or write it elsewhere"
         )
     if not quiet:
         print(f"simt-sim: recording {rays} rays, about {size / 1e6:.0f} MB, to {out}",
@@ -271,10 +268,12 @@ def cmd_trace(args: argparse.Namespace) -> int:
     """Record every ray's op sequence and save it; print the summary."""
     from simt_sim import progress
     from simt_sim.bvh.layouts import tree_card
+    from simt_sim.study.spec import one_name
     from simt_sim.trace.record import record
     from simt_sim.trace.tracefile import save_trace
     from simt_sim.types.optrace import OpTrace
 
+    args.rays = one_name(args.rays, TRACE_RAY_TYPES, "ray type")
     totals = np.zeros(3, dtype=np.int64)
     hits = 0
     n = 0
@@ -432,11 +431,12 @@ def cmd_table(args: argparse.Namespace) -> int:
 
 def cmd_plot(args: argparse.Namespace) -> int:
     """Draw the study's figures (active lanes, per-pixel, warp timeline, MRays/s) into a
-    directory; every figure is built before the directory is touched, so bad input leaves
-    nothing behind."""
+    directory; every figure is built before the directory is touched, and the set is
+    written whole or not at all, so bad input, a full disk or Ctrl-C leaves it as it was."""
     from pathlib import Path
 
     from simt_sim import progress
+    from simt_sim.atomic import folder_written_whole
     from simt_sim.report.figures import figure_steps, study_figures
     from simt_sim.report.plots import write_figure
 
@@ -481,16 +481,11 @@ def cmd_plot(args: argparse.Namespace) -> int:
         )
         figures = drawn.figures
         steps.set_description("writing")
-        try:
-            out.mkdir(exist_ok=True)
-        except OSError as exc:
-            raise SimtSimError(
-                f"cannot create {out}: {exc.strerror or exc}; choose a folder you can write to"
-            ) from None
         written = []
-        for stem, fig in figures.items():
-            written += [str(p) for p in write_figure(fig, out, stem)]
-            steps.update()
+        with folder_written_whole(out) as folder:  # the whole set, or out as it was
+            for stem, fig in figures.items():
+                written += [str(out / p.name) for p in write_figure(fig, folder, stem)]
+                steps.update()
     for line in drawn.skipped:
         print(f"simt-sim: note: {line}", file=sys.stderr)
     emit(pd.DataFrame({"file": written}), "md", None)
@@ -612,12 +607,12 @@ def _gpu_ids() -> list[str]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(
+    parser = OneLineParser(
         prog="simt-sim",
         description="How efficiently does a BVH traversal kernel use a SIMT machine?",
     )
     parser.add_argument("--version", action="version", version=f"simt-sim {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
 
     p = sub.add_parser(
         "bench",
@@ -801,7 +796,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="instruction-cost IR of the CUDA kernels",
         epilog="example: simt-sim ir show while_while --arch sm_90",
     )
-    ir_sub = p.add_subparsers(dest="ir_command", required=True, parser_class=_Parser)
+    ir_sub = p.add_subparsers(dest="ir_command", required=True, parser_class=OneLineParser)
     q = ir_sub.add_parser(
         "show",
         help="per-block instruction counts of one kernel",
@@ -887,13 +882,30 @@ def _log_lines_held() -> Iterator[logging.handlers.MemoryHandler]:
         held.buffer.clear()
 
 
+def _expand_home(args: argparse.Namespace) -> None:
+    """``~`` in every path flag, once, so the loader, the writers and the check that
+    ``--out`` is no input all see the same path."""
+    from simt_sim.scene.description import user_path
+
+    for key in ("scene", "camera_file", "gpus", "out"):
+        if isinstance(getattr(args, key, None), str) and getattr(args, key).startswith("~"):
+            setattr(args, key, str(user_path(getattr(args, key))))
+    if getattr(args, "trace", None):
+        args.trace = [str(user_path(t)) if t.startswith("~") else t for t in args.trace]
+
+
 def _check_not_an_input(args: argparse.Namespace) -> None:
     """Refuse an ``--out`` that names a file the command reads: writing it would replace
-    the user's mesh, camera file or trace."""
+    the user's mesh (given, or named by a scene description), camera file or trace."""
     from pathlib import Path
+
+    from simt_sim.scene.description import DESCRIPTION_SUFFIXES, read_description
 
     out = Path(args.out).resolve()
     named = [getattr(args, k, None) for k in ("scene", "camera_file", "gpus")]
+    scene = Path(args.scene) if getattr(args, "scene", None) else None
+    if scene and scene.suffix.lower() in DESCRIPTION_SUFFIXES and scene.is_file():
+        named.append(str(read_description(scene).mesh))
     for given in [*named, *(getattr(args, "trace", None) or ())]:
         if given and Path(given).is_file() and Path(given).resolve() == out:
             raise SimtSimError(
@@ -920,6 +932,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser = build_parser()
             args = parser.parse_args(argv)
             progress.checkpoint()  # a Ctrl-C while modules loaded or arguments were read
+            _expand_home(args)
             _resolve_workload(args)
             if getattr(args, "out", None) == "":
                 raise SimtSimError(

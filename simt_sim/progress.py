@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -84,8 +85,9 @@ def say_interrupted() -> int:
 
 @contextmanager
 def temporary(path: str | os.PathLike[str]) -> Iterator[None]:
-    """While inside, ``path`` is a file being written that a second Ctrl-C (which ends the
-    process without unwinding) removes; on the usual paths its writer cleans it up."""
+    """While inside, ``path`` is a file (or a folder of them) being written that a second
+    Ctrl-C (which ends the process without unwinding) removes; on the usual paths its
+    writer cleans it up."""
     name = os.fspath(path)
     _state.temporaries.add(name)
     try:
@@ -102,6 +104,9 @@ def _on_sigint(signum: int, frame: object) -> None:
 def _hard_exit() -> None:
     """The second Ctrl-C: remove files being written, say so in one line, end now."""
     for name in list(_state.temporaries):
+        if os.path.isdir(name):  # a set of files being written (atomic.folder_written_whole)
+            shutil.rmtree(name, ignore_errors=True)
+            continue
         try:
             os.unlink(name)
         except OSError:

@@ -252,8 +252,11 @@ def test_an_output_that_names_an_input_is_refused(tmp_path, capsys, saved_trace)
     mesh = tmp_path / "mesh.obj"
     mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     before = mesh.read_bytes(), saved_trace.read_bytes()
+    desc = tmp_path / "scene.toml"
+    desc.write_text('mesh = "mesh.obj"\n')
     for argv, given in (
         (["trace", "--scene", str(mesh), "--out", str(mesh)], str(mesh)),
+        (["table", "--scene", str(desc), "--out", str(mesh)], str(mesh)),  # a described mesh
         (["table", "--trace", str(saved_trace), "--out", str(saved_trace)], str(saved_trace)),
     ):
         line = error_line(capsys, *argv, "--quiet")
@@ -273,7 +276,7 @@ def test_a_huge_spp_is_one_line(tmp_path, capsys, command):
 
 def test_plot_refuses_a_folder_it_cannot_write_before_its_work(tmp_path, capsys, monkeypatch):
     """A read-only file system let plot draw everything, then fail on mkdir with a
-    traceback; now the folder is checked first, and a refused mkdir is one line too."""
+    traceback; now the folder is checked first, and a refused folder is one line too."""
     real_access = os.access
     monkeypatch.setattr(os, "access", lambda p, mode: p != tmp_path and real_access(p, mode))
     monkeypatch.setattr(figures, "study_figures", _must_not_draw)
@@ -281,14 +284,117 @@ def test_plot_refuses_a_folder_it_cannot_write_before_its_work(tmp_path, capsys,
     assert "cannot write into" in line and "read-only" in line
     monkeypatch.undo()  # figures drawn for real, then the folder refused
 
-    def read_only(self, *args, **kwargs):
+    def read_only(*args, **kwargs):
         raise OSError(errno.EROFS, "Read-only file system")
 
-    monkeypatch.setattr(Path, "mkdir", read_only)
+    monkeypatch.setattr(tempfile, "mkdtemp", read_only)  # where the figures go first
     line = error_line(capsys, "plot", *TINY, "--quiet", "--out", str(tmp_path / "figs"))
     assert line.endswith("Read-only file system; choose a folder you can write to")
     assert not (tmp_path / "figs").exists()
 
 
+def test_plot_writes_its_figures_whole_or_leaves_the_folder_as_it_was(
+    tmp_path, capsys, monkeypatch
+):
+    """A disk that filled after the first figure left that figure beside an earlier run's
+    others, with no sign which were new; now the set is written in a temporary folder
+    beside and moved in only when all of it is there."""
+    from simt_sim.report import plots
+
+    figs = tmp_path / "figs"
+    figs.mkdir()
+    (figs / "notes.txt").write_text("mine")
+    (figs / "mrays.png").write_bytes(b"an earlier run's")
+    real = plots.write_figure
+    calls = []
+
+    def fills_the_disk(fig, folder, stem):
+        calls.append(stem)
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(fig, folder, stem)
+
+    monkeypatch.setattr(plots, "write_figure", fills_the_disk)
+    small = ["plot", *TINY, "--rays", "primary", "--schemes", "while_while", "--quiet"]
+    line = error_line(capsys, *small, "--out", str(figs))
+    assert line.endswith("No space left on device; choose a folder you can write to")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["figs"]  # no temporary folder
+    assert sorted(p.name for p in figs.iterdir()) == ["mrays.png", "notes.txt"]
+    assert (figs / "mrays.png").read_bytes() == b"an earlier run's"
+    monkeypatch.undo()
+    assert main([*small, "--out", str(figs)]) == 0
+    capsys.readouterr()
+    assert (figs / "notes.txt").read_text() == "mine" and len(list(figs.iterdir())) > 4
+    assert (figs / "mrays.png").read_bytes() != b"an earlier run's"
+    # a folder where a figure goes: refused before any file moves, none left half-set
+    (figs / "mrays.svg").unlink()
+    (figs / "mrays.svg").mkdir()
+    before = {p.name: p.stat().st_mtime_ns for p in figs.iterdir()}
+    line = error_line(capsys, *small, "--out", str(figs))
+    assert line.endswith(
+        "mrays.svg: a folder of that name is there; move it or choose another --out"
+    )
+    assert {p.name: p.stat().st_mtime_ns for p in figs.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["figs"]
+    # a new folder appears whole, through a link to it too
+    (tmp_path / "link").symlink_to(tmp_path / "new")
+    assert main([*small, "--out", str(tmp_path / "link")]) == 0
+    assert (tmp_path / "link").is_symlink() and (tmp_path / "new" / "mrays.png").is_file()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
 def _must_not_draw(*args, **kwargs):
     raise AssertionError("drew figures for a folder it cannot write")
+
+
+def test_names_are_read_in_any_case(tmp_path, capsys):
+    """As table's lists are: a scene, a ray type, a tracer and an up axis in capitals."""
+    argv = ["--scene", "CORNELL-BOX", "--resolution", "8x6", "--camera", "0", "--up", "Z"]
+    out = tmp_path / "bench.csv"
+    bench = ["--rays", "AO", "--spp", "1", "--tracers", "NUMBA", "--repeats", "1"]
+    assert main(["bench", *argv, *bench, "--check-rays", "0", "--quiet", "--out", str(out)]) == 0
+    table = out.read_text()
+    assert "numba" in table and ",ao," in table
+    trace = tmp_path / "p.trace"
+    assert main(["trace", *argv, "--rays", "Primary", "--quiet", "--out", str(trace)]) == 0
+    assert read_meta(trace)["ray_type"] == "primary"
+    capsys.readouterr()
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        (["table", "--scene", "conferense"], "did you mean 'conference'?"),
+        (["bench", *TINY, "--rays", "ao,diffuse"], "give one ray type, got 'ao,diffuse'"),
+        (["bench", *TINY, "--tracers", "embre"], "did you mean 'embree'?"),
+    ],
+)
+def test_a_misspelt_name_gets_the_closest_one(capsys, argv, needle):
+    assert needle in error_line(capsys, *argv)
+
+
+def test_a_home_folder_path_is_expanded_once_for_every_use(tmp_path, capsys, monkeypatch):
+    """``~`` reaches simt-sim where no shell expands it: quoted, after ``--scene=``, or in a
+    description (whose folder it was joined to: ``descs/~/room.obj``). It is expanded
+    once, so the check that ``--out`` is no input sees the path the loader reads (an
+    expanded loader and an unexpanded check replaced the mesh with the trace)."""
+    home = tmp_path / "home"
+    (home / "descs").mkdir(parents=True)
+    monkeypatch.setenv("HOME", str(home))
+    mesh = home / "m.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n")
+    (home / "cams.toml").write_text("[[camera]]\nposition = [2, 2, 2]\nlook_at = [0, 0, 0]\n")
+    (home / "descs" / "d.toml").write_text('mesh = "~/m.obj"\n')
+    small = ["--resolution", "8x6", "--camera", "0", "--rays", "primary", "--quiet"]
+    for scene in ("--scene=~/m.obj", "--scene=~/descs/d.toml"):
+        out = tmp_path / f"{len(scene)}.csv"
+        argv = ["table", scene, "--camera-file=~/cams.toml", *small, "--out", str(out)]
+        assert main(argv) == 0 and out.is_file()
+        capsys.readouterr()
+    before = mesh.read_bytes()
+    line = error_line(capsys, "trace", "--scene=~/m.obj", *small, "--out", str(mesh))
+    assert "is the input" in line and mesh.read_bytes() == before
+    line = error_line(capsys, "table", "--scene=~nosuchuser/m.obj", *small)
+    assert "cannot find the home folder in '~nosuchuser/m.obj'; give the full path" in line
+    (home / "descs" / "bad.toml").write_text('mesh = "~nosuchuser/m.obj"\n')
+    assert "give the full path" in error_line(capsys, "table", "--scene=~/descs/bad.toml", *small)

@@ -107,13 +107,13 @@ def check_room(nbytes: int, what: str, remedy: str) -> None:
     (:data:`SMALLER_IMAGE`, :data:`FEWER_RAYS`)."""
     free = free_bytes()
     if nbytes > free:
-        need, have = _sizes(nbytes, free)
+        need, have = sizes_apart(nbytes, free)
         raise SimtSimError(f"{what} need {need} of memory and only {have} is free; {remedy}")
 
 
-def _sizes(larger: int, smaller: int) -> tuple[str, str]:
-    """Both figures in the units :func:`_size` picks, with as many decimals as it takes
-    to tell them apart."""
+def sizes_apart(larger: float, smaller: float) -> tuple[str, str]:
+    """Both byte counts in the units :func:`_size` picks, with as many decimals as it
+    takes to tell them apart (never "0.00 GB needed, 0.00 GB free")."""
     for digits in range(1, 10):
         pair = _size(larger, digits), _size(smaller, digits)
         if pair[0] != pair[1]:

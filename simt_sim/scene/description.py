@@ -26,6 +26,7 @@ A scene description::
 from __future__ import annotations
 
 import json
+import os
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +42,8 @@ from simt_sim.types.frame import UP_AXES
 DESCRIPTION_SUFFIXES = (".toml", ".json")
 FAR_FRACTION = 4.0
 """Default far plane of a user's camera, as a multiple of the scene's diagonal."""
+SINGULAR = 1e-12
+"""A transform whose smallest scale is below this share of its largest flattens the mesh."""
 
 _SCENE_KEYS = {
     "name", "mesh", "file", "transform", "up", "ao_radius", "camera", "cameras",
@@ -149,8 +152,10 @@ def camera_spec(entry: Any, index: int, where: str) -> CameraSpec:
     if not length > 0:
         raise SimtSimError(f"{here} looks nowhere (look_at equals position, or forward is 0)")
     up = _vector(entry["up"], "up", here) if "up" in entry else None
-    if up is not None and np.linalg.norm(np.cross(forward / length, up)) < 1e-9 * (
-        np.linalg.norm(up) or 1.0
+    if up is not None and not np.linalg.norm(up) > 0:
+        raise SimtSimError(f"{here}: up is 0 0 0; give the scene's up direction, as [0, 1, 0]")
+    if up is not None and np.linalg.norm(np.cross(forward / length, up)) < 1e-9 * np.linalg.norm(
+        up
     ):
         raise SimtSimError(f"{here}: up is parallel to the viewing direction; tilt one of them")
     fov = _number(entry.get("fov_y_deg", FOV_Y_DEG), "fov_y_deg", here)
@@ -182,8 +187,21 @@ def read_camera_file(path: str | Path) -> tuple[CameraSpec, ...]:
     return specs
 
 
+def user_path(text: str | os.PathLike[str]) -> Path:
+    """A path as a user wrote it, with ``~`` and ``~user`` expanded: no shell expands it
+    when it was quoted, came after ``--scene=`` or sits in a scene description."""
+    try:
+        return Path(text).expanduser()
+    except RuntimeError:  # ~user of no user
+        raise SimtSimError(
+            f"cannot find the home folder in {os.fspath(text)!r}; give the full path"
+        ) from None
+
+
 def up_axis(value: Any, where: str) -> str | None:
-    """A checked up-axis name (``None`` for auto)."""
+    """A checked up-axis name, in any case (``None`` for auto)."""
+    if isinstance(value, str):
+        value = value.strip().lower()
     if value is None or value == "auto":
         return None
     if value not in UP_AXES:
@@ -203,8 +221,11 @@ def transform_matrix(value: Any, where: str) -> np.ndarray | None:
         m = m[:3]
     if m.shape != (3, 4) or not np.isfinite(m).all():
         raise SimtSimError(f"{where}: transform must be a 3x4 (or affine 4x4) matrix")
-    if abs(np.linalg.det(m[:, :3])) == 0:
-        raise SimtSimError(f"{where}: transform is singular; give an invertible matrix")
+    scales = np.linalg.svd(m[:, :3], compute_uv=False)  # largest first
+    if not scales[-1] > SINGULAR * scales[0]:  # relative: a uniform 1e-200 is no flattening
+        raise SimtSimError(
+            f"{where}: transform is singular (it flattens the mesh); give an invertible matrix"
+        )
     return m
 
 
@@ -221,7 +242,7 @@ def parse_description(
     ao = data.get("ao_radius")
     return SceneDescription(
         name=str(data.get("name", default_name)),
-        mesh=(mesh_folder / mesh).expanduser(),
+        mesh=mesh_folder / user_path(mesh),  # ~/x.obj: the folder drops away
         transform=transform_matrix(data.get("transform"), where),
         up=up_axis(data.get("up"), where),
         ao_radius=None if ao is None else _number(ao, "ao_radius", where),

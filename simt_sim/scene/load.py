@@ -13,6 +13,7 @@ the views :mod:`simt_sim.scene.views` reads off its geometry.
 
 from __future__ import annotations
 
+import difflib
 import hashlib
 import json
 import os
@@ -179,9 +180,13 @@ def _make_scene(
     ao_radius: float | None = None,
     source: str,
     up_source: str = "given",
+    mirrored: bool = False,
 ) -> Scene:
     """Validate raw float64 mesh arrays (user units), move them into the canonical frame
-    (:mod:`simt_sim.types.frame`), place cameras and build the Scene."""
+    (:mod:`simt_sim.types.frame`), place cameras and build the Scene. ``mirrored``: a
+    transform with a negative determinant made them, which turned the faces' winding
+    inside out; the views read the faces as the file wound them (Conference's transform
+    into the paper's frame is one such), and the triangles are kept as they are."""
     v, tris = _used_vertices(vertices, triangles, path)
     if up is None:
         convention = UP_CONVENTION[path.suffix.lower()]
@@ -209,7 +214,7 @@ def _make_scene(
         cams = tuple(_canonical_camera(c.camera(user_up, diagonal), frame) for c in cameras)
         views = "given"
     else:
-        eye = find_eye(v32, tris)
+        eye = find_eye(v32, tris[:, ::-1] if mirrored else tris)  # inside a solid or a room
         if eye is None:
             cams, views = object_cameras(v32[np.unique(tris)]), "object: cameras around it"
         else:
@@ -290,14 +295,17 @@ def _from_description(
         raise SimtSimError(f"scene {desc.name!r}: mesh not found at {path}; {missing}")
     differs = bool(sha256) and sha256_of(path) != sha256
     vertices, triangles = _read_mesh(path)
+    mirrored = False
     if desc.transform is not None:
         m = desc.transform
         vertices = vertices @ m[:, :3].T + m[:, 3]
+        mirrored = bool(np.linalg.slogdet(m[:, :3])[0] < 0)
     scene = _make_scene(
         desc.name,
         vertices,
         triangles,
         path,
+        mirrored=mirrored,
         up=up if up is not None else desc.up,
         cameras=read_camera_file(camera_file) if camera_file else desc.cameras,
         ao_radius=desc.ao_radius,
@@ -355,6 +363,8 @@ def load_scene(
     up = up_axis(up, "--up")
     descs = _descriptors()
     desc = descs.get(name_or_path)
+    if desc is None and not Path(name_or_path).is_file():  # a scene's name, in any case
+        desc = {k.lower(): d for k, d in descs.items()}.get(name_or_path.strip().lower())
     if room_size is not None and (desc is None or desc.get("generator") != "room"):
         raise SimtSimError("room_size applies only to the built-in scene 'room'; drop it")
     if desc is None:
@@ -363,8 +373,10 @@ def load_scene(
             return _from_description(read_description(path), up=up, camera_file=camera_file)
         if path.is_file():
             return load_mesh(path, up=up, camera_file=camera_file)
+        close = difflib.get_close_matches(name_or_path.strip().lower(), list(descs), n=1)
+        hint = f"did you mean {close[0]!r}? " if close else ""
         raise SimtSimError(
-            f"unknown scene {name_or_path!r} (no such file either); use one of "
+            f"unknown scene {name_or_path!r} (no such file either); {hint}use one of "
             f"{', '.join(descs)}, a mesh file path or a scene description (.toml)"
         )
     if desc.get("generator") == "room":

@@ -147,9 +147,11 @@ def scheme_of_kernel(kernel: str) -> SchemeInfo:
 def pick_warps(n_rays: int, warps: int) -> np.ndarray:
     """Indices of ``warps`` whole warps spread evenly over ``n_rays`` rays, in order."""
     total = n_rays // WARP_SIZE
-    if warps < 1 or total < 1:
-        raise SimtSimError(f"--warps must be 1 .. {total} (the rays make {total} whole warps)")
-    chosen = np.unique(np.linspace(0, total - 1, min(warps, total)).round().astype(np.int64))
+    if not 1 <= warps <= total:  # more was cut to the rays' warps, unsaid
+        raise SimtSimError(
+            f"--warps must be 1 .. {total} (the rays make {total} whole warps), got {warps}"
+        )
+    chosen = np.unique(np.linspace(0, total - 1, warps).round().astype(np.int64))
     return (chosen[:, None] * WARP_SIZE + np.arange(WARP_SIZE)).ravel()
 
 

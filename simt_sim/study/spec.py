@@ -106,6 +106,15 @@ class StudySpec:
             raise SimtSimError(f"--spp must be at least 1, got {self.spp}")
 
 
+def one_name(text: str, known: Sequence[str], what: str) -> str:
+    """The one name of ``known`` that ``text`` gives, matched as :func:`parse_list`
+    matches (ignoring case, the closest name suggested)."""
+    names = parse_list(text, known, what)
+    if len(names) != 1:
+        raise SimtSimError(f"give one {what}, got {text!r}; use one of {', '.join(known)}")
+    return names[0]
+
+
 def parse_list(text: str, known: Sequence[str], what: str) -> tuple[str, ...]:
     """A comma list of names (``all`` = every known name), each matched to ``known``
     ignoring case; an unknown name gets the closest known one as a suggestion."""

@@ -139,6 +139,47 @@ def test_scene_description_sets_transform_up_cameras_and_ao_radius(tmp_path, box
     assert np.array_equal(load_scene(str(same)).vertices, scene.vertices)
 
 
+def test_a_mirroring_transform_keeps_a_room_a_room_and_a_solid_a_solid(
+    tmp_path, box_room, write_obj
+):
+    """A transform with a negative determinant turns the faces' winding inside out: a
+    mirrored room (walls facing in) looked like the inside of a solid and got cameras
+    around it, a mirrored ball like a room and got cameras inside it. The views now read
+    the faces as the file wound them; the triangles stay as they are (Conference's
+    transform into the paper's frame mirrors, and its op streams must not move)."""
+    import trimesh
+
+    ball = trimesh.creation.icosphere(subdivisions=2)
+    write_obj(tmp_path / "ball.obj", np.asarray(ball.vertices), np.asarray(ball.faces))
+    write_obj(tmp_path / "room.obj", *box_room)
+    for mesh, views in (("ball", "object"), ("room", "interior")):
+        loaded = {}
+        for name, sign in (("plain", 1), ("mirrored", -1)):
+            rows = [[sign, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]
+            desc = tmp_path / f"{mesh}_{name}.toml"
+            desc.write_text(f'mesh = "{mesh}.obj"\nup = "z"\ntransform = {rows}\n')
+            loaded[name] = load_scene(str(desc))
+            assert loaded[name].notes["views"].startswith(views), (mesh, name)
+        assert np.array_equal(loaded["mirrored"].triangles, loaded["plain"].triangles)
+
+
+@pytest.mark.parametrize(("factor", "ok"), [(1e-200, True), (1e200, True), (1e-13, False)])
+def test_a_transform_is_singular_only_if_it_flattens(tmp_path, box_room, write_obj, factor, ok):
+    """Uniformly tiny or huge is a change of units (its determinant under- or overflows);
+    one axis squashed to 1e-13 of the others flattens the mesh."""
+    v, f = box_room
+    write_obj(tmp_path / "room.obj", v, f)
+    desc = tmp_path / "scaled.toml"
+    z = 1.0 if not ok else factor
+    rows = [[factor, 0, 0, 0], [0, factor, 0, 0], [0, 0, z, 0]]
+    desc.write_text(f'mesh = "room.obj"\ntransform = {rows}\n')
+    if ok:
+        assert load_scene(str(desc)).frame.scale == pytest.approx(12.0 * factor)
+    else:
+        with pytest.raises(SimtSimError, match="singular"):
+            load_scene(str(desc))
+
+
 def test_summary_says_what_was_loaded(tmp_path, box_room, write_obj):
     v, f = box_room
     path = tmp_path / "room.obj"
@@ -211,6 +252,7 @@ def test_ply_face_index_past_the_vertex_count(tmp_path):
         ("[[camera]]\nposition = [0, 0, 0]\n", "exactly one of look_at or forward"),
         ("[[camera]]\nposition = [0, 0, 0]\nlook_at = [0, 0, 0]\n", "looks nowhere"),
         ("[[camera]]\nposition = [0, 0, 0]\nforward = [0, 0, 1]\nup = [0, 0, 2]\n", "parallel"),
+        ("[[camera]]\nposition = [0, 0, 0]\nforward = [0, 0, 1]\nup = [0, 0, 0]\n", "up is 0 0 0"),
         ("[[camera]]\nposition = [0, 0, 0]\nforward = [1, 0, 0]\nfov_y_deg = 190\n", "(0, 180)"),
         ("[[camera]]\nposition = [0, 0, 0]\nforward = [1, 0, 0]\nzoom = 2\n", "unknown key"),
         ("title = 'no cameras'\n", "holds no camera"),

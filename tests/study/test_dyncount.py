@@ -223,7 +223,8 @@ def test_command_prints_both_counts_and_refuses_bad_input(capsys) -> None:
     assert "SASS walk" in out and "replay" in out and "tri_test" in out
     assert main(["dyncount", "--kernel", "no_such_kernel"]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("error: the walk runs no kernel") and "\n" == err[-1]
+    assert err.startswith("python -m kernels_ir: error: the walk runs no kernel")
+    assert err.count("\n") == 1
     assert "bvh4_while_while" in err  # the list names the kernels it runs
     assert main(["dyncount", "--kernel", "while_while", "--gpu", "h100"]) == 2  # sm_90 code
     assert "pick another --gpu" in capsys.readouterr().err
@@ -234,7 +235,18 @@ def test_command_prints_both_counts_and_refuses_bad_input(capsys) -> None:
     ):
         assert main(["dyncount", "--kernel", "while_while", "--warps", "1", *argv]) == 2
         err = capsys.readouterr().err
-        assert err.startswith("error: ") and err.count("\n") == 1 and fix in err
+        assert err.startswith("python -m kernels_ir: error: ") and err.count("\n") == 1
+        assert fix in err
+    # a flag argparse refuses, names in capitals, more warps than the rays make
+    with pytest.raises(SystemExit) as exit_:
+        main(["dyncount", "--kernel", "while_while", "--warps", "1e8"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1 and "invalid int value" in err
+    assert main(["dyncount", "--kernel", "WHILE_WHILE", "--rays", "AO", "--warps", "1"]) == 0
+    assert "SASS walk" in capsys.readouterr().out
+    assert main(["dyncount", "--kernel", "while_while", "--warps", "100000000"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--warps must be 1 .. 1536" in err and "100000000" in err
 
 
 def test_walk_meets_the_exact_packet_kernel_where_the_replay_cannot() -> None:

@@ -16,6 +16,8 @@ def test_pick_warps_spreads_whole_warps() -> None:
     assert idx.reshape(3, 32)[:, 0].tolist() == [0, 128, 288]
     with pytest.raises(SimtSimError, match="--warps"):
         pick_warps(20, 1)
+    with pytest.raises(SimtSimError, match="--warps must be 1 .. 10 .* got 11"):
+        pick_warps(32 * 10, 11)  # was cut to 10, unsaid
 
 
 def test_a_diverged_vote_issues_its_own_path_in_lockstep() -> None:

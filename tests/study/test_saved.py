@@ -243,7 +243,7 @@ def test_trace_refuses_a_file_the_disk_cannot_hold(tmp_path, monkeypatch, capsys
                  "--out", str(out), "--quiet"])  # fmt: skip
     assert code == 2 and not out.exists() and not list(tmp_path.iterdir())
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "are free" in err[0]
+    assert len(err) == 1 and "1000 bytes is free" in err[0]  # it said 0.00 GB
 
 
 def test_plot_draws_saved_traces_as_it_draws_recorded_rays(tmp_path: Path) -> None:
